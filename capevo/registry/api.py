@@ -5,7 +5,8 @@ One shared test suite runs over both (``tests/registry/test_contract.py``).
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Protocol, runtime_checkable
+from collections.abc import Mapping
+from typing import Any, Protocol, runtime_checkable
 
 from capevo.registry.records import (
     AuditEvent,

@@ -24,7 +24,8 @@ Invariants:
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import jsonschema
 import yaml
@@ -173,7 +174,8 @@ def spec_from_document(doc: object) -> PublishSpec:
         ),
         interface=Interface.from_dict(d.get("interface") or {}),
         media_type=d.get("media_type"),
-        parent=d.get("parent"),
+        # JSON Schema counts 1.0 as an integer; the record must hold a real int.
+        parent=int(d["parent"]) if d.get("parent") is not None else None,
         origin=Origin(d.get("origin", Origin.MANUAL.value)),
         provenance=Provenance.from_dict(d.get("provenance")),
     )

@@ -16,7 +16,7 @@ Invariants:
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 from capevo.errors import IllegalTransition
 from capevo.registry.records import Action, State

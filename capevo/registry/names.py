@@ -41,8 +41,14 @@ def validate_name(name: object) -> str:
     return name
 
 
+MAX_VERSION = 2**63 - 1
+"""Largest version SQLite's INTEGER (and so any store) can hold."""
+
+
 def validate_version(version: object) -> int:
-    """Return ``version`` as an int if it is a non-negative integer (bools refused)."""
+    """Return ``version`` as an int if it is an integer in ``0..MAX_VERSION`` (bools refused)."""
     if isinstance(version, bool) or not isinstance(version, int) or version < 0:
         raise Invalid(f"version must be a non-negative integer, got {version!r}", details={"field": "version"})
+    if version > MAX_VERSION:
+        raise Invalid(f"version must be at most {MAX_VERSION}, got {version}", details={"field": "version"})
     return version

@@ -12,8 +12,9 @@ Invariants:
 from __future__ import annotations
 
 import enum
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 
 class Kind(str, enum.Enum):

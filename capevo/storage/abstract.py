@@ -13,7 +13,8 @@ in a :class:`capevo.storage.blobs.BlobStore`, not here.
 from __future__ import annotations
 
 import abc
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from capevo.registry.records import (
     ArtifactRef,

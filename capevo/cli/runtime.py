@@ -1,0 +1,350 @@
+"""``capevo runtime ...``: run a runtime worker, list the running ones, ask one to evaluate.
+
+Invariants:
+1. ``serve`` exits 0 after SIGTERM or SIGINT once the worker has closed its traces and
+   Zenoh sessions, and 0 after ``--episodes N`` episodes.
+2. With ``--json``, every line ``serve`` prints on stdout is one JSON object with an
+   ``event`` field (``ready``, ``waiting``, ``registry``, ``swap_queued``, ``swap``,
+   ``episode``, ``evaluated``, ``stopped``); logs go to stderr.
+3. Errors follow the ``capevo`` convention: one ``error [code]: message`` line on stderr and
+   the code's exit status.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+import click
+from rich.console import Console
+
+from capevo.cli import (
+    _SEEN_PASSWORDS,
+    DEFAULT_NAMESPACE,
+    CapevoGroup,
+    emit,
+    fmt_time,
+    json_option,
+    make_table,
+)
+from capevo.errors import Invalid
+
+
+@click.group(cls=CapevoGroup, context_settings={"help_option_names": ["-h", "--help"]})
+def runtime() -> None:
+    """Run tasks with the registry's ECMs (runtime workers)."""
+
+
+def _connection_options(func: Any) -> Any:
+    decorators = [
+        click.option(
+            "--connect",
+            multiple=True,
+            required=True,
+            metavar="ENDPOINT",
+            envvar="CAPEVO_CONNECT",
+            help="Zenoh endpoint of the registry, e.g. tcp/127.0.0.1:7447; repeatable (env CAPEVO_CONNECT).",
+        ),
+        click.option(
+            "--namespace",
+            default=DEFAULT_NAMESPACE,
+            envvar="CAPEVO_NAMESPACE",
+            show_default=True,
+            help="Zenoh key prefix of the registry (env CAPEVO_NAMESPACE).",
+        ),
+        click.option("--user", envvar="CAPEVO_USER", default=None, help="Zenoh user (env CAPEVO_USER)."),
+        click.option(
+            "--password",
+            envvar="CAPEVO_PASSWORD",
+            default=None,
+            show_envvar=False,
+            help="Zenoh password (env CAPEVO_PASSWORD; prefer the env var; never echoed).",
+        ),
+    ]
+    for deco in reversed(decorators):
+        func = deco(func)
+    return func
+
+
+def _remember(password: str | None) -> str | None:
+    if password:
+        _SEEN_PASSWORDS.add(password)
+    return password or None
+
+
+@runtime.command("serve")
+@_connection_options
+@click.option("--task", required=True, help="Task to run: T1..T6 or its name (pick, place, ...).")
+@click.option("--worker-id", default=None, help="Key chunk naming this worker. [default: <host>-<pid>]")
+@click.option(
+    "--trace-dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="Write MCAP traces here (one file per capability set; evaluations under evaluations/).",
+)
+@click.option(
+    "--cache-dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="On-disk artifact cache (by sha256). [default: in memory]",
+)
+@click.option("--episodes", type=click.IntRange(min=1), default=None, help="Run N episodes, then exit.")
+@click.option("--idle", is_flag=True, help="Run no episodes; only serve evaluation requests.")
+@click.option("--horizon", type=click.IntRange(min=1), default=None, help="Episode length. [default: the task's]")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the first episode.")
+@click.option("--no-perturbations", is_flag=True, help="Run the clean task (no jitter, noise or dropped actions).")
+@click.option(
+    "--governance/--no-governance",
+    default=True,
+    show_default=True,
+    help="Enforce the safety envelope Φ; --no-governance only counts what it would do (evaluation only).",
+)
+@click.option("--phi", "phi_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Φ YAML file.")
+@click.option(
+    "--identity",
+    "identity_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Agent identity memory (M_id) YAML. [default: the packaged one]",
+)
+@click.option("--step-budget", type=click.IntRange(min=1), default=200, show_default=True, help="Steps per ECM run.")
+@click.option(
+    "--ecm-timeout", type=click.FloatRange(min=0.001), default=0.5, show_default=True, help="Seconds per ECM call."
+)
+@click.option(
+    "--recovery",
+    type=click.Choice(["abort", "retry", "fallback", "retry-fallback"]),
+    default="retry",
+    show_default=True,
+    help="What to do when an ECM call fails.",
+)
+@click.option(
+    "--timeout",
+    type=click.FloatRange(min=0.01),
+    default=10.0,
+    envvar="CAPEVO_TIMEOUT",
+    show_default=True,
+    help="Seconds to wait for each registry reply.",
+)
+@click.option(
+    "--log-level",
+    type=click.Choice(["DEBUG", "INFO", "WARNING", "ERROR"], case_sensitive=False),
+    default="WARNING",
+    show_default=True,
+    help="Log level (logs go to stderr).",
+)
+@json_option
+def serve_cmd(
+    connect: tuple[str, ...],
+    namespace: str,
+    user: str | None,
+    password: str | None,
+    task: str,
+    worker_id: str | None,
+    trace_dir: Path | None,
+    cache_dir: Path | None,
+    episodes: int | None,
+    idle: bool,
+    horizon: int | None,
+    seed: int,
+    no_perturbations: bool,
+    governance: bool,
+    phi_path: Path | None,
+    identity_path: Path | None,
+    step_budget: int,
+    ecm_timeout: float,
+    recovery: str,
+    timeout: float,
+    log_level: str,
+    as_json: bool,
+) -> None:
+    """Run episodes of --task with the registry's active ECMs until SIGTERM (or --episodes N).
+
+    Hot-swaps an ECM between episodes when the registry promotes or rolls it back, keeps
+    running on its last versions while the registry is away, and serves evaluation requests
+    on <ns>/runtime/<worker_id>/evaluate and <ns>/runtime/evaluate/<task>.
+    """
+    from capevo.registry.zconfig import split_endpoints
+    from capevo.runtime.governance import Phi, load_phi
+    from capevo.runtime.tasks import Perturbations
+    from capevo.runtime.worker import RuntimeWorker, WorkerConfig
+
+    logging.basicConfig(
+        level=log_level.upper(), stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    config = WorkerConfig(
+        connect=split_endpoints(connect),
+        task=task,
+        namespace=namespace,
+        user=user or None,
+        password=_remember(password),
+        worker_id=worker_id,
+        trace_dir=trace_dir,
+        cache_dir=cache_dir,
+        episodes=episodes,
+        idle=idle,
+        horizon=horizon,
+        perturbations=Perturbations.none() if no_perturbations else Perturbations(),
+        governance=governance,
+        phi=load_phi(phi_path) if phi_path is not None else Phi.default(),
+        identity_path=identity_path,
+        seed=seed,
+        step_budget_per_ecm=step_budget,
+        timeout_s=ecm_timeout,
+        recovery=recovery,
+        registry_timeout=timeout,
+    )
+
+    def show(event: dict[str, Any]) -> None:
+        if as_json:
+            click.echo(json.dumps(event, default=str))
+        else:
+            click.echo(_human(event))
+        sys.stdout.flush()
+
+    RuntimeWorker(config, emit=show).run(handle_signals=True)
+
+
+def _human(event: dict[str, Any]) -> str:
+    kind = event.get("event")
+    wid = event.get("worker_id", "")
+    if kind == "ready":
+        versions = ", ".join(f"{k}@{v}" for k, v in sorted(event.get("versions", {}).items()))
+        return f"[{wid}] ready: task {event.get('task')} at revision {event.get('revision')}: {versions}"
+    if kind == "episode":
+        status = "success" if event.get("success") else event.get("end_reason", "")
+        return (
+            f"[{wid}] episode {event.get('episode')} (seed {event.get('seed')}): {status}, {event.get('steps')} steps, "
+            f"reward {event.get('reward', 0.0):.3f}, {event.get('interventions')} interventions, "
+            f"{event.get('unsafe_steps')} unsafe, {event.get('ecm_failures')} ECM failures"
+        )
+    if kind == "swap":
+        if event.get("applied"):
+            return f"[{wid}] swapped {event.get('name')} {event.get('from_version')} -> {event.get('to_version')}"
+        state = "deferred" if event.get("pending") else "refused"
+        return f"[{wid}] swap of {event.get('name')} to {event.get('to_version')} {state}: {event.get('error')}"
+    if kind == "registry":
+        return f"[{wid}] registry {'is back' if event.get('connected') else 'went away; running on the last versions'}"
+    rest = {k: v for k, v in event.items() if k not in ("event", "worker_id")}
+    return f"[{wid}] {kind}: {json.dumps(rest, default=str)}"
+
+
+@runtime.command("list")
+@_connection_options
+@click.option("--timeout", type=click.FloatRange(min=0.01), default=3.0, show_default=True, help="Seconds to wait.")
+@json_option
+def list_cmd(
+    connect: tuple[str, ...], namespace: str, user: str | None, password: str | None, timeout: float, as_json: bool
+) -> None:
+    """List the runtime workers that answer on <ns>/runtime/*/adopted, with the versions they run."""
+    from capevo.runtime.worker import list_workers
+
+    workers = list_workers(
+        list(connect), namespace=namespace, user=user or None, password=_remember(password), timeout=timeout
+    )
+    emit(as_json, [w.to_dict() for w in workers], lambda c: _render_workers(c, workers))
+
+
+def _render_workers(console: Console, workers: list[Any]) -> None:
+    if not workers:
+        console.print("no runtime workers answered")
+        return
+    table = make_table("WORKER", "TASK", "REVISION", "VERSIONS", "PENDING", "EPISODES", "REGISTRY", "STARTED")
+    for w in workers:
+        table.add_row(
+            w.worker_id,
+            w.task,
+            str(w.revision),
+            ", ".join(f"{k}@{v}" for k, v in sorted(w.versions.items())),
+            ", ".join(f"{k}@{v}" for k, v in sorted(w.pending.items())) or "-",
+            str(w.episodes),
+            "up" if w.registry_connected else "away",
+            fmt_time(w.started_at),
+        )
+    console.print(table)
+
+
+def _parse_versions(values: tuple[str, ...]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for value in values:
+        name, sep, version = value.partition("=")
+        if not sep or not version.isdigit():
+            raise Invalid(f"--version takes NAME=VERSION, got {value!r}", details={"field": "version"})
+        out[name] = int(version)
+    return out
+
+
+def _parse_seeds(text: str) -> list[int]:
+    seeds: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        lo, sep, hi = part.partition("-")
+        if not lo.isdigit() or (sep and not hi.isdigit()):
+            raise Invalid(f"--seeds takes numbers and ranges like 0-9,20, got {text!r}", details={"field": "seeds"})
+        seeds.extend(range(int(lo), int(hi) + 1) if sep else [int(lo)])
+    if not seeds:
+        raise Invalid("--seeds: give at least one seed", details={"field": "seeds"})
+    return seeds
+
+
+@runtime.command("evaluate")
+@_connection_options
+@click.option("--task", required=True, help="Task: T1..T6 or its name.")
+@click.option("--seeds", default="0-4", show_default=True, help="Seeds, e.g. 0-9 or 1,5,7.")
+@click.option("--version", "versions", multiple=True, metavar="NAME=VERSION", help="Run NAME at VERSION; repeatable.")
+@click.option("--worker-id", default=None, help="Ask this worker. [default: any worker of the task]")
+@click.option("--timeout", type=click.FloatRange(min=0.01), default=600.0, show_default=True, help="Seconds to wait.")
+@json_option
+def evaluate_cmd(
+    connect: tuple[str, ...],
+    namespace: str,
+    user: str | None,
+    password: str | None,
+    task: str,
+    seeds: str,
+    versions: tuple[str, ...],
+    worker_id: str | None,
+    timeout: float,
+    as_json: bool,
+) -> None:
+    """Run evaluation episodes on a runtime worker and print their outcomes."""
+    from capevo.runtime.worker import RemoteEvaluator
+
+    pinned = _parse_versions(versions)
+    seed_list = _parse_seeds(seeds)
+    with RemoteEvaluator(
+        list(connect),
+        namespace=namespace,
+        user=user or None,
+        password=_remember(password),
+        worker_id=worker_id,
+        timeout=timeout,
+    ) as evaluator:
+        outcomes = evaluator.evaluate(task, pinned, seed_list)
+
+    def render(console: Console) -> None:
+        table = make_table("SEED", "SUCCESS", "REWARD", "STEPS", "INTERVENTIONS", "UNSAFE", "ECM FAILURES")
+        for o in outcomes:
+            table.add_row(
+                str(o.seed),
+                "yes" if o.success else "no",
+                f"{o.reward:.3f}",
+                str(o.steps),
+                str(o.interventions),
+                str(o.unsafe_steps),
+                str(o.ecm_failures),
+            )
+        console.print(table)
+        rate = sum(o.success for o in outcomes) / len(outcomes)
+        console.print(f"success rate {rate:.1%} over {len(outcomes)} episodes")
+
+    emit(as_json, [o.to_dict() for o in outcomes], render)
+
+
+if __name__ == "__main__":
+    runtime(prog_name="capevo runtime")

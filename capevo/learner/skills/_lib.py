@@ -1,0 +1,199 @@
+"""Building blocks of the built-in code skills: the shared prelude, rendering and publish specs.
+
+Every built-in skill is one self-contained module (the code ECM contract allows no imports
+but ``math`` and ``numpy``), so the helpers all single-arm skills share are pasted into each
+source as :data:`PRELUDE`. A skill is a :class:`SkillTemplate`: a docstring, ``PARAMS`` (the
+v0 values) and a body whose ``${name}`` placeholders (observation key prefixes) are filled
+in per task by :func:`render`.
+
+Invariants:
+1. :func:`render` output passes the sandbox validator and its ``PARAMS`` literal equals the
+   template's ``params`` (same keys, same order, values as floats).
+2. :func:`publish_spec` declares exactly the step's observation keys as inputs (shapes from
+   :data:`OBS_SHAPES`), one ``action`` output of the task's action dimension bounded to
+   [-1, 1], and the step's descriptor (description, applicability, termination) unchanged.
+"""
+
+from __future__ import annotations
+
+import string
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from capevo.errors import Invalid
+from capevo.registry.records import IOSpec, Interface, Kind, Origin, Provenance, PublishSpec
+from capevo.runtime.tasks.spec import EcmStep, TaskSpec
+
+PRELUDE = '''
+import math
+
+import numpy as np
+
+DOWN = (1.0, 0.0, 0.0, 0.0)
+"""Gripper pointing down, fingers along world y (quaternion x, y, z, w)."""
+
+
+def vec(obs, key):
+    return np.asarray(obs[key], dtype=np.float64)
+
+
+def quat_mul(a, b):
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ]
+    )
+
+
+def rot_error(current, target=DOWN):
+    """Axis-angle (world frame, radians) that turns quaternion ``current`` into ``target``."""
+    cur = np.asarray(current, dtype=np.float64)
+    inv = np.array([-cur[0], -cur[1], -cur[2], cur[3]]) / max(float(np.dot(cur, cur)), 1e-12)
+    q = quat_mul(np.asarray(target, dtype=np.float64), inv)
+    if q[3] < 0:
+        q = -q
+    s = float(np.linalg.norm(q[:3]))
+    if s < 1e-9:
+        return np.zeros(3)
+    return q[:3] / s * 2.0 * math.atan2(s, q[3])
+
+
+OPEN, CLOSE = -1.0, 1.0
+"""Gripper commands; robosuite's gripper holds the last command's target."""
+
+
+def pose_action(move, rot, grip, gain, rot_gain):
+    """One 7-D OSC_POSE action: position error times ``gain``, rotation error times ``rot_gain``."""
+    a = np.zeros(7)
+    a[:3] = np.clip(np.asarray(move, dtype=np.float64) * gain, -1.0, 1.0)
+    a[3:6] = np.clip(np.asarray(rot, dtype=np.float64) * rot_gain, -1.0, 1.0)
+    a[6] = grip
+    return a
+
+
+def opening(obs):
+    """Finger gap in metres (about 0 closed, 0.08 fully open); not affected by position noise."""
+    q = obs["robot0_gripper_qpos"]
+    return float(q[0] - q[1])
+
+
+def blend(direct, difference, weight):
+    """Mix two noisy estimates of one vector: ``weight`` on the directly observed one."""
+    return weight * np.asarray(direct, dtype=np.float64) + (1.0 - weight) * np.asarray(difference, dtype=np.float64)
+'''
+"""Helpers pasted into every single-arm skill (the contract forbids importing shared code)."""
+
+OBS_SHAPES: Mapping[str, tuple[int, ...]] = {
+    **{f"robot{i}_{k}": (7,) for i in (0, 1) for k in ("joint_pos_cos", "joint_pos_sin", "joint_vel")},
+    **{f"robot{i}_eef_pos": (3,) for i in (0, 1)},
+    **{f"robot{i}_eef_quat": (4,) for i in (0, 1)},
+    "robot0_gripper_qpos": (2,),
+    "robot0_gripper_qvel": (2,),
+    **{
+        f"{o}_{k}": (4,) if k.endswith("quat") else (3,)
+        for o in ("Can", "Milk", "Bread", "SquareNut")
+        for k in ("pos", "quat", "to_robot0_eef_pos", "to_robot0_eef_quat", "target_pos")
+    },
+    **{f"cube{c}_{k}": (4,) if k == "quat" else (3,) for c in "AB" for k in ("pos", "quat")},
+    "cubeA_to_cubeB": (3,),
+    "gripper_to_cubeA": (3,),
+    "gripper_to_cubeB": (3,),
+    "hole_pos": (3,),
+    "hole_quat": (4,),
+    "peg_to_hole": (3,),
+    "peg_quat": (4,),
+    "angle": (),
+    "t": (),
+    "d": (),
+}
+"""Shape of every observation key a built-in task exposes (checked against real envs in tests)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SkillTemplate:
+    """One skill before its task fills in observation key prefixes.
+
+    Args:
+        doc: The module docstring (first line: what the skill does; then what v0 is).
+        params: ``PARAMS`` of version 0, in the order they appear in the source.
+        body: The functions (``act``, optional ``done`` and helpers); ``${name}`` placeholders
+            are substituted by :func:`render`.
+        prelude: Shared helpers placed before ``PARAMS``.
+    """
+
+    doc: str
+    params: Mapping[str, float]
+    body: str
+    prelude: str = PRELUDE
+    keys: Mapping[str, str] = field(default_factory=dict)
+    """Default placeholder values."""
+
+
+def format_params(params: Mapping[str, float]) -> str:
+    """The ``PARAMS = {...}`` block, one key per line."""
+    lines = "".join(f"    {k!r}: {float(v)!r},\n" for k, v in params.items())
+    return "PARAMS = {\n" + lines + "}\n"
+
+
+def render(template: SkillTemplate, **keys: str) -> str:
+    """The skill's full source with placeholders filled in.
+
+    Args:
+        template: The skill.
+        **keys: Placeholder values (e.g. ``obj="Can"``), over the template's defaults.
+
+    Returns:
+        Python source text following the code ECM contract.
+
+    Raises:
+        Invalid: a placeholder has no value.
+    """
+    values = {**template.keys, **keys}
+    try:
+        body = string.Template(template.body).substitute(values)
+        doc = string.Template(template.doc).substitute(values)
+    except KeyError as exc:
+        raise Invalid(f"skill template needs a value for placeholder {exc.args[0]!r}") from None
+    return f'"""{doc.strip()}\n"""\n' + template.prelude + "\n\n" + format_params(template.params) + "\n" + body.strip() + "\n"
+
+
+def interface_for(step: EcmStep, spec: TaskSpec) -> Interface:
+    """Inputs: the step's observation keys with their shapes; output: one bounded action.
+
+    Raises:
+        Invalid: an observation key whose shape is not in :data:`OBS_SHAPES`.
+    """
+    inputs = []
+    for key in step.observation_keys:
+        try:
+            shape = OBS_SHAPES[key]
+        except KeyError:
+            raise Invalid(f"{step.ecm}: no known shape for observation key {key!r}") from None
+        units = "m" if key.endswith("_pos") or key in ("cubeA_to_cubeB", "peg_to_hole") or "to_cube" in key else None
+        inputs.append(IOSpec(name=key, shape=shape, dtype="float32", units=units))
+    action = IOSpec(name="action", shape=(spec.action_layout.dim,), dtype="float32", low=-1.0, high=1.0)
+    return Interface(inputs=tuple(inputs), outputs=(action,))
+
+
+def publish_spec(
+    step: EcmStep,
+    spec: TaskSpec,
+    *,
+    origin: Origin = Origin.MANUAL,
+    parent: int | None = None,
+    provenance: Provenance | None = None,
+) -> PublishSpec:
+    """The :class:`PublishSpec` of a built-in skill for ``step`` of task ``spec``."""
+    return PublishSpec(
+        kind=Kind.CODE,
+        descriptor=step.descriptor(),
+        interface=interface_for(step, spec),
+        origin=origin,
+        parent=parent,
+        provenance=provenance or Provenance(learner_id="capevo.builtin-skills"),
+    )

@@ -1,0 +1,130 @@
+"""Reach, grasp and lift: the first three steps of every single-arm task, as code skill templates.
+
+The object's grasp point is its origin (``${obj}_pos``) plus ``grasp_dz`` in z. The skills are
+memoryless: each step's phase is read off the (noisy) observation, and every branch that a
+noisy reading can pick wrongly for one step only pauses the motion for that step.
+
+Version 0 is *manual and untuned*: plausible values a person writes before running anything.
+Known weaknesses, which the learners are meant to find:
+
+* reach aims ``grasp_dz`` = 4 cm above the object origin (at the top face rather than the
+  middle), so the step's termination (within 2 cm in height) is never reached; its gain is low;
+* grasp closes the gripper only when within ``close_above`` = 1 cm of that too-high point;
+* lift rises slowly (0.1 of full speed).
+
+Invariants:
+1. Every template renders to source that passes the sandbox validator.
+2. Every action has 7 values in [-1, 1]; the gripper command is -1 (open) or +1 (close).
+"""
+
+from __future__ import annotations
+
+from capevo.learner.skills._lib import SkillTemplate
+
+REACH = SkillTemplate(
+    doc="""Bring the open gripper around ${what}, fingers straddling its grasp point.
+
+Travels at ``hover`` above the grasp point until within ``descend_xy`` horizontally, waits for
+the fingers to open, then descends to ``dig`` below the grasp point. ``done`` when the noisy
+observation puts the grasp point within ``done_tol`` on every axis with the gripper open.
+v0 is untuned (manual): ``grasp_dz`` aims at the top face and the gain is low.
+""",
+    params={
+        "gain": 3.0,
+        "rot_gain": 1.0,
+        "hover": 0.1,
+        "grasp_dz": 0.04,
+        "descend_xy": 0.02,
+        "dig": 0.0,
+        "open_width": 0.065,
+        "done_tol": 0.01,
+    },
+    body='''
+def grasp_error(obs, params):
+    """Grasp point minus end effector (world frame, metres)."""
+    goal = vec(obs, "${obj}_pos") + np.array([0.0, 0.0, params["grasp_dz"]])
+    return goal - vec(obs, "robot0_eef_pos")
+
+
+def act(obs, params):
+    err = grasp_error(obs, params)
+    rot = rot_error(obs["robot0_eef_quat"])
+    xy = math.hypot(err[0], err[1])
+    above = -err[2]
+    low = above < 0.5 * params["hover"]
+    if xy > params["descend_xy"] and not (low and xy < 2.0 * params["descend_xy"]):
+        # travel at hover height; climb first when low so the fingers don't sweep the object
+        move = np.array([err[0], err[1], err[2] + params["hover"]])
+        if above < params["hover"] - 0.02:
+            move[0] *= 0.2
+            move[1] *= 0.2
+        return pose_action(move, rot, OPEN, params["gain"], params["rot_gain"])
+    if opening(obs) < params["open_width"]:
+        # let the fingers open before going down around the object
+        return pose_action(np.array([err[0], err[1], 0.0]), rot, OPEN, params["gain"], params["rot_gain"])
+    move = np.array([err[0], err[1], err[2] - params["dig"]])
+    return pose_action(move, rot, OPEN, params["gain"], params["rot_gain"])
+
+
+def done(obs, params):
+    err = grasp_error(obs, params)
+    return bool(np.all(np.abs(err) < params["done_tol"])) and opening(obs) > params["open_width"]
+''',
+)
+
+GRASP = SkillTemplate(
+    doc="""Close the gripper on ${what} without moving it.
+
+Holds the hand at ``dig`` below the grasp point (tracking the object) and closes once within
+``close_above`` of it in height. ``done`` when the fingers closed on nothing (gap below
+``missed_width``): the plan then goes back to reach, which re-opens the gripper.
+v0 is untuned (manual): same too-high ``grasp_dz`` as reach, slow gain.
+""",
+    params={
+        "gain": 3.0,
+        "rot_gain": 1.0,
+        "grasp_dz": 0.04,
+        "dig": 0.0,
+        "close_above": 0.01,
+        "missed_width": 0.01,
+    },
+    body='''
+def act(obs, params):
+    goal = vec(obs, "${obj}_pos") + np.array([0.0, 0.0, params["grasp_dz"]])
+    err = goal - vec(obs, "robot0_eef_pos")
+    rot = rot_error(obs["robot0_eef_quat"])
+    grip = CLOSE if -err[2] < params["close_above"] else OPEN
+    move = np.array([err[0], err[1], err[2] - params["dig"]])
+    return pose_action(move, rot, grip, params["gain"], params["rot_gain"])
+
+
+def done(obs, params):
+    return opening(obs) < params["missed_width"]
+''',
+)
+
+LIFT = SkillTemplate(
+    doc="""Lift ${what} straight up, keeping the gripper closed.
+
+Rises at ``lift_speed`` (fraction of full speed) with the hand pointing down; the step's
+termination predicate (height above start) ends it. ``done`` when the fingers closed fully
+(gap below ``missed_width``): the object slipped out.
+v0 is untuned (manual): slow.
+""",
+    params={
+        "lift_speed": 0.1,
+        "rot_gain": 1.0,
+        "missed_width": 0.01,
+    },
+    body='''
+def act(obs, params):
+    rot = rot_error(obs["robot0_eef_quat"])
+    a = pose_action(np.zeros(3), rot, CLOSE, 0.0, params["rot_gain"])
+    a[2] = min(max(params["lift_speed"], -1.0), 1.0)
+    return a
+
+
+def done(obs, params):
+    return opening(obs) < params["missed_width"]
+''',
+)

@@ -1,0 +1,217 @@
+"""Skills of T4 nut_assembly: grasp the square nut by its handle, carry it over the square peg,
+slide it down and let go.
+
+The handle is ``handle_offset`` along the nut's own x axis from its origin; the gripper turns
+about the vertical to the nut's yaw so the fingers close across the handle. The nut's centre
+(its origin) must end over the peg: while carrying, the skills servo the nut origin, not the
+hand.
+
+Version 0 is *manual and untuned*: the same weaknesses as :mod:`.grasping` (grasp point 4 cm
+too high, low gains), a carry height that does not clear the peg's top, and a slow lift.
+
+Invariants:
+1. Every ECM of T4's decomposition gets exactly one skill.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from capevo.learner.skills._lib import SkillTemplate
+from capevo.learner.skills.grasping import LIFT
+from capevo.runtime.tasks.spec import TaskSpec
+
+_NUT = '''
+def quat_rotate(q, v):
+    """Rotate vector ``v`` by quaternion ``q`` (x, y, z, w)."""
+    u = np.asarray(q[:3], dtype=np.float64)
+    w = float(q[3])
+    v = np.asarray(v, dtype=np.float64)
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+
+
+def nut_yaw(obs):
+    """The nut's rotation about the vertical, folded into [-pi/2, pi/2] (the grip is symmetric)."""
+    x, y, z, w = (float(c) for c in obs["SquareNut_quat"])
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    while yaw > 0.5 * math.pi:
+        yaw -= math.pi
+    while yaw < -0.5 * math.pi:
+        yaw += math.pi
+    return yaw
+
+
+def grip_rotation(obs):
+    """Rotation error to the gripper pointing down, turned by the nut's yaw."""
+    half = 0.5 * nut_yaw(obs)
+    target = quat_mul(np.array([0.0, 0.0, math.sin(half), math.cos(half)]), np.array(DOWN))
+    return rot_error(obs["robot0_eef_quat"], target)
+
+
+def handle(obs, params):
+    """Grasp point on the nut's handle (world frame)."""
+    offset = quat_rotate(obs["SquareNut_quat"], np.array([params["handle_offset"], 0.0, 0.0]))
+    return vec(obs, "SquareNut_pos") + offset + np.array([0.0, 0.0, params["grasp_dz"]])
+'''
+
+REACH = SkillTemplate(
+    doc="""Bring the open gripper around the nut's handle, turned to the nut's yaw.
+
+Travels at ``hover`` above the handle, then descends with the fingers open.
+v0 is untuned (manual): grasp point too high, low gain.
+""",
+    params={
+        "gain": 3.0,
+        "rot_gain": 1.0,
+        "hover": 0.1,
+        "handle_offset": 0.054,
+        "grasp_dz": 0.04,
+        "descend_xy": 0.015,
+        "dig": 0.0,
+        "open_width": 0.065,
+    },
+    body=_NUT
+    + '''
+
+def act(obs, params):
+    err = handle(obs, params) - vec(obs, "robot0_eef_pos")
+    rot = grip_rotation(obs)
+    xy = math.hypot(err[0], err[1])
+    above = -err[2]
+    low = above < 0.5 * params["hover"]
+    if xy > params["descend_xy"] and not (low and xy < 2.0 * params["descend_xy"]):
+        move = np.array([err[0], err[1], err[2] + params["hover"]])
+        if above < params["hover"] - 0.02:
+            move[0] *= 0.2
+            move[1] *= 0.2
+        return pose_action(move, rot, OPEN, params["gain"], params["rot_gain"])
+    if opening(obs) < params["open_width"]:
+        return pose_action(np.array([err[0], err[1], 0.0]), rot, OPEN, params["gain"], params["rot_gain"])
+    move = np.array([err[0], err[1], err[2] - params["dig"]])
+    return pose_action(move, rot, OPEN, params["gain"], params["rot_gain"])
+
+
+def done(obs, params):
+    return False
+''',
+)
+
+GRASP = SkillTemplate(
+    doc="""Close the gripper on the nut's handle without moving it.
+
+v0 is untuned (manual): grasp point too high.
+""",
+    params={
+        "gain": 3.0,
+        "rot_gain": 1.0,
+        "handle_offset": 0.054,
+        "grasp_dz": 0.04,
+        "dig": 0.0,
+        "close_above": 0.01,
+        "missed_width": 0.005,
+    },
+    body=_NUT
+    + '''
+
+def act(obs, params):
+    err = handle(obs, params) - vec(obs, "robot0_eef_pos")
+    grip = CLOSE if -err[2] < params["close_above"] else OPEN
+    move = np.array([err[0], err[1], err[2] - params["dig"]])
+    return pose_action(move, grip_rotation(obs), grip, params["gain"], params["rot_gain"])
+
+
+def done(obs, params):
+    return opening(obs) < params["missed_width"]
+''',
+)
+
+ALIGN = SkillTemplate(
+    doc="""Carry the nut until its centre is over the square peg, above the peg's top.
+
+Servos the nut origin to ``carry_dz`` above its seated height over the peg, climbing first.
+v0 is untuned (manual): carries too low to clear the peg, low gain.
+""",
+    params={
+        "gain": 3.0,
+        "rot_gain": 1.0,
+        "carry_dz": 0.1,
+        "climb_margin": 0.03,
+        "missed_width": 0.005,
+    },
+    body=_NUT
+    + '''
+
+def act(obs, params):
+    nut = vec(obs, "SquareNut_pos")
+    goal = vec(obs, "SquareNut_target_pos")
+    carry = goal[2] + params["carry_dz"]
+    move = np.array([goal[0] - nut[0], goal[1] - nut[1], carry - nut[2]])
+    if nut[2] < carry - params["climb_margin"]:
+        move[0] *= 0.1
+        move[1] *= 0.1
+    return pose_action(move, grip_rotation(obs), CLOSE, params["gain"], params["rot_gain"])
+
+
+def done(obs, params):
+    return opening(obs) < params["missed_width"]
+''',
+)
+
+INSERT = SkillTemplate(
+    doc="""Lower the nut down the peg until it is seated, keeping it centred.
+
+v0 is untuned (manual): low gain.
+""",
+    params={
+        "gain": 3.0,
+        "rot_gain": 1.0,
+        "xy_gain_scale": 1.0,
+        "dig": 0.0,
+        "missed_width": 0.005,
+    },
+    body=_NUT
+    + '''
+
+def act(obs, params):
+    nut = vec(obs, "SquareNut_pos")
+    goal = vec(obs, "SquareNut_target_pos")
+    s = params["xy_gain_scale"]
+    move = np.array([s * (goal[0] - nut[0]), s * (goal[1] - nut[1]), goal[2] - params["dig"] - nut[2]])
+    return pose_action(move, grip_rotation(obs), CLOSE, params["gain"], params["rot_gain"])
+
+
+def done(obs, params):
+    return opening(obs) < params["missed_width"]
+''',
+)
+
+RELEASE = SkillTemplate(
+    doc="""Open the gripper and leave the nut on the peg, backing off upward once open.
+""",
+    params={
+        "rot_gain": 1.0,
+        "released_width": 0.06,
+        "retreat_speed": 0.3,
+    },
+    body='''
+def act(obs, params):
+    a = pose_action(np.zeros(3), rot_error(obs["robot0_eef_quat"]), OPEN, 0.0, params["rot_gain"])
+    if opening(obs) > params["released_width"]:
+        a[2] = min(max(params["retreat_speed"], -1.0), 1.0)
+    return a
+''',
+)
+
+_BY_STEP: Mapping[str, SkillTemplate] = {
+    "reach": REACH,
+    "grasp": GRASP,
+    "lift": LIFT,
+    "align": ALIGN,
+    "insert": INSERT,
+    "release": RELEASE,
+}
+
+
+def templates(spec: TaskSpec) -> dict[str, tuple[SkillTemplate, dict[str, str]]]:
+    """Template and placeholder values for every ECM of T4."""
+    return {ecm: (_BY_STEP[ecm.split(".")[-1]], {"obj": "SquareNut", "what": "the nut"}) for ecm in spec.ecm_names}

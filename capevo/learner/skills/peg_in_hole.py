@@ -1,0 +1,155 @@
+"""Skills of T6 peg_in_hole: two Pandas (no grippers), the peg on arm 0, the plate on arm 1.
+
+Every step runs the same geometric controller with different gains: it reads the peg's axis
+(``peg_quat``), the hole's centre and normal (``hole_pos``, ``hole_quat``; the hole is 0.1 m
+along the plate's x axis) and the peg's position (``hole_pos - peg_to_hole``), then
+
+* turns the peg's axis towards the hole normal (``peg_rot_gain``) and the normal towards the
+  peg's axis (``hole_rot_gain``), whichever sign is nearer (the success check uses ``|cos|``);
+* moves the peg (``peg_move_gain``) and the plate (``hole_move_gain``) to put the hole centre
+  on the peg's axis;
+* moves the peg along its axis until the hole centre is ``axial_target`` ahead of the peg's
+  centre (``axial_gain``).
+
+Actions are computed in the world frame and turned into each arm's OSC action frame (robosuite's
+"opposed" layout mounts arm 0 at +90 degrees and arm 1 at -90 degrees of yaw).
+
+Version 0 is *manual and untuned*: every gain is a guess, low, without running the simulator.
+
+Invariants:
+1. Every ECM of T6's decomposition gets exactly one skill; every action has 12 values in [-1, 1].
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from capevo.learner.skills._lib import SkillTemplate
+from capevo.runtime.tasks.spec import TaskSpec
+
+PEG_PRELUDE = '''
+import math
+
+import numpy as np
+
+ARM_YAW = (0.5 * math.pi, -0.5 * math.pi)
+"""Yaw of each arm's OSC action frame in the world frame."""
+
+
+def vec(obs, key):
+    return np.asarray(obs[key], dtype=np.float64)
+
+
+def quat_matrix(q):
+    """Rotation matrix of quaternion ``q`` (x, y, z, w)."""
+    x, y, z, w = (float(c) for c in q)
+    n = x * x + y * y + z * z + w * w
+    s = 2.0 / n if n > 1e-12 else 0.0
+    return np.array(
+        [
+            [1.0 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)],
+            [s * (x * y + z * w), 1.0 - s * (x * x + z * z), s * (y * z - x * w)],
+            [s * (x * z - y * w), s * (y * z + x * w), 1.0 - s * (x * x + y * y)],
+        ]
+    )
+
+
+def rotation_between(a, b):
+    """Axis-angle (radians) turning unit vector ``a`` onto ``b``."""
+    c = np.cross(a, b)
+    s = float(np.linalg.norm(c))
+    angle = math.atan2(s, float(np.dot(a, b)))
+    if s < 1e-9:
+        return np.zeros(3)
+    return c / s * angle
+
+
+def to_arm(world, arm):
+    """A world-frame vector in arm ``arm``'s action frame."""
+    yaw = ARM_YAW[arm]
+    c, s = math.cos(yaw), math.sin(yaw)
+    x, y, z = (float(v) for v in world)
+    return np.array([c * x + s * y, -s * x + c * y, z])
+'''
+
+_BODY = '''
+def geometry(obs):
+    """Peg centre, peg axis, hole centre and hole normal (world frame)."""
+    r_hole = quat_matrix(obs["hole_quat"])
+    hole = vec(obs, "hole_pos")
+    center = hole + r_hole @ np.array([0.1, 0.0, 0.0])
+    normal = r_hole[:, 2]
+    peg = hole - vec(obs, "peg_to_hole")
+    axis = quat_matrix(obs["peg_quat"])[:, 2]
+    return peg, axis, center, normal
+
+
+def act(obs, params):
+    peg, axis, center, normal = geometry(obs)
+    facing = normal if float(np.dot(normal, axis)) >= 0.0 else -normal
+    peg_rot = rotation_between(axis, facing) * params["peg_rot_gain"]
+    hole_rot = rotation_between(facing, axis) * params["hole_rot_gain"]
+    to_center = center - peg
+    along = float(np.dot(to_center, axis))
+    perp = to_center - along * axis
+    peg_move = perp * params["peg_move_gain"] + axis * (along - params["axial_target"]) * params["axial_gain"]
+    hole_move = -perp * params["hole_move_gain"]
+    a = np.concatenate([to_arm(peg_move, 0), to_arm(peg_rot, 0), to_arm(hole_move, 1), to_arm(hole_rot, 1)])
+    return np.clip(a, -1.0, 1.0)
+'''
+
+
+def _template(doc: str, **params: float) -> SkillTemplate:
+    base = {
+        "peg_rot_gain": 0.0,
+        "hole_rot_gain": 0.0,
+        "peg_move_gain": 0.0,
+        "hole_move_gain": 0.0,
+        "axial_gain": 0.0,
+        "axial_target": 0.1,
+    }
+    base.update(params)
+    return SkillTemplate(doc=doc + "\nv0 is untuned (manual): low guessed gains.\n", params=base, body=_BODY, prelude=PEG_PRELUDE)
+
+
+_BY_STEP: Mapping[str, SkillTemplate] = {
+    "orient_peg": _template("Peg arm turns the peg towards the hole normal.", peg_rot_gain=0.3),
+    "orient_hole": _template("Plate arm turns the plate so the hole faces the peg.", hole_rot_gain=0.3),
+    "approach_peg": _template(
+        "Peg arm moves the peg in front of the hole.", peg_rot_gain=0.2, hole_rot_gain=0.2, peg_move_gain=2.0
+    ),
+    "approach_hole": _template(
+        "Plate arm moves the hole onto the peg's axis.", peg_rot_gain=0.2, hole_rot_gain=0.2, hole_move_gain=2.0
+    ),
+    "align": _template(
+        "Both arms turn so peg and hole are coaxial.",
+        peg_rot_gain=0.3,
+        hole_rot_gain=0.3,
+        peg_move_gain=1.0,
+        hole_move_gain=1.0,
+    ),
+    "pre_insert": _template(
+        "Bring the peg to the hole entrance along its axis.",
+        peg_rot_gain=0.2,
+        hole_rot_gain=0.2,
+        peg_move_gain=1.0,
+        hole_move_gain=1.0,
+        axial_gain=1.0,
+        axial_target=0.15,
+    ),
+    "insert": _template(
+        "Push the peg through the hole.",
+        peg_rot_gain=0.2,
+        hole_rot_gain=0.2,
+        peg_move_gain=1.0,
+        hole_move_gain=1.0,
+        axial_gain=1.0,
+        axial_target=0.0,
+    ),
+    "hold": _template("Hold peg and plate still with the peg inside the hole.", axial_target=0.0),
+}
+
+
+def templates(spec: TaskSpec) -> dict[str, tuple[SkillTemplate, dict[str, str]]]:
+    """Template and placeholder values for every ECM of T6."""
+    return {ecm: (_BY_STEP[ecm.split(".")[-1]], {}) for ecm in spec.ecm_names}

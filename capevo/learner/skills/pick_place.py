@@ -1,0 +1,106 @@
+"""Skills of the bins tasks: T1 pick, T2 place and T5 pick_place_multi (robosuite PickPlace).
+
+Reach, grasp and lift come from :mod:`.grasping`; this module adds carrying the object over
+its goal quadrant (``move``) and putting it down (``release``). Goals are read from the exact
+``<Object>_target_pos`` observation.
+
+Version 0 is *manual and untuned*: ``move`` carries the object only ``carry_dz`` = 5 cm above
+its goal height (the bin rims are higher: the can hits the wall), and ``release`` lets go
+10 cm above the goal, so the can may bounce or tip out.
+
+Invariants:
+1. Every ECM of T1, T2 and T5's decompositions gets exactly one skill.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from capevo.learner.skills._lib import SkillTemplate
+from capevo.learner.skills.grasping import GRASP, LIFT, REACH
+from capevo.runtime.tasks.spec import TaskSpec
+
+MOVE = SkillTemplate(
+    doc="""Carry ${what} over its goal quadrant, keeping it above the bin rims.
+
+Servos the object (not the hand) towards ``carry_dz`` above its goal; while the object is more
+than ``climb_margin`` below that height it climbs first, moving sideways at a tenth of the
+speed. ``done`` when the fingers closed fully (the object fell out).
+v0 is untuned (manual): carries too low for the rims, slow gain.
+""",
+    params={
+        "gain": 3.0,
+        "rot_gain": 1.0,
+        "carry_dz": 0.05,
+        "climb_margin": 0.05,
+        "missed_width": 0.01,
+    },
+    body='''
+def act(obs, params):
+    obj = vec(obs, "${obj}_pos")
+    goal = vec(obs, "${obj}_target_pos")
+    rot = rot_error(obs["robot0_eef_quat"])
+    carry = goal[2] + params["carry_dz"]
+    move = np.array([goal[0] - obj[0], goal[1] - obj[1], carry - obj[2]])
+    if obj[2] < carry - params["climb_margin"]:
+        move[0] *= 0.1
+        move[1] *= 0.1
+    return pose_action(move, rot, CLOSE, params["gain"], params["rot_gain"])
+
+
+def done(obs, params):
+    return opening(obs) < params["missed_width"]
+''',
+)
+
+RELEASE = SkillTemplate(
+    doc="""Lower ${what} into its goal quadrant, open the gripper and move the hand away.
+
+While closed and the object is more than ``release_dz`` above its goal height, lowers it
+(towards half that height) over the goal; then opens the gripper without moving; once the
+finger gap exceeds ``released_width`` the hand rises at ``retreat_speed``.
+v0 is untuned (manual): lets go from 10 cm.
+""",
+    params={
+        "gain": 3.0,
+        "rot_gain": 1.0,
+        "release_dz": 0.1,
+        "released_width": 0.07,
+        "retreat_speed": 0.3,
+    },
+    body='''
+def act(obs, params):
+    obj = vec(obs, "${obj}_pos")
+    goal = vec(obs, "${obj}_target_pos")
+    rot = rot_error(obs["robot0_eef_quat"])
+    if opening(obs) > params["released_width"]:
+        a = pose_action(np.zeros(3), rot, OPEN, 0.0, params["rot_gain"])
+        a[2] = min(max(params["retreat_speed"], -1.0), 1.0)
+        return a
+    if obj[2] > goal[2] + params["release_dz"]:
+        move = np.array([goal[0] - obj[0], goal[1] - obj[1], goal[2] + 0.5 * params["release_dz"] - obj[2]])
+        return pose_action(move, rot, CLOSE, params["gain"], params["rot_gain"])
+    return pose_action(np.zeros(3), rot, OPEN, params["gain"], params["rot_gain"])
+''',
+)
+
+_BY_STEP: Mapping[str, SkillTemplate] = {
+    "reach": REACH,
+    "grasp": GRASP,
+    "lift": LIFT,
+    "move": MOVE,
+    "release": RELEASE,
+}
+
+
+def templates(spec: TaskSpec) -> dict[str, tuple[SkillTemplate, dict[str, str]]]:
+    """Template and placeholder values for every ECM of a bins task.
+
+    ECM names are ``<task>.<step>`` (one object: the can) or ``<task>.<object>.<step>`` (T5).
+    """
+    out: dict[str, tuple[SkillTemplate, dict[str, str]]] = {}
+    for ecm in spec.ecm_names:
+        parts = ecm.split(".")
+        obj = parts[1].capitalize() if len(parts) == 3 else "Can"
+        out[ecm] = (_BY_STEP[parts[-1]], {"obj": obj, "what": f"the {obj.lower()}"})
+    return out

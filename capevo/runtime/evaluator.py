@@ -1,0 +1,270 @@
+"""The in-process evaluator: seeded episodes of a capability set, one MCAP trace per call.
+
+:class:`LocalEvaluator` implements :class:`capevo.runtime.evaluation.Evaluator`. The gate
+calls ``evaluate(task, versions, seeds)`` for the active and for the candidate set with the
+same seeds; each call loads the versions (:class:`LoadedCapabilitySet`, artifacts through
+the cache), runs one episode per seed on one reused environment (``reset(seed=s)``), writes
+one trace file, and returns one :class:`EpisodeOutcome` per seed, in seed order.
+
+Invariants:
+1. ``evaluate`` returns exactly ``len(seeds)`` outcomes, the i-th for ``seeds[i]``, each with
+   ``trace_path`` naming the call's trace file, which holds one ``/episode/summary`` per seed
+   (episode index i) and metadata naming the registry revision, Φ's hash, the agent's
+   identity hash, the seeds and the package versions.
+2. The versions loaded for a call are released (sandbox workers killed) before it returns,
+   whether it succeeds or raises.
+3. One environment per task is built and reused; with equal settings, equal seeds and equal
+   versions give equal outcomes (up to ``duration_s``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+import uuid
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from capevo.errors import Invalid
+from capevo.registry.api import Registry
+from capevo.registry.records import CapabilitySet
+from capevo.runtime.artifact_cache import ArtifactStore, MemoryArtifactCache
+from capevo.runtime.capabilities import DEFAULT_RECOVERY, LoadedCapabilitySet
+from capevo.runtime.ecm import LoadOptions
+from capevo.runtime.episode import DEFAULT_STEP_BUDGET, DEFAULT_TIMEOUT_S, make_governor, run_episode
+from capevo.runtime.evaluation import EpisodeOutcome
+from capevo.runtime.governance import Phi
+from capevo.runtime.policy import DecisionPolicy
+from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
+from capevo.runtime.traces import TraceMetadata, TraceWriter
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[int, int, EpisodeOutcome], Any]
+"""``progress(done, total, outcome)`` after each episode."""
+MAX_SEEDS_PER_CALL = 10_000
+UNKNOWN_IDENTITY = "unspecified"
+
+
+def agent_identity_of(policy: object) -> str | None:
+    """The identity hash of ``policy`` when it is an agent policy with an identity memory, else None."""
+    identity = getattr(policy, "identity", None)
+    parameters = getattr(policy, "parameters", None)
+    if identity is None or parameters is None:
+        return None
+    try:
+        from capevo.agent.fingerprint import identity_hash
+
+        return identity_hash(policy, identity)  # type: ignore[arg-type]
+    except Exception:  # an unusual policy object; the trace then says "unspecified"
+        return None
+
+
+def check_seeds(seeds: Sequence[int]) -> list[int]:
+    """``seeds`` as a list of non-negative ints.
+
+    Raises:
+        Invalid: not a sequence of non-negative integers, empty, or longer than
+            :data:`MAX_SEEDS_PER_CALL`.
+    """
+    if isinstance(seeds, (str, bytes)) or not isinstance(seeds, Sequence):
+        raise Invalid(f"seeds must be a list of integers, got {type(seeds).__name__}", details={"field": "seeds"})
+    out = []
+    for s in seeds:
+        if isinstance(s, bool) or not isinstance(s, int) or s < 0:
+            raise Invalid(f"seeds must be non-negative integers, got {s!r}", details={"field": "seeds"})
+        out.append(int(s))
+    if not out:
+        raise Invalid("seeds: give at least one seed", details={"field": "seeds"})
+    if len(out) > MAX_SEEDS_PER_CALL:
+        raise Invalid(f"seeds: {len(out)} given; at most {MAX_SEEDS_PER_CALL} per call", details={"field": "seeds"})
+    return out
+
+
+def check_versions(versions: Mapping[str, int]) -> dict[str, int]:
+    """``versions`` as ``{name: int}``.
+
+    Raises:
+        Invalid: not a mapping of names to non-negative integers.
+    """
+    if not isinstance(versions, Mapping):
+        raise Invalid(f"versions must be a mapping, got {type(versions).__name__}", details={"field": "versions"})
+    out = {}
+    for name, v in versions.items():
+        if not isinstance(name, str) or isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise Invalid(
+                f"versions must map ECM names to non-negative integers, got {name!r}: {v!r}",
+                details={"field": "versions"},
+            )
+        out[name] = int(v)
+    return out
+
+
+class LocalEvaluator:
+    """Runs evaluation episodes in this process.
+
+    Args:
+        registry: Where versions and artifacts come from.
+        policy: π_A.
+        phi: The safety envelope; default :meth:`Phi.default`.
+        trace_dir: Directory for the trace files (one per ``evaluate`` call); None writes
+            no trace (``trace_path`` is then None).
+        perturbations: Task perturbations; default all on (the benchmark setting).
+        horizon: Episode length; default each task's own.
+        step_budget_per_ecm: Steps one ECM activation may take.
+        timeout_s: Per-call ECM compute limit.
+        governance: False runs the evaluation-only counting mode (actions pass unchanged).
+        agent_identity_hash: Recorded in traces; default derived from ``policy`` when it is
+            an agent policy, else ``"unspecified"``.
+        cache: Artifact cache shared across calls; default in memory.
+        load_options: Trust policy and sandbox settings.
+        recovery: ECM recovery mode (see :data:`capevo.runtime.capabilities.RECOVERY_MODES`).
+        progress: Called after every episode as ``progress(done, total, outcome)``.
+        worker_id: Recorded in traces.
+        env: A prebuilt environment to reuse for its task (the runtime worker shares its own).
+        env_kwargs: Extra robosuite arguments for the environments built here.
+
+    Raises:
+        Invalid: bad ``trace_dir`` or settings.
+    """
+
+    def __init__(
+        self,
+        registry: Registry,
+        *,
+        policy: DecisionPolicy,
+        phi: Phi | None = None,
+        trace_dir: str | os.PathLike[str] | None,
+        perturbations: Perturbations | None = None,
+        horizon: int | None = None,
+        step_budget_per_ecm: int | None = DEFAULT_STEP_BUDGET,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        governance: bool = True,
+        agent_identity_hash: str | None = None,
+        cache: ArtifactStore | None = None,
+        load_options: LoadOptions | None = None,
+        recovery: str = DEFAULT_RECOVERY,
+        progress: Progress | None = None,
+        worker_id: str = "",
+        env: TaskEnv | None = None,
+        env_kwargs: Mapping[str, Any] | None = None,
+    ) -> None:
+        self.registry = registry
+        self.policy = policy
+        self.phi = phi if phi is not None else Phi.default()
+        self.trace_dir = Path(trace_dir) if trace_dir is not None else None
+        self.perturbations = perturbations if perturbations is not None else Perturbations()
+        self.horizon = horizon
+        self.step_budget_per_ecm = step_budget_per_ecm
+        self.timeout_s = timeout_s
+        self.governance = governance
+        self.agent_identity_hash = agent_identity_hash or agent_identity_of(policy) or UNKNOWN_IDENTITY
+        self.cache: ArtifactStore = cache if cache is not None else MemoryArtifactCache()
+        self.load_options = load_options
+        self.recovery = recovery
+        self.progress = progress
+        self.worker_id = worker_id
+        self.env_kwargs = dict(env_kwargs or {})
+        self._envs: dict[str, TaskEnv] = {}
+        self._owned: set[str] = set()
+        if env is not None:
+            self._envs[env.task_spec.name] = env
+
+    def environment(self, task: str) -> TaskEnv:
+        """The (reused) environment of ``task``; built on first use.
+
+        Raises:
+            Invalid: unknown task.
+        """
+        name = task_spec(task).name
+        env = self._envs.get(name)
+        if env is None:
+            env = make_task(name, perturbations=self.perturbations, horizon=self.horizon, **self.env_kwargs)
+            self._envs[name] = env
+            self._owned.add(name)
+        return env
+
+    def evaluate(self, task: str, versions: Mapping[str, int], seeds: Sequence[int]) -> list[EpisodeOutcome]:
+        """Run one episode per seed with ``versions`` (active versions for ECMs not named).
+
+        Returns:
+            One outcome per seed, in order; each has ``trace_path`` set.
+
+        Raises:
+            Invalid: unknown task, bad seeds or versions, versions that do not compose.
+            NotFound: an ECM has no active version and none was given.
+            Unavailable, Timeout: the registry cannot be reached while loading.
+        """
+        seed_list = check_seeds(seeds)
+        pinned = check_versions(versions)
+        spec = task_spec(task)
+        env = self.environment(spec.name)
+        env.reset(seed=seed_list[0])
+        shapes = {k: tuple(v.shape) for k, v in env.obs_dict.items()}
+        with LoadedCapabilitySet(
+            self.registry,
+            spec.name,
+            versions=pinned,
+            cache=self.cache,
+            load_options=self.load_options,
+            recovery=self.recovery,
+            observation_shapes=shapes,
+        ) as caps:
+            run_id = f"eval-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-{uuid.uuid4().hex[:8]}"
+            metadata = TraceMetadata.collect(
+                run_id=run_id,
+                task=spec.name,
+                capability_set=CapabilitySet(revision=caps.revision, active=caps.versions),
+                phi_hash=self.phi.hash,
+                agent_identity_hash=self.agent_identity_hash,
+                seeds=seed_list,
+                worker_id=self.worker_id,
+            )
+            governor = make_governor(env, self.phi, enforce=self.governance)
+            outcomes: list[EpisodeOutcome] = []
+            path = self.trace_dir / f"{spec.name}-{run_id}.mcap" if self.trace_dir is not None else None
+            sink_cm = TraceWriter(path, metadata) if path is not None else contextlib.nullcontext(None)
+            with sink_cm as sink:
+                for i, seed in enumerate(seed_list):
+                    outcome = run_episode(
+                        env,
+                        caps,
+                        self.policy,
+                        governor,
+                        sink,
+                        seed=seed,
+                        episode=i,
+                        step_budget_per_ecm=self.step_budget_per_ecm,
+                        timeout_s=self.timeout_s,
+                        trace_path=str(path) if path is not None else None,
+                    )
+                    outcomes.append(outcome)
+                    if self.progress is not None:
+                        self.progress(i + 1, len(seed_list), outcome)
+        log.info(
+            "evaluated %s %s on %d seeds: %d/%d successes; trace %s",
+            spec.name,
+            caps.versions,
+            len(seed_list),
+            sum(o.success for o in outcomes),
+            len(outcomes),
+            path,
+        )
+        return outcomes
+
+    def close(self) -> None:
+        """Close the environments this evaluator built (not one it was given)."""
+        for name in list(self._owned):
+            env = self._envs.pop(name, None)
+            if env is not None:
+                env.close()
+        self._owned.clear()
+
+    def __enter__(self) -> LocalEvaluator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,58 @@
+"""Runtime governance R: every action an ECM proposes is checked against a fixed envelope Φ.
+
+``R(a, Φ) = a | a′ | ⊥``: allow the action, replace it with a safe ``a′``, or reject it.
+
+Quick use::
+
+    from capevo.runtime.governance import Phi, hold_action, is_unsafe
+    from capevo.runtime.state import SINGLE_PANDA
+
+    phi = Phi.default()                      # or load_phi("my_phi.yaml")
+    govern = phi.governor(SINGLE_PANDA)      # once per run; enforce=False for governance-off
+    trace.header["phi_hash"] = phi.hash
+    governed, interventions = govern(state, proposed)
+    if governed is None:                     # ⊥: hold still (or safe-abort)
+        governed = hold_action(SINGLE_PANDA, last_executed)
+"""
+
+from __future__ import annotations
+
+from capevo.runtime.governance.base import CONSTRAINTS, Check, Constraint, constraint_kinds, make, register
+from capevo.runtime.governance.box import WorkspaceBox
+from capevo.runtime.governance.cap import VelocityCap
+from capevo.runtime.governance.force import ContactForce
+from capevo.runtime.governance.governor import GUARD, Governor, hold_action
+from capevo.runtime.governance.layouts import TWO_ARM_NO_GRIPPER, check_layout, layout_for
+from capevo.runtime.governance.phi import Phi, load_phi, phi_from_document
+from capevo.runtime.governance.records import GovernanceStats, Intervention, Verdict, verdict_of
+from capevo.runtime.governance.unsafe import is_unsafe, unsafe_reasons
+from capevo.runtime.governance.zone import Aabb, ForbiddenZone
+
+__all__ = [
+    "CONSTRAINTS",
+    "GUARD",
+    "TWO_ARM_NO_GRIPPER",
+    "Aabb",
+    "Check",
+    "Constraint",
+    "ContactForce",
+    "ForbiddenZone",
+    "GovernanceStats",
+    "Governor",
+    "Intervention",
+    "Phi",
+    "VelocityCap",
+    "Verdict",
+    "WorkspaceBox",
+    "check_layout",
+    "constraint_kinds",
+    "hold_action",
+    "is_unsafe",
+    "layout_for",
+    "load_phi",
+    "make",
+    "phi_from_document",
+    "register",
+    "unsafe_reasons",
+    "verdict_of",
+]

@@ -1,0 +1,114 @@
+"""Measure the tasks: build time, env steps per second, per-call cost of ``signals()`` and
+``robot_state()``, and the scripted references' success rates with perturbations on and off.
+
+Run ``python -m capevo.runtime.tasks.bench [--steps N] [--episodes N] [--json PATH]``.
+Timings belong here, never in pass/fail tests.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from typing import Any
+
+import numpy as np
+
+from capevo.runtime.tasks.perturbations import Perturbations
+from capevo.runtime.tasks.registry import make_task, task_names
+from capevo.runtime.tasks.scripted import REFERENCES
+
+
+def bench_task(name: str, steps: int) -> dict[str, Any]:
+    """Timings of one task with default perturbations and random actions in [-0.5, 0.5]."""
+    t0 = time.perf_counter()
+    env = make_task(name, seed=0)
+    build_s = time.perf_counter() - t0
+    try:
+        rng = np.random.default_rng(0)
+        t0 = time.perf_counter()
+        env.reset(seed=0)
+        reset_s = time.perf_counter() - t0
+        done, n, t0 = False, 0, time.perf_counter()
+        while n < steps:
+            if done:
+                env.reset()
+            _, _, term, trunc, _ = env.step(rng.uniform(-0.5, 0.5, env.action_space.shape))
+            done = term or trunc
+            n += 1
+        step_s = (time.perf_counter() - t0) / n
+        reps = 200
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            env.signals()
+        signals_us = (time.perf_counter() - t0) / reps * 1e6
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            env.robot_state()
+        state_us = (time.perf_counter() - t0) / reps * 1e6
+    finally:
+        env.close()
+    return {
+        "task": name,
+        "build_s": round(build_s, 3),
+        "reset_ms": round(reset_s * 1e3, 2),
+        "steps_per_s": round(1.0 / step_s, 1),
+        "signals_us": round(signals_us, 1),
+        "robot_state_us": round(state_us, 1),
+    }
+
+
+def bench_reference(name: str, episodes: int, perturbed: bool) -> dict[str, Any]:
+    """Success rate and mean episode length of the task's scripted reference, seeds 1000.."""
+    env = make_task(name, seed=0, perturbations=Perturbations() if perturbed else Perturbations.none())
+    policy = REFERENCES[name]
+    wins, lengths = 0, []
+    try:
+        for ep in range(episodes):
+            env.reset(seed=1000 + ep)
+            done, info = False, {}
+            while not done:
+                _, _, term, trunc, info = env.step(policy(env.obs_dict))
+                done = term or trunc
+            wins += int(info["is_success"])
+            lengths.append(env.elapsed_steps)
+    finally:
+        env.close()
+    return {
+        "task": name,
+        "perturbations": "on" if perturbed else "off",
+        "episodes": episodes,
+        "success_rate": wins / episodes,
+        "mean_steps": round(float(np.mean(lengths)), 1),
+    }
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """Run every measurement and print one line per result; optionally write JSON."""
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--steps", type=int, default=300, help="env steps timed per task")
+    parser.add_argument("--episodes", type=int, default=20, help="episodes per scripted reference and setting")
+    parser.add_argument("--json", default=None, help="write the results here")
+    parser.add_argument("--tasks", nargs="*", default=None, help="subset of task names")
+    args = parser.parse_args(argv)
+    names = args.tasks or list(task_names())
+    results: dict[str, Any] = {"tasks": [], "references": []}
+    for name in names:
+        r = bench_task(name, args.steps)
+        results["tasks"].append(r)
+        print(json.dumps(r), flush=True)
+    for name in names:
+        if name not in REFERENCES:
+            continue
+        for perturbed in (False, True):
+            r = bench_reference(name, args.episodes, perturbed)
+            results["references"].append(r)
+            print(json.dumps(r), flush=True)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=2)
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,234 @@
+"""Hand-written reference controllers: pure functions of a task's raw observation dict.
+
+Each reference reads ``TaskEnv.obs_dict`` (noisy when observation noise is on) and returns one
+action; it keeps no memory, so its phase (approach, descend, close, lift, carry, release) is
+read off the observation every step. They exist to show each success criterion is reachable
+and as baselines and code-ECM seeds.
+
+Invariants:
+1. A reference returns a float32 action of the task's action dimension with values in [-1, 1].
+2. A reference is a pure function: equal observation dicts give equal actions.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+import numpy as np
+
+Obs = Mapping[str, np.ndarray]
+Policy = Callable[[Obs], np.ndarray]
+
+POS_GAIN = 10.0
+"""Action per metre of position error (1.0 saturates at 10 cm; one full step moves ~1 cm)."""
+ROT_GAIN = 2.0
+"""Action per radian of orientation error."""
+TRAVEL_XY = 0.04
+"""Horizontal distance above which the gripper travels at hover height."""
+DESCEND_XY = 0.03
+"""Horizontal distance below which the open gripper descends onto the object."""
+CLOSE_ABOVE = 0.035
+"""Height above the grasp point below which the gripper closes (still descending)."""
+GRIPPER_READY = 0.065
+"""Finger gap above which the gripper is open enough to descend over an object."""
+MISSED = 0.03
+"""Finger gap below which a closing gripper that is not holding anything missed the object."""
+DIG = 0.01
+"""The descent aims this far below the grasp point, so the hand settles on it despite noise."""
+NEAR_XY, NEAR_Z = 0.03, 0.035
+"""Gripper-to-grasp-point offsets within which a closed gripper counts as holding."""
+FINGER_CLOSED = 0.005
+"""Finger gap below which the gripper is fully closed (on nothing)."""
+FINGER_SETTLED = 0.02
+"""Finger speed (m/s) below which a closing gripper counts as settled on the object."""
+PLACE_XY = 0.08
+"""Horizontal object-to-goal offset below which a carried object is lowered into its bin
+(the goal quadrants are about 0.2 x 0.24 m; the far one is at the edge of the Panda's reach)."""
+STACK_XY, STACK_XY_LOW = 0.02, 0.035
+"""Horizontal cube A to cube B offset below which cube A is lowered (from carry height, once low)."""
+STACK_RELEASE_DZ = 0.015
+"""Cube A this close above its stacked height: open the gripper."""
+STACKED_DZ = 0.045
+"""Cube A's origin above cube B's when stacked (half sizes 0.02 + 0.025)."""
+GRIP_OPEN, GRIP_CLOSE = -1.0, 1.0
+
+_DOWN = np.array([1.0, 0.0, 0.0, 0.0])
+"""Gripper pointing down, fingers along world y (xyzw), the Panda's start orientation."""
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ]
+    )
+
+
+def _rot_error(current_xyzw: np.ndarray, target_xyzw: np.ndarray) -> np.ndarray:
+    """Axis-angle (world frame) that turns ``current`` into ``target``."""
+    cur = np.asarray(current_xyzw, dtype=np.float64)
+    inv = np.array([-cur[0], -cur[1], -cur[2], cur[3]]) / max(float(np.dot(cur, cur)), 1e-12)
+    q = _quat_mul(np.asarray(target_xyzw, dtype=np.float64), inv)
+    if q[3] < 0:
+        q = -q
+    s = float(np.linalg.norm(q[:3]))
+    if s < 1e-9:
+        return np.zeros(3)
+    return q[:3] / s * 2.0 * np.arctan2(s, q[3])
+
+
+def _action(move: np.ndarray, rot: np.ndarray, grip: float) -> np.ndarray:
+    a = np.empty(7, dtype=np.float32)
+    a[:3] = np.clip(move * POS_GAIN, -1.0, 1.0)
+    a[3:6] = np.clip(rot * ROT_GAIN, -1.0, 1.0)
+    a[6] = grip
+    return a
+
+
+def _opening(obs: Obs) -> tuple[float, float]:
+    q = obs["robot0_gripper_qpos"]
+    v = obs["robot0_gripper_qvel"]
+    return float(q[0] - q[1]), float(abs(v[0]) + abs(v[1]))
+
+
+def _holding(eef: np.ndarray, obj: np.ndarray, obs: Obs, grasp_dz: float) -> bool:
+    """Closed, settled fingers around the object: read from geometry alone."""
+    opening, finger_speed = _opening(obs)
+    near = np.linalg.norm(eef[:2] - obj[:2]) < NEAR_XY and abs(eef[2] - obj[2] - grasp_dz) < NEAR_Z
+    closing_done = FINGER_CLOSED < opening < 0.07 and finger_speed < FINGER_SETTLED
+    return bool(near and closing_done)
+
+
+def _approach(
+    eef: np.ndarray, obj: np.ndarray, obs: Obs, *, hover: float, grasp_dz: float, rot: np.ndarray
+) -> np.ndarray:
+    """Hover over the object, descend with the gripper open, close around the grasp point.
+
+    Memoryless and tolerant of 1 cm observation noise: it descends only with an open gripper
+    and re-opens (rising) when the fingers closed on nothing, so a wrong branch for one step
+    only pauses the motion.
+    """
+    opening, _ = _opening(obs)
+    xy_err = obj[:2] - eef[:2]
+    xy = float(np.linalg.norm(xy_err))
+    grasp_z = obj[2] + grasp_dz
+    above = eef[2] - grasp_z
+    if xy > TRAVEL_XY:
+        # travel at hover height; climb first when low so the fingers don't sweep the object
+        move = np.array([xy_err[0], xy_err[1], grasp_z + hover - eef[2]])
+        if above < hover - 0.02:
+            move[:2] *= 0.2
+        return _action(move, rot, GRIP_OPEN)
+    if above > CLOSE_ABOVE:
+        descend = xy < DESCEND_XY and opening > GRIPPER_READY
+        return _action(np.array([xy_err[0], xy_err[1], grasp_z - DIG - eef[2] if descend else 0.0]), rot, GRIP_OPEN)
+    if opening < MISSED:
+        # the fingers closed on nothing: rise while opening, then come down again
+        return _action(np.array([xy_err[0], xy_err[1], 0.3]), rot, GRIP_OPEN)
+    return _action(np.array([xy_err[0], xy_err[1], grasp_z - DIG - eef[2]]), rot, GRIP_CLOSE)
+
+
+def _down_rot(obs: Obs) -> np.ndarray:
+    return _rot_error(obs["robot0_eef_quat"], _DOWN)
+
+
+def pick(obs: Obs, *, object_key: str = "Can", lift_speed: float = 0.15, grasp_dz: float = 0.0) -> np.ndarray:
+    """T1 reference: hover over the object, descend, close, then lift while holding.
+
+    Args:
+        obs: ``TaskEnv.obs_dict`` of a single-Panda task.
+        object_key: Prefix of the object's ``<key>_pos`` observation.
+        lift_speed: Upward command while holding, in metres of error (0.1 and above saturate).
+        grasp_dz: Grasp height above the object origin.
+
+    Returns:
+        A 7-vector action.
+    """
+    eef = np.asarray(obs["robot0_eef_pos"], dtype=np.float64)
+    obj = np.asarray(obs[f"{object_key}_pos"], dtype=np.float64)
+    rot = _down_rot(obs)
+    if _holding(eef, obj, obs, grasp_dz):
+        return _action(np.array([0.0, 0.0, lift_speed]), rot, GRIP_CLOSE)
+    return _approach(eef, obj, obs, hover=0.08, grasp_dz=grasp_dz, rot=rot)
+
+
+def place(
+    obs: Obs,
+    *,
+    object_key: str = "Can",
+    target: np.ndarray | None = None,
+    carry_z: float = 1.0,
+    release_dz: float = 0.03,
+    grasp_dz: float = 0.0,
+) -> np.ndarray:
+    """T2 reference: pick the object, carry it at ``carry_z`` over its target, lower, release, retreat.
+
+    Args:
+        obs: ``TaskEnv.obs_dict``.
+        object_key: Object prefix; its goal is ``<key>_target_pos`` unless ``target`` is given.
+        target: Where the object's origin should end up (world frame).
+        carry_z: Height of the object origin while carrying (clears the bin rims).
+        release_dz: Open the gripper once the object is this close above its target height.
+        grasp_dz: Grasp height above the object origin.
+
+    Returns:
+        A 7-vector action.
+    """
+    eef = np.asarray(obs["robot0_eef_pos"], dtype=np.float64)
+    obj = np.asarray(obs[f"{object_key}_pos"], dtype=np.float64)
+    goal = np.asarray(obs[f"{object_key}_target_pos"] if target is None else target, dtype=np.float64)
+    rot = _down_rot(obs)
+    to_goal = goal[:2] - obj[:2]
+    placed = np.linalg.norm(to_goal) < PLACE_XY + 0.02 and obj[2] < goal[2] + release_dz + 0.02
+    if _holding(eef, obj, obs, grasp_dz):
+        if np.linalg.norm(to_goal) > PLACE_XY:
+            if obj[2] < carry_z - 0.05:
+                # climb before travelling sideways so the object clears the rims
+                return _action(np.array([0.1 * to_goal[0], 0.1 * to_goal[1], carry_z - obj[2]]), rot, GRIP_CLOSE)
+            return _action(np.array([to_goal[0], to_goal[1], carry_z - obj[2]]), rot, GRIP_CLOSE)
+        if obj[2] > goal[2] + release_dz:
+            return _action(np.array([to_goal[0], to_goal[1], goal[2] + release_dz * 0.5 - obj[2]]), rot, GRIP_CLOSE)
+        return _action(np.zeros(3), rot, GRIP_OPEN)
+    if placed:
+        # released: open fully and back off upward
+        return _action(np.array([0.0, 0.0, 0.1]), rot, GRIP_OPEN)
+    return _approach(eef, obj, obs, hover=0.08, grasp_dz=grasp_dz, rot=rot)
+
+
+def stack(obs: Obs) -> np.ndarray:
+    """T3 reference: pick cube A and place it on cube B, then let go and back off.
+
+    Returns:
+        A 7-vector action.
+    """
+    b = np.asarray(obs["cubeB_pos"], dtype=np.float64)
+    goal = b + np.array([0.0, 0.0, STACKED_DZ])
+    eef = np.asarray(obs["robot0_eef_pos"], dtype=np.float64)
+    a = np.asarray(obs["cubeA_pos"], dtype=np.float64)
+    rot = _down_rot(obs)
+    to_goal = goal[:2] - a[:2]
+    off = float(np.linalg.norm(to_goal))
+    low = a[2] < goal[2] + 0.03
+    if _holding(eef, a, obs, 0.0):
+        # once low over cube B, tolerate more (noisy) offset before climbing back
+        if off > (STACK_XY_LOW if low else STACK_XY):
+            carry = goal[2] + 0.04
+            if a[2] < carry - 0.02:
+                return _action(np.array([0.1 * to_goal[0], 0.1 * to_goal[1], carry - a[2]]), rot, GRIP_CLOSE)
+            return _action(np.array([to_goal[0], to_goal[1], carry - a[2]]), rot, GRIP_CLOSE)
+        if a[2] > goal[2] + STACK_RELEASE_DZ:
+            return _action(np.array([to_goal[0], to_goal[1], goal[2] - DIG - a[2]]), rot, GRIP_CLOSE)
+        return _action(np.zeros(3), rot, GRIP_OPEN)
+    if off < STACK_XY_LOW + 0.005 and a[2] < goal[2] + 0.03:
+        # released on cube B: open fully and back off upward
+        return _action(np.array([0.0, 0.0, 0.1]), rot, GRIP_OPEN)
+    return _approach(eef, a, obs, hover=0.06, grasp_dz=0.0, rot=rot)
+
+
+REFERENCES: Mapping[str, Policy] = {"pick": pick, "place": place, "stack": stack}
+"""Scripted reference policy by task name."""

@@ -1,0 +1,77 @@
+"""MCAP run traces: JSON-schema channels Foxglove opens, crash-safe writing, salvage, export.
+
+Topics (schemas in :mod:`capevo.runtime.traces.records`):
+
+- ``/plan``                    :class:`PlanStep`
+- ``/ecm/invocation``          :class:`EcmInvocation`
+- ``/governance/intervention`` :class:`Intervention`
+- ``/env/step``                :class:`EnvStep`
+- ``/episode/summary``         :class:`EpisodeSummary`
+
+Write with :class:`TraceWriter` (or inject :class:`MemoryTraceSink` in tests), read with
+:class:`TraceReader`, salvage a crashed worker's file with :func:`recover`, and hand
+experience to learners with :func:`export_transitions`.
+"""
+
+from __future__ import annotations
+
+from capevo.runtime.traces.export import (
+    EXPORT_FORMATS,
+    EpisodeSelection,
+    Transitions,
+    export_transitions,
+    iter_env_steps,
+    parse_episodes,
+)
+from capevo.runtime.traces.reader import TraceReader
+from capevo.runtime.traces.records import (
+    PACKAGES,
+    TRACE_FORMAT,
+    EcmInvocation,
+    EnvStep,
+    EpisodeSummary,
+    Intervention,
+    Outcome,
+    PlanStep,
+    TraceMetadata,
+    TraceRecord,
+    package_versions,
+    record_type,
+    topics,
+)
+from capevo.runtime.traces.recover import RecoverReport, default_output, recover
+from capevo.runtime.traces.sink import MemoryTraceSink, TraceSink
+from capevo.runtime.traces.summary import EpisodeRow, TraceSummary, summarize
+from capevo.runtime.traces.writer import TraceWriter
+
+__all__ = [
+    "EXPORT_FORMATS",
+    "PACKAGES",
+    "TRACE_FORMAT",
+    "EcmInvocation",
+    "EnvStep",
+    "EpisodeRow",
+    "EpisodeSelection",
+    "EpisodeSummary",
+    "Intervention",
+    "MemoryTraceSink",
+    "Outcome",
+    "PlanStep",
+    "RecoverReport",
+    "TraceMetadata",
+    "TraceReader",
+    "TraceRecord",
+    "TraceSink",
+    "TraceSummary",
+    "TraceWriter",
+    "Transitions",
+    "default_output",
+    "export_transitions",
+    "iter_env_steps",
+    "package_versions",
+    "parse_episodes",
+    "record_type",
+    "recover",
+    "summarize",
+    "topics",
+]

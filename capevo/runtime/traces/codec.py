@@ -1,0 +1,224 @@
+"""JSON encoding of trace records for MCAP ``json`` channels, with fast paths for hot topics.
+
+``/env/step`` (every control step), ``/ecm/invocation`` and ``/governance/intervention``
+(up to every step) are formatted with one ``%`` template each instead of building a dict
+and running :mod:`json`: Python's shortest-repr float printing costs about 0.45 µs a value
+on the reference machine, ``%.9g`` about 0.14 µs, and an env step carries about 110 floats
+(see benchmarks/bench_traces.py). Nine significant digits name a float32 uniquely, the
+precision the runtime works in; records' ``from_dict`` rounds vectors back to float32.
+Plan steps and episode summaries (rare, no vectors) go through :mod:`json`.
+
+Invariants:
+1. Every payload is strict JSON (RFC 8259): no ``NaN``/``Infinity`` tokens; a non-finite
+   float becomes ``null`` (decoded as NaN).
+2. A fast path and the generic ``json`` path of the same record decode to the same record.
+3. ``decode(topic, encode(r)) == r`` for every record ``r`` with finite floats whose vectors
+   hold float32 values; a float64 vector value comes back as a float32 within one float32
+   ulp of it; scalar floats come back exactly.
+4. The encoding cache never serves stale text: it is keyed by the identity of a *tuple*
+   (immutable) that the encoder keeps alive, so the key cannot be reused for other content.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from typing import Any
+
+from capevo.errors import Corrupt, Invalid
+from capevo.runtime.traces.records import (
+    EcmInvocation,
+    EnvStep,
+    Intervention,
+    Outcome,
+    TraceRecord,
+    record_type,
+)
+
+_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False, check_circular=False, ensure_ascii=False)
+
+# Format strings per vector length: "%.9g,%.9g,...". A handful of lengths occur per run.
+_VECTOR_FORMATS: dict[int, str] = {}
+
+_ENV_STEP_TEMPLATE = (
+    '{"episode":%d,"step":%d,"ecm":%s,"version":%d,"obs":[%s],"action":[%s],"reward":%s,'
+    '"next_obs":[%s],"terminated":%s,"truncated":%s,"is_success":%s,"key_state":{%s}}'
+)
+_INVOCATION_TEMPLATE = (
+    '{"episode":%d,"step":%d,"ecm":%s,"version":%d,"input_state":[%s],"output":%s,'
+    '"duration_s":%s,"outcome":%s,"error":%s}'
+)
+_INTERVENTION_TEMPLATE = (
+    '{"episode":%d,"step":%d,"constraint":%s,"original_action":[%s],"result_action":%s,"reason":%s}'
+)
+_OUTCOMES = {o: json.dumps(o.value) for o in Outcome}
+
+_MAX_CACHED_NAMES = 4096
+
+
+def format_vector(values: Sequence[float]) -> str:
+    """Comma-separated ``%.9g`` numbers (``null`` for non-finite ones), without brackets."""
+    if type(values) is not tuple:
+        values = tuple(values)
+    n = len(values)
+    fmt = _VECTOR_FORMATS.get(n)
+    if fmt is None:
+        fmt = _VECTOR_FORMATS[n] = ",".join(["%.9g"] * n)
+    text = fmt % values
+    # %g prints only digits, sign, '.', 'e' and '+' for finite values: an 'n' means nan or inf.
+    if "n" in text:
+        text = ",".join(f"{v:.9g}" if math.isfinite(v) else "null" for v in values)
+    return text
+
+
+def _format_float(value: float) -> str:
+    value = float(value)
+    # inf - inf and nan - nan are nan, which is never equal to 0.0.
+    return repr(value) if value - value == 0.0 else "null"
+
+
+def _not_encodable(record: object, exc: Exception) -> Invalid:
+    return Invalid(
+        f"{type(record).__name__} does not encode as JSON: {type(exc).__name__}: {exc}",
+        details={"record": type(record).__name__},
+    )
+
+
+class RecordEncoder:
+    """Encodes trace records; keep one per writer so its caches stay warm."""
+
+    __slots__ = ("_last_next_obs", "_names")
+
+    def __init__(self) -> None:
+        self._names: dict[str, str] = {}
+        # (tuple, its text) as one attribute: one assignment, so threads sharing the
+        # encoder can never pair a tuple with another tuple's text.
+        self._last_next_obs: tuple[tuple[float, ...] | None, str] = (None, "")
+
+    def _name(self, name: str) -> str:
+        text = self._names.get(name)
+        if text is None:
+            text = json.dumps(name, ensure_ascii=False)
+            if len(self._names) < _MAX_CACHED_NAMES:
+                self._names[name] = text
+        return text
+
+    def encode(self, record: TraceRecord) -> bytes:
+        """The JSON payload of any trace record.
+
+        Raises:
+            Invalid: a field has a type JSON cannot carry (e.g. a string where a number belongs).
+        """
+        try:
+            if isinstance(record, EnvStep):
+                return self._env_step(record)
+            if isinstance(record, EcmInvocation):
+                return self._invocation(record)
+            if isinstance(record, Intervention):
+                return self._intervention(record)
+            return encode_dict(record.to_dict())
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise _not_encodable(record, exc) from None
+
+    def env_step(self, s: EnvStep) -> bytes:
+        """:meth:`encode` for an env step (the writer's hot path skips the dispatch)."""
+        try:
+            return self._env_step(s)
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise _not_encodable(s, exc) from None
+
+    def _env_step(self, s: EnvStep) -> bytes:
+        obs = s.obs
+        last_obs, last_text = self._last_next_obs
+        obs_text = last_text if obs is last_obs and type(obs) is tuple else format_vector(obs)
+        next_obs = s.next_obs
+        next_obs_text = format_vector(next_obs)
+        self._last_next_obs = (next_obs, next_obs_text) if type(next_obs) is tuple else (None, "")
+        key_state = ""
+        if s.key_state:
+            key_state = ",".join(f"{self._name(k)}:[{format_vector(v)}]" for k, v in s.key_state.items())
+        text = _ENV_STEP_TEMPLATE % (
+            s.episode,
+            s.step,
+            self._name(s.ecm),
+            s.version,
+            obs_text,
+            format_vector(s.action),
+            _format_float(s.reward),
+            next_obs_text,
+            "true" if s.terminated else "false",
+            "true" if s.truncated else "false",
+            "true" if s.is_success else "false",
+            key_state,
+        )
+        return text.encode()
+
+    def _invocation(self, r: EcmInvocation) -> bytes:
+        text = _INVOCATION_TEMPLATE % (
+            r.episode,
+            r.step,
+            self._name(r.ecm),
+            r.version,
+            format_vector(r.input_state),
+            "null" if r.output is None else f"[{format_vector(r.output)}]",
+            _format_float(r.duration_s),
+            _OUTCOMES[Outcome(r.outcome)],
+            "null" if r.error is None else json.dumps(str(r.error), ensure_ascii=False),
+        )
+        return text.encode()
+
+    def _intervention(self, r: Intervention) -> bytes:
+        text = _INTERVENTION_TEMPLATE % (
+            r.episode,
+            r.step,
+            self._name(r.constraint),
+            format_vector(r.original_action),
+            "null" if r.result_action is None else f"[{format_vector(r.result_action)}]",
+            json.dumps(str(r.reason), ensure_ascii=False),
+        )
+        return text.encode()
+
+
+def _finite_or_none(value: Any) -> Any:
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite_or_none(v) for v in value]
+    return value
+
+
+def encode_dict(d: dict[str, Any]) -> bytes:
+    """Compact strict JSON of ``d`` (the generic path); non-finite floats become ``null``."""
+    try:
+        return _ENCODER.encode(d).encode()
+    except ValueError:
+        return _ENCODER.encode(_finite_or_none(d)).encode()
+
+
+def encode(record: TraceRecord) -> bytes:
+    """The JSON payload of any trace record (with a fresh :class:`RecordEncoder`).
+
+    Raises:
+        Invalid: a field has a type JSON cannot carry.
+    """
+    return RecordEncoder().encode(record)
+
+
+def decode(topic: str, data: bytes | bytearray | memoryview) -> TraceRecord:
+    """The record of ``topic`` that ``data`` encodes.
+
+    Raises:
+        Invalid: unknown topic.
+        Corrupt: the payload is not JSON or lacks a field the record needs.
+    """
+    cls = record_type(topic)
+    try:
+        return cls.from_dict(json.loads(bytes(data)))
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise Corrupt(
+            f"message on {topic} does not decode as {cls.__name__}: {type(exc).__name__}: {exc}",
+            details={"topic": topic},
+        ) from None

@@ -1,0 +1,679 @@
+"""Trace records: one frozen record per MCAP topic, each with the JSON Schema that describes it.
+
+A record class owns its topic (``TOPIC``), its schema name (``SCHEMA_NAME``) and its JSON
+Schema (``SCHEMA``, draft 2020-12, ``"type": "object"`` at the root as Foxglove requires).
+``to_dict`` produces exactly the object the schema describes and ``from_dict`` is its inverse;
+nothing else in the package spells a field name, so the schema and the data cannot drift.
+
+Wire conventions (see :mod:`capevo.runtime.traces.codec`):
+
+- A non-finite float (NaN, +-inf) is written as JSON ``null`` and read back as NaN, because
+  JSON has no NaN; every float field's schema is therefore ``number | null``.
+- Vectors (obs, action, next_obs, key_state, input_state, output, original/result action)
+  are float32 data: they are written with 9 significant digits, which name a float32
+  uniquely, and ``from_dict`` rounds them to float32, so float32 values come back bit-exact
+  and a float64 value comes back as a float32 within one float32 ulp. Scalar floats
+  (reward, durations, total reward) are float64 and written exactly.
+
+Invariants:
+1. For every record ``r`` whose floats are finite and whose vectors hold float32 values:
+   ``type(r).from_dict(r.to_dict()) == r``.
+2. ``r.to_dict()`` validates against ``type(r).SCHEMA``; its keys are exactly the schema's
+   ``properties``, and every property is ``required``.
+3. Every record class is registered under its own topic exactly once; ``record_type(topic)``
+   returns it, and an unknown topic raises :class:`Invalid` listing the known topics.
+4. ``TraceMetadata.from_mcap(m.to_mcap()) == m``; every key and value in ``to_mcap()`` is a
+   ``str`` (MCAP metadata records are string maps).
+"""
+
+from __future__ import annotations
+
+import enum
+import importlib.metadata
+import json
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+
+from capevo.errors import Conflict, Corrupt, Invalid
+from capevo.registry.records import CapabilitySet
+
+TRACE_FORMAT = "1"
+"""Version of the trace layout (topics, schemas, metadata names); bump on incompatible change."""
+
+JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
+SCHEMA_ENCODING = "jsonschema"
+MESSAGE_ENCODING = "json"
+
+_NAN = float("nan")
+
+
+class Outcome(str, enum.Enum):
+    """How one ECM invocation ended. Add new values here; the schema's enum follows."""
+
+    OK = "ok"
+    TIMEOUT = "timeout"
+    EXCEPTION = "exception"
+    NAN = "nan"
+    BAD_SHAPE = "bad_shape"
+    BUDGET_EXHAUSTED = "budget_exhausted"
+    SANDBOX_VIOLATION = "sandbox_violation"
+    SAFETY_VIOLATION = "safety_violation"
+
+
+# ---------------------------------------------------------------------------------------
+# Schema building blocks
+# ---------------------------------------------------------------------------------------
+
+_NUMBER: dict[str, Any] = {"type": ["number", "null"], "description": "null encodes a non-finite value (read as NaN)"}
+
+
+def _int(description: str, *, minimum: int | None = 0) -> dict[str, Any]:
+    out: dict[str, Any] = {"type": "integer", "description": description}
+    if minimum is not None:
+        out["minimum"] = minimum
+    return out
+
+
+def _str(description: str) -> dict[str, Any]:
+    return {"type": "string", "description": description}
+
+
+def _bool(description: str) -> dict[str, Any]:
+    return {"type": "boolean", "description": description}
+
+
+def _num(description: str) -> dict[str, Any]:
+    return {"type": ["number", "null"], "description": description + " (null = non-finite)"}
+
+
+def _vector(description: str) -> dict[str, Any]:
+    return {"type": "array", "items": _NUMBER, "description": description + " (float32)"}
+
+
+def _nullable_vector(description: str) -> dict[str, Any]:
+    return {"type": ["array", "null"], "items": _NUMBER, "description": description + " (float32)"}
+
+
+def _version_map(description: str) -> dict[str, Any]:
+    return {
+        "type": "object",
+        "additionalProperties": {"type": "integer", "minimum": 0},
+        "description": description,
+    }
+
+
+def _object_schema(title: str, description: str, properties: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "$schema": JSON_SCHEMA_DIALECT,
+        "title": title,
+        "description": description,
+        "type": "object",
+        "properties": properties,
+        "required": list(properties),
+        "additionalProperties": False,
+    }
+
+
+def _floats32(values: Iterable[Any]) -> tuple[float, ...]:
+    """Decode a vector written with 9 significant digits back to the float32 values it names.
+
+    The text names a float32 uniquely but parses to a nearby float64; rounding to float32
+    restores the written value exactly. Values beyond float32 range (only a float64 input
+    can produce them) are kept as parsed rather than turned into infinities.
+    """
+    parsed = np.array([_NAN if v is None else v for v in values], dtype=np.float64)
+    with np.errstate(over="ignore"):
+        rounded = parsed.astype(np.float32).astype(np.float64)
+    rounded = np.where(np.isinf(rounded) & np.isfinite(parsed), parsed, rounded)
+    return tuple(rounded.tolist())
+
+
+def _float(value: Any) -> float:
+    return _NAN if value is None else float(value)
+
+
+# ---------------------------------------------------------------------------------------
+# Topic registry
+# ---------------------------------------------------------------------------------------
+
+R = TypeVar("R")
+
+_RECORD_TYPES: dict[str, type[Any]] = {}
+
+
+def register_topic(cls: type[R]) -> type[R]:
+    """Class decorator: make ``cls`` the record type of its ``TOPIC``.
+
+    Raises:
+        Conflict: another class already owns the topic.
+    """
+    topic: str = cls.TOPIC  # type: ignore[attr-defined]
+    if topic in _RECORD_TYPES and _RECORD_TYPES[topic] is not cls:
+        raise Conflict(f"trace topic {topic!r} is already registered to {_RECORD_TYPES[topic].__name__}")
+    _RECORD_TYPES[topic] = cls
+    return cls
+
+
+def record_type(topic: str) -> type[TraceRecord]:
+    """The record class of ``topic``.
+
+    Raises:
+        Invalid: unknown topic; the message lists the known ones.
+    """
+    try:
+        return _RECORD_TYPES[topic]
+    except KeyError:
+        raise Invalid(
+            f"unknown trace topic {topic!r}; known topics: {', '.join(sorted(_RECORD_TYPES))}",
+            details={"field": "topic"},
+        ) from None
+
+
+def topics() -> tuple[str, ...]:
+    """Every registered topic, in registration order."""
+    return tuple(_RECORD_TYPES)
+
+
+# ---------------------------------------------------------------------------------------
+# Records
+# ---------------------------------------------------------------------------------------
+
+
+@register_topic
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PlanStep:
+    """The planner chose ECM ``ecm`` version ``version`` for plan step ``step`` of an episode."""
+
+    TOPIC: ClassVar[str] = "/plan"
+    SCHEMA_NAME: ClassVar[str] = "capevo.PlanStep"
+    SCHEMA: ClassVar[dict[str, Any]] = _object_schema(
+        "capevo.PlanStep",
+        "One plan step: which ECM version the planner chose and why.",
+        {
+            "episode": _int("Episode index within the run"),
+            "step": _int("Plan step index within the episode"),
+            "ecm": _str("ECM name"),
+            "version": _int("ECM version"),
+            "reason": _str("Why the planner chose it"),
+        },
+    )
+
+    episode: int
+    step: int
+    ecm: str
+    version: int
+    reason: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "episode": self.episode,
+            "step": self.step,
+            "ecm": self.ecm,
+            "version": self.version,
+            "reason": self.reason,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> PlanStep:
+        return cls(
+            episode=int(d["episode"]),
+            step=int(d["step"]),
+            ecm=str(d["ecm"]),
+            version=int(d["version"]),
+            reason=str(d.get("reason", "")),
+        )
+
+
+@register_topic
+@dataclass(frozen=True, slots=True, kw_only=True)
+class EcmInvocation:
+    """One call of an ECM version: what went in, what came out, how long it took, how it ended.
+
+    ``output`` is None when the ECM produced nothing usable (timeout, exception); for
+    ``nan``/``bad_shape`` it holds what the ECM returned.
+    """
+
+    TOPIC: ClassVar[str] = "/ecm/invocation"
+    SCHEMA_NAME: ClassVar[str] = "capevo.EcmInvocation"
+    SCHEMA: ClassVar[dict[str, Any]] = _object_schema(
+        "capevo.EcmInvocation",
+        "One ECM invocation with its input state, output, duration and outcome.",
+        {
+            "episode": _int("Episode index within the run"),
+            "step": _int("Env step index at which the ECM was invoked"),
+            "ecm": _str("ECM name"),
+            "version": _int("ECM version"),
+            "input_state": _vector("Flat input state given to the ECM"),
+            "output": _nullable_vector("Flat output of the ECM; null when it produced none"),
+            "duration_s": _num("Wall time of the call in seconds"),
+            "outcome": {
+                "type": "string",
+                "enum": [o.value for o in Outcome],
+                "description": "How the invocation ended",
+            },
+            "error": {"type": ["string", "null"], "description": "Error text when the outcome is not ok"},
+        },
+    )
+
+    episode: int
+    step: int
+    ecm: str
+    version: int
+    input_state: tuple[float, ...]
+    output: tuple[float, ...] | None
+    duration_s: float
+    outcome: Outcome = Outcome.OK
+    error: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "episode": self.episode,
+            "step": self.step,
+            "ecm": self.ecm,
+            "version": self.version,
+            "input_state": list(self.input_state),
+            "output": None if self.output is None else list(self.output),
+            "duration_s": self.duration_s,
+            "outcome": Outcome(self.outcome).value,
+            "error": self.error,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> EcmInvocation:
+        output = d.get("output")
+        return cls(
+            episode=int(d["episode"]),
+            step=int(d["step"]),
+            ecm=str(d["ecm"]),
+            version=int(d["version"]),
+            input_state=_floats32(d["input_state"]),
+            output=None if output is None else _floats32(output),
+            duration_s=_float(d["duration_s"]),
+            outcome=Outcome(d["outcome"]),
+            error=d.get("error"),
+        )
+
+
+@register_topic
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Intervention:
+    """Governance changed or refused an action; ``result_action`` is None for a reject."""
+
+    TOPIC: ClassVar[str] = "/governance/intervention"
+    SCHEMA_NAME: ClassVar[str] = "capevo.Intervention"
+    SCHEMA: ClassVar[dict[str, Any]] = _object_schema(
+        "capevo.Intervention",
+        "A governance intervention: the constraint, the proposed action and what was executed instead.",
+        {
+            "episode": _int("Episode index within the run"),
+            "step": _int("Env step index"),
+            "constraint": _str("Name of the safety constraint that fired"),
+            "original_action": _vector("Action the ECM proposed"),
+            "result_action": _nullable_vector("Action executed instead; null when the action was rejected"),
+            "reason": _str("Why governance intervened"),
+        },
+    )
+
+    episode: int
+    step: int
+    constraint: str
+    original_action: tuple[float, ...]
+    result_action: tuple[float, ...] | None
+    reason: str = ""
+
+    @property
+    def rejected(self) -> bool:
+        return self.result_action is None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "episode": self.episode,
+            "step": self.step,
+            "constraint": self.constraint,
+            "original_action": list(self.original_action),
+            "result_action": None if self.result_action is None else list(self.result_action),
+            "reason": self.reason,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Intervention:
+        result = d.get("result_action")
+        return cls(
+            episode=int(d["episode"]),
+            step=int(d["step"]),
+            constraint=str(d["constraint"]),
+            original_action=_floats32(d["original_action"]),
+            result_action=None if result is None else _floats32(result),
+            reason=str(d.get("reason", "")),
+        )
+
+
+@register_topic
+@dataclass(frozen=True, slots=True, kw_only=True)
+class EnvStep:
+    """One environment transition, as executed (after governance).
+
+    Vectors are float sequences; pass tuples (``tuple(arr.tolist())``). Passing the previous
+    step's ``next_obs`` object as this step's ``obs`` lets the writer reuse its encoding.
+    ``key_state`` holds a few named vectors worth plotting, e.g. ``arm0_eef_pos``.
+    """
+
+    TOPIC: ClassVar[str] = "/env/step"
+    SCHEMA_NAME: ClassVar[str] = "capevo.EnvStep"
+    SCHEMA: ClassVar[dict[str, Any]] = _object_schema(
+        "capevo.EnvStep",
+        "One environment step: observation, executed action, reward and next observation.",
+        {
+            "episode": _int("Episode index within the run"),
+            "step": _int("Env step index within the episode"),
+            "ecm": _str("ECM that produced the action"),
+            "version": _int("Version of that ECM"),
+            "obs": _vector("Flat observation before the step"),
+            "action": _vector("Action executed (after governance)"),
+            "reward": _num("Reward of the step"),
+            "next_obs": _vector("Flat observation after the step"),
+            "terminated": _bool("The episode ended in a terminal state"),
+            "truncated": _bool("The episode was cut off (horizon, budget)"),
+            "is_success": _bool("The task reports success after this step"),
+            "key_state": {
+                "type": "object",
+                "additionalProperties": {"type": "array", "items": _NUMBER},
+                "description": "Named state vectors worth plotting, e.g. arm0_eef_pos",
+            },
+        },
+    )
+
+    episode: int
+    step: int
+    ecm: str
+    version: int
+    obs: tuple[float, ...]
+    action: tuple[float, ...]
+    reward: float
+    next_obs: tuple[float, ...]
+    terminated: bool = False
+    truncated: bool = False
+    is_success: bool = False
+    key_state: Mapping[str, tuple[float, ...]] = field(default_factory=dict)
+
+    @property
+    def done(self) -> bool:
+        return self.terminated or self.truncated
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "episode": self.episode,
+            "step": self.step,
+            "ecm": self.ecm,
+            "version": self.version,
+            "obs": list(self.obs),
+            "action": list(self.action),
+            "reward": self.reward,
+            "next_obs": list(self.next_obs),
+            "terminated": self.terminated,
+            "truncated": self.truncated,
+            "is_success": self.is_success,
+            "key_state": {k: list(v) for k, v in self.key_state.items()},
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> EnvStep:
+        return cls(
+            episode=int(d["episode"]),
+            step=int(d["step"]),
+            ecm=str(d["ecm"]),
+            version=int(d["version"]),
+            obs=_floats32(d["obs"]),
+            action=_floats32(d["action"]),
+            reward=_float(d["reward"]),
+            next_obs=_floats32(d["next_obs"]),
+            terminated=bool(d["terminated"]),
+            truncated=bool(d["truncated"]),
+            is_success=bool(d["is_success"]),
+            key_state={str(k): _floats32(v) for k, v in (d.get("key_state") or {}).items()},
+        )
+
+
+@register_topic
+@dataclass(frozen=True, slots=True, kw_only=True)
+class EpisodeSummary:
+    """How one episode went, with the capability set it ran under."""
+
+    TOPIC: ClassVar[str] = "/episode/summary"
+    SCHEMA_NAME: ClassVar[str] = "capevo.EpisodeSummary"
+    SCHEMA: ClassVar[dict[str, Any]] = _object_schema(
+        "capevo.EpisodeSummary",
+        "Outcome of one episode and the capability set (ECM -> version) it ran with.",
+        {
+            "episode": _int("Episode index within the run"),
+            "seed": {"type": ["integer", "null"], "description": "Env seed of the episode, if seeded"},
+            "success": _bool("The task succeeded"),
+            "total_reward": _num("Sum of rewards"),
+            "steps": _int("Env steps taken"),
+            "interventions": _int("Governance interventions"),
+            "unsafe_steps": _int("Steps that violated the safety envelope after governance"),
+            "capability_set": _version_map("Active version of every ECM during the episode"),
+            "revision": {"type": ["integer", "null"], "minimum": 0, "description": "Registry revision of that set"},
+            "duration_s": _num("Wall time of the episode in seconds"),
+        },
+    )
+
+    episode: int
+    seed: int | None
+    success: bool
+    total_reward: float
+    steps: int
+    interventions: int
+    unsafe_steps: int
+    capability_set: Mapping[str, int]
+    duration_s: float
+    revision: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "episode": self.episode,
+            "seed": self.seed,
+            "success": self.success,
+            "total_reward": self.total_reward,
+            "steps": self.steps,
+            "interventions": self.interventions,
+            "unsafe_steps": self.unsafe_steps,
+            "capability_set": dict(sorted(self.capability_set.items())),
+            "revision": self.revision,
+            "duration_s": self.duration_s,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> EpisodeSummary:
+        seed = d.get("seed")
+        revision = d.get("revision")
+        return cls(
+            episode=int(d["episode"]),
+            seed=None if seed is None else int(seed),
+            success=bool(d["success"]),
+            total_reward=_float(d["total_reward"]),
+            steps=int(d["steps"]),
+            interventions=int(d["interventions"]),
+            unsafe_steps=int(d["unsafe_steps"]),
+            capability_set={str(k): int(v) for k, v in d["capability_set"].items()},
+            duration_s=_float(d["duration_s"]),
+            revision=None if revision is None else int(revision),
+        )
+
+
+TraceRecord = PlanStep | EcmInvocation | Intervention | EnvStep | EpisodeSummary
+"""Any record a trace holds."""
+
+
+# ---------------------------------------------------------------------------------------
+# File metadata
+# ---------------------------------------------------------------------------------------
+
+PACKAGES: Mapping[str, str] = {
+    "capevo": "capevo",
+    "robosuite": "robosuite",
+    "mujoco": "mujoco",
+    "numpy": "numpy",
+    "torch": "torch",
+    "stable-baselines3": "stable-baselines3",
+    "zenoh": "eclipse-zenoh",
+    "mcap": "mcap",
+}
+"""Key in the trace's package table -> distribution name to ask importlib.metadata about."""
+
+NOT_INSTALLED = "not installed"
+
+RUN_METADATA = "capevo.run"
+PACKAGES_METADATA = "capevo.packages"
+
+
+def package_versions(
+    packages: Mapping[str, str] = PACKAGES, *, lookup: Callable[[str], str] = importlib.metadata.version
+) -> dict[str, str]:
+    """Installed version of each package, without importing any of them.
+
+    Returns:
+        ``{key: version}``; a package that is not installed maps to ``"not installed"``.
+    """
+    out: dict[str, str] = {}
+    for key, dist in packages.items():
+        try:
+            out[key] = lookup(dist)
+        except importlib.metadata.PackageNotFoundError:
+            out[key] = NOT_INSTALLED
+    return out
+
+
+def _require_str(value: object, name: str) -> str:
+    if not isinstance(value, str) or not value:
+        raise Invalid(f"trace metadata {name} must be a non-empty string, got {value!r}", details={"field": name})
+    return value
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TraceMetadata:
+    """What a trace file says about the run that wrote it (MCAP metadata records).
+
+    Args:
+        run_id: Unique id of the run.
+        task: Task name, e.g. ``Lift``.
+        capability_set: Registry revision and the active version of every ECM at start.
+        phi_hash: Hash of the governance safety envelope Φ.
+        agent_identity_hash: Hash of the persistent agent's identity.
+        seeds: Seeds the run used (run seed first, then per-episode seeds if known).
+        package_versions: ``{package: version}``; see :func:`package_versions`.
+        worker_id: Which runtime worker wrote the file.
+
+    Raises:
+        Invalid: an empty or non-string id, task or hash, or a non-integer seed.
+    """
+
+    run_id: str
+    task: str
+    capability_set: CapabilitySet
+    phi_hash: str
+    agent_identity_hash: str
+    seeds: tuple[int, ...] = ()
+    package_versions: Mapping[str, str] = field(default_factory=dict)
+    worker_id: str = ""
+
+    def __post_init__(self) -> None:
+        _require_str(self.run_id, "run_id")
+        _require_str(self.task, "task")
+        _require_str(self.phi_hash, "phi_hash")
+        _require_str(self.agent_identity_hash, "agent_identity_hash")
+        if not isinstance(self.capability_set, CapabilitySet):
+            raise Invalid("trace metadata capability_set must be a CapabilitySet", details={"field": "capability_set"})
+        for seed in self.seeds:
+            if isinstance(seed, bool) or not isinstance(seed, int):
+                raise Invalid(f"trace metadata seeds must be integers, got {seed!r}", details={"field": "seeds"})
+
+    @property
+    def registry_revision(self) -> int:
+        return self.capability_set.revision
+
+    @classmethod
+    def collect(
+        cls,
+        *,
+        run_id: str,
+        task: str,
+        capability_set: CapabilitySet,
+        phi_hash: str,
+        agent_identity_hash: str,
+        seeds: Iterable[int] = (),
+        worker_id: str = "",
+    ) -> TraceMetadata:
+        """Metadata for a run starting now, with the installed package versions filled in."""
+        return cls(
+            run_id=run_id,
+            task=task,
+            capability_set=capability_set,
+            phi_hash=phi_hash,
+            agent_identity_hash=agent_identity_hash,
+            seeds=tuple(seeds),
+            package_versions=package_versions(),
+            worker_id=worker_id,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "trace_format": TRACE_FORMAT,
+            "run_id": self.run_id,
+            "task": self.task,
+            "registry_revision": self.capability_set.revision,
+            "capability_set": self.capability_set.to_dict()["active"],
+            "phi_hash": self.phi_hash,
+            "agent_identity_hash": self.agent_identity_hash,
+            "seeds": list(self.seeds),
+            "package_versions": dict(sorted(self.package_versions.items())),
+            "worker_id": self.worker_id,
+        }
+
+    def to_mcap(self) -> dict[str, dict[str, str]]:
+        """The MCAP metadata records: ``{record name: {key: value}}``, all strings."""
+        return {
+            RUN_METADATA: {
+                "trace_format": TRACE_FORMAT,
+                "run_id": self.run_id,
+                "task": self.task,
+                "registry_revision": str(self.capability_set.revision),
+                "capability_set": json.dumps(self.capability_set.to_dict()["active"], separators=(",", ":")),
+                "phi_hash": self.phi_hash,
+                "agent_identity_hash": self.agent_identity_hash,
+                "seeds": json.dumps(list(self.seeds)),
+                "worker_id": self.worker_id,
+            },
+            PACKAGES_METADATA: {str(k): str(v) for k, v in sorted(self.package_versions.items())},
+        }
+
+    @classmethod
+    def from_mcap(cls, records: Mapping[str, Mapping[str, str]]) -> TraceMetadata:
+        """Inverse of :meth:`to_mcap`.
+
+        Raises:
+            Corrupt: the ``capevo.run`` record is missing or a field does not parse.
+        """
+        run = records.get(RUN_METADATA)
+        if run is None:
+            found = ", ".join(sorted(records)) or "none"
+            raise Corrupt(f"not a capevo trace: no {RUN_METADATA!r} metadata record (found: {found})")
+        try:
+            active = json.loads(run["capability_set"])
+            return cls(
+                run_id=run["run_id"],
+                task=run["task"],
+                capability_set=CapabilitySet(
+                    revision=int(run["registry_revision"]), active={str(k): int(v) for k, v in active.items()}
+                ),
+                phi_hash=run["phi_hash"],
+                agent_identity_hash=run["agent_identity_hash"],
+                seeds=tuple(int(s) for s in json.loads(run["seeds"])),
+                package_versions=dict(records.get(PACKAGES_METADATA, {})),
+                worker_id=run.get("worker_id", ""),
+            )
+        except (KeyError, ValueError, TypeError, AttributeError, Invalid) as exc:
+            raise Corrupt(f"trace metadata {RUN_METADATA!r} does not parse: {type(exc).__name__}: {exc}") from None

@@ -1,0 +1,954 @@
+"""The runtime worker: a process that runs a task's episodes with the registry's active ECMs.
+
+``capevo runtime serve --connect EP --task T1`` (see :mod:`capevo.cli.runtime`) runs a
+:class:`RuntimeWorker`:
+
+* resolves the task's capability set from the registry and fetches each artifact once
+  (cached on disk by sha256, see :mod:`capevo.runtime.artifact_cache`);
+* subscribes to the registry's events and, on a ``promote`` or ``rollback`` of an ECM it
+  runs, hot-swaps that ECM at the next episode boundary (never inside an ECM execution);
+* announces itself and what it runs on Zenoh (key space below);
+* keeps running episodes on its last good versions while the registry is away; when the
+  registry's liveliness token returns it re-reads the capability set and catches up;
+* serves evaluation requests (``evaluate(task, versions, seeds)``) between its own
+  episodes, on its own environment; :class:`RemoteEvaluator` is the client side;
+* shuts down cleanly on SIGTERM/SIGINT (ends the running episode, replies to queued
+  requests with ``unavailable``, closes traces and sessions). It never forks.
+
+Key space, under the registry's namespace ``<ns>``::
+
+    <ns>/runtime/<worker_id>/alive      liveliness token while the worker serves
+    <ns>/runtime/<worker_id>/adopted    queryable: JSON Adoption {worker_id, task, revision,
+                                        versions, pending, episodes, registry_connected, pid,
+                                        started_at}; get <ns>/runtime/*/adopted lists all
+    <ns>/runtime/<worker_id>/evaluate   queryable: run an EvaluateRequest on this worker
+    <ns>/runtime/evaluate/<task>        queryable (complete): the same, served by any one
+                                        worker of <task> (task name, e.g. ``pick``)
+
+An evaluate request's payload is JSON ``{"task", "versions", "seeds"}``; the reply is JSON
+``{"worker_id", "outcomes": [EpisodeOutcome.to_dict(), ...]}``, or an error reply carrying
+:meth:`CapevoError.to_payload`.
+
+Invariants:
+1. The loaded versions change only between episodes (``LoadedCapabilitySet.begin_episode``).
+2. Every evaluate query gets exactly one reply (outcomes or error), also when the worker
+   shuts down with it queued.
+3. The adoption reply always names the versions the next episode will start with, unless a
+   swap is pending (then listed under ``pending``).
+4. Losing the registry never stops the episode loop; nothing blocks on the registry for
+   longer than the client's timeout.
+5. A trace file holds only episodes of one capability set: a swap starts a new file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import queue
+import re
+import signal
+import socket
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+import zenoh
+
+from capevo.errors import (
+    CapevoError,
+    Invalid,
+    NotFound,
+    Timeout,
+    TooLarge,
+    Unavailable,
+    error_from_payload,
+)
+from capevo.registry.keys import DEFAULT_NAMESPACE, Keys, validate_namespace
+from capevo.registry.records import Action, AuditEvent, EcmVersion, State
+from capevo.runtime.artifact_cache import ArtifactCache, ArtifactStore, MemoryArtifactCache
+from capevo.runtime.capabilities import DEFAULT_RECOVERY, LoadedCapabilitySet, check_recovery_mode
+from capevo.runtime.episode import (
+    DEFAULT_STEP_BUDGET,
+    DEFAULT_TIMEOUT_S,
+    make_governor,
+    run_episode_detailed,
+)
+from capevo.runtime.evaluation import EpisodeOutcome
+from capevo.runtime.evaluator import LocalEvaluator, agent_identity_of, check_seeds, check_versions
+from capevo.runtime.governance import Phi
+from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
+from capevo.runtime.traces import TraceMetadata, TraceWriter
+
+log = logging.getLogger("capevo.runtime.worker")
+
+RUNTIME_SEGMENT = "runtime"
+EVALUATE = "evaluate"
+WORKER_ID_PATTERN = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+MAX_EVAL_SEEDS = 1000
+MAX_QUEUED_EVALUATIONS = 16
+MAX_REQUEST_BYTES = 1 << 20
+DEFAULT_EVALUATE_TIMEOUT_S = 600.0
+JSON_ENCODING = "application/json"
+_NO_REPLY_GRACE = 0.95
+
+
+def validate_worker_id(worker_id: object) -> str:
+    """Return ``worker_id`` if it is a usable key chunk (1-64 of ``[A-Za-z0-9_.-]``, not ``evaluate``).
+
+    Raises:
+        Invalid: anything else.
+    """
+    if not isinstance(worker_id, str) or not WORKER_ID_PATTERN.fullmatch(worker_id) or worker_id == EVALUATE:
+        raise Invalid(
+            f"worker id {worker_id!r} must be 1-64 letters, digits, '_', '.' or '-' (and not {EVALUATE!r})",
+            details={"field": "worker_id"},
+        )
+    return worker_id
+
+
+def default_worker_id() -> str:
+    """``<host>-<pid>``, reduced to the characters a key chunk allows."""
+    host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname())[:40] or "host"
+    return f"{host}-{os.getpid()}"
+
+
+@dataclass(frozen=True, slots=True)
+class RuntimeKeys:
+    """The runtime workers' keys under a namespace (see the module docstring)."""
+
+    namespace: str = DEFAULT_NAMESPACE
+
+    def __post_init__(self) -> None:
+        validate_namespace(self.namespace)
+
+    @property
+    def root(self) -> str:
+        return f"{self.namespace}/{RUNTIME_SEGMENT}"
+
+    def alive(self, worker_id: str) -> str:
+        return f"{self.root}/{validate_worker_id(worker_id)}/alive"
+
+    def alive_all(self) -> str:
+        return f"{self.root}/*/alive"
+
+    def adopted(self, worker_id: str) -> str:
+        return f"{self.root}/{validate_worker_id(worker_id)}/adopted"
+
+    def adopted_all(self) -> str:
+        return f"{self.root}/*/adopted"
+
+    def evaluate(self, worker_id: str) -> str:
+        return f"{self.root}/{validate_worker_id(worker_id)}/{EVALUATE}"
+
+    def evaluate_task(self, task: str) -> str:
+        return f"{self.root}/{EVALUATE}/{task_spec(task).name}"
+
+    def worker_of(self, key: str) -> str | None:
+        """The worker id in a ``<ns>/runtime/<id>/...`` key, or None."""
+        prefix = self.root + "/"
+        if not key.startswith(prefix):
+            return None
+        part = key[len(prefix) :].split("/", 1)[0]
+        return part if part and part != EVALUATE else None
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Adoption:
+    """What a worker runs now: the reply of ``<ns>/runtime/<worker_id>/adopted``."""
+
+    worker_id: str
+    task: str
+    revision: int
+    versions: Mapping[str, int]
+    pending: Mapping[str, int] = field(default_factory=dict)
+    episodes: int = 0
+    registry_connected: bool = True
+    pid: int = 0
+    started_at: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "worker_id": self.worker_id,
+            "task": self.task,
+            "revision": self.revision,
+            "versions": dict(sorted(self.versions.items())),
+            "pending": dict(sorted(self.pending.items())),
+            "episodes": self.episodes,
+            "registry_connected": self.registry_connected,
+            "pid": self.pid,
+            "started_at": self.started_at,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Adoption:
+        """Inverse of :meth:`to_dict`.
+
+        Raises:
+            Invalid: a missing or mistyped field.
+        """
+        try:
+            return cls(
+                worker_id=str(d["worker_id"]),
+                task=str(d["task"]),
+                revision=int(d["revision"]),
+                versions={str(k): int(v) for k, v in d["versions"].items()},
+                pending={str(k): int(v) for k, v in (d.get("pending") or {}).items()},
+                episodes=int(d.get("episodes", 0)),
+                registry_connected=bool(d.get("registry_connected", True)),
+                pid=int(d.get("pid", 0)),
+                started_at=float(d.get("started_at", 0.0)),
+            )
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise Invalid(f"malformed adoption record: {type(exc).__name__}: {exc}") from None
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class EvaluateRequest:
+    """The payload of an evaluate query."""
+
+    task: str
+    versions: Mapping[str, int]
+    seeds: tuple[int, ...]
+
+    def to_json(self) -> bytes:
+        return json.dumps(
+            {"task": self.task, "versions": dict(self.versions), "seeds": list(self.seeds)}, separators=(",", ":")
+        ).encode()
+
+    @classmethod
+    def from_json(cls, payload: bytes, *, max_seeds: int = MAX_EVAL_SEEDS) -> EvaluateRequest:
+        """Parse and check a request.
+
+        Raises:
+            TooLarge: the payload or the seed list is over the limit.
+            Invalid: not JSON, a missing or mistyped field, an unknown task.
+        """
+        if len(payload) > MAX_REQUEST_BYTES:
+            raise TooLarge(f"evaluate request is {len(payload)} bytes; the limit is {MAX_REQUEST_BYTES}")
+        try:
+            body = json.loads(payload)
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise Invalid(f"evaluate request is not JSON: {exc}", details={"field": "payload"}) from None
+        if not isinstance(body, dict):
+            raise Invalid("evaluate request must be a JSON object", details={"field": "payload"})
+        unknown = sorted(set(body) - {"task", "versions", "seeds"})
+        if unknown:
+            raise Invalid(f"evaluate request: unknown field(s) {', '.join(unknown)}", details={"field": unknown[0]})
+        task = body.get("task")
+        if not isinstance(task, str):
+            raise Invalid("evaluate request: task must be a string", details={"field": "task"})
+        spec = task_spec(task)
+        seeds = body.get("seeds")
+        if not isinstance(seeds, list):
+            raise Invalid("evaluate request: seeds must be a list of integers", details={"field": "seeds"})
+        if len(seeds) > max_seeds:
+            raise TooLarge(f"evaluate request has {len(seeds)} seeds; a worker runs at most {max_seeds} per request")
+        return cls(task=spec.name, versions=check_versions(body.get("versions") or {}), seeds=tuple(check_seeds(seeds)))
+
+
+def encode_outcomes(worker_id: str, outcomes: Sequence[EpisodeOutcome]) -> bytes:
+    return json.dumps({"worker_id": worker_id, "outcomes": [o.to_dict() for o in outcomes]}).encode()
+
+
+def decode_outcomes(payload: bytes) -> tuple[str, list[EpisodeOutcome]]:
+    """Inverse of :func:`encode_outcomes`.
+
+    Raises:
+        CapevoError: a malformed reply.
+    """
+    try:
+        body = json.loads(payload)
+        return str(body.get("worker_id", "")), [EpisodeOutcome.from_dict(o) for o in body["outcomes"]]
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise CapevoError(f"malformed evaluate reply from a runtime worker: {type(exc).__name__}: {exc}") from None
+
+
+def _zenoh_config(connect: Sequence[str], user: str | None, password: str | None) -> zenoh.Config:
+    from capevo.registry.zconfig import client_config
+
+    return client_config(connect=list(connect), user=user, password=password)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc)
+    return text.split(" at /", 1)[0].splitlines()[0][:300] if text else type(exc).__name__
+
+
+# ---------------------------------------------------------------------------------------
+# Worker
+# ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class WorkerConfig:
+    """Settings of one runtime worker.
+
+    Args:
+        connect: Zenoh endpoint(s) of the registry (or a router that reaches it).
+        task: Task id or name.
+        namespace: Registry namespace; the worker's keys live under it too.
+        user, password: Zenoh credentials (both or neither).
+        worker_id: Key chunk naming this worker; default ``<host>-<pid>``.
+        trace_dir: Where episode traces go (one file per capability set); None writes none.
+        cache_dir: On-disk artifact cache; None keeps artifacts in memory only.
+        episodes: Episodes to run before exiting; None runs until stopped.
+        idle: Run no episodes of its own; only serve evaluation requests.
+        horizon: Episode length; default the task's.
+        perturbations: Task perturbations; default all on.
+        governance: False runs the evaluation-only counting mode.
+        phi: Safety envelope; default :meth:`Phi.default`.
+        identity_path: M_id YAML for the decision policy; default the packaged identity.
+        seed: Seed of the first episode; episode i uses ``seed + i``.
+        step_budget_per_ecm, timeout_s: Per-ECM step budget and per-call compute limit.
+        recovery: ECM recovery mode.
+        registry_timeout: Seconds to wait for each registry reply.
+        retry_interval_s: Pause between attempts to reach the registry at start-up.
+    """
+
+    connect: tuple[str, ...]
+    task: str
+    namespace: str = DEFAULT_NAMESPACE
+    user: str | None = None
+    password: str | None = field(default=None, repr=False)
+    worker_id: str | None = None
+    trace_dir: Path | None = None
+    cache_dir: Path | None = None
+    episodes: int | None = None
+    idle: bool = False
+    horizon: int | None = None
+    perturbations: Perturbations = field(default_factory=Perturbations)
+    governance: bool = True
+    phi: Phi | None = None
+    identity_path: Path | None = None
+    seed: int = 0
+    step_budget_per_ecm: int | None = DEFAULT_STEP_BUDGET
+    timeout_s: float = DEFAULT_TIMEOUT_S
+    recovery: str = DEFAULT_RECOVERY
+    registry_timeout: float = 10.0
+    retry_interval_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not self.connect:
+            raise Invalid("a runtime worker needs the registry's endpoint (--connect)", details={"field": "connect"})
+        validate_namespace(self.namespace)
+        task_spec(self.task)
+        if self.worker_id is not None:
+            validate_worker_id(self.worker_id)
+        if self.episodes is not None and (isinstance(self.episodes, bool) or self.episodes < 1):
+            raise Invalid(f"episodes must be >= 1, got {self.episodes!r}", details={"field": "episodes"})
+        if self.idle and self.episodes is not None:
+            raise Invalid("give either --idle or --episodes, not both", details={"field": "idle"})
+        if isinstance(self.seed, bool) or self.seed < 0:
+            raise Invalid(f"seed must be >= 0, got {self.seed!r}", details={"field": "seed"})
+        check_recovery_mode(self.recovery)
+
+
+EventSink = Callable[[dict[str, Any]], Any]
+
+
+class _Request:
+    __slots__ = ("query", "request")
+
+    def __init__(self, query: zenoh.Query, request: EvaluateRequest) -> None:
+        self.query = query
+        self.request = request
+
+
+def _reply(query: zenoh.Query, result: bytes | CapevoError) -> None:
+    """Send the one reply of ``query`` and finalise it."""
+    try:
+        with query:
+            if isinstance(result, CapevoError):
+                query.reply_err(result.to_payload(), encoding=JSON_ENCODING)
+            else:
+                query.reply(query.key_expr, result, encoding=JSON_ENCODING)
+    except zenoh.ZError as exc:
+        log.warning("could not reply to %s: %s", query.selector, exc)
+
+
+class RuntimeWorker:
+    """One runtime worker (see the module docstring).
+
+    Args:
+        config: Its settings.
+        emit: Called (on the main thread or a Zenoh thread) with each event as a JSON-able
+            dict: ``ready``, ``waiting``, ``registry``, ``swap_queued``, ``swap``, ``episode``,
+            ``evaluated``, ``stopped``.
+    """
+
+    def __init__(self, config: WorkerConfig, *, emit: EventSink | None = None) -> None:
+        self.config = config
+        self.worker_id = config.worker_id or default_worker_id()
+        self.spec = task_spec(config.task)
+        self.keys = RuntimeKeys(config.namespace)
+        self.registry_keys = Keys(config.namespace)
+        self._emit_cb = emit
+        self._requests: queue.Queue[_Request] = queue.Queue(maxsize=MAX_QUEUED_EVALUATIONS)
+        self._wake = threading.Event()
+        self._resync = threading.Event()
+        self._registry_up = True
+        self._seen_registry = False
+        self._episodes = 0
+        self._started_at = time.time()
+        self._caps: LoadedCapabilitySet | None = None
+        self._stopping = False
+        self._cache: ArtifactStore = (
+            ArtifactCache(config.cache_dir) if config.cache_dir is not None else MemoryArtifactCache()
+        )
+        self.phi = config.phi if config.phi is not None else Phi.default()
+
+    # --- events ---------------------------------------------------------------------------
+
+    def _emit(self, event: str, **fields: Any) -> None:
+        if self._emit_cb is None:
+            return
+        try:
+            self._emit_cb({"event": event, "worker_id": self.worker_id, **fields})
+        except Exception:  # a broken printer must not stop the worker
+            log.exception("event sink failed on %s", event)
+
+    # --- public state -----------------------------------------------------------------------
+
+    def adoption(self) -> Adoption:
+        """What this worker runs now."""
+        caps = self._caps
+        return Adoption(
+            worker_id=self.worker_id,
+            task=self.spec.name,
+            revision=caps.revision if caps is not None else 0,
+            versions=caps.versions if caps is not None else {},
+            pending=caps.pending() if caps is not None else {},
+            episodes=self._episodes,
+            registry_connected=self._registry_up,
+            pid=os.getpid(),
+            started_at=self._started_at,
+        )
+
+    # --- Zenoh callbacks (Zenoh threads) ----------------------------------------------------
+
+    def _on_adopted(self, query: zenoh.Query) -> None:
+        _reply(query, json.dumps(self.adoption().to_dict()).encode())
+
+    def _on_evaluate(self, query: zenoh.Query) -> None:
+        if self._stopping:
+            _reply(query, Unavailable(f"runtime worker {self.worker_id} is shutting down"))
+            return
+        try:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            request = EvaluateRequest.from_json(payload)
+            if request.task != self.spec.name:
+                raise Invalid(
+                    f"runtime worker {self.worker_id} runs task {self.spec.name!r}, not {request.task!r}",
+                    details={"field": "task"},
+                )
+        except CapevoError as exc:
+            _reply(query, exc)
+            return
+        try:
+            self._requests.put_nowait(_Request(query, request))
+        except queue.Full:
+            _reply(query, Unavailable(f"runtime worker {self.worker_id} is busy: {MAX_QUEUED_EVALUATIONS} queued"))
+            return
+        self._wake.set()
+
+    def _on_registry_event(self, event: AuditEvent, record: EcmVersion) -> None:
+        caps = self._caps
+        if caps is None or event.name not in caps.names or event.action not in (Action.PROMOTE, Action.ROLLBACK):
+            return
+        if record.state is not State.ACTIVE:
+            return
+        if event.name in caps.pinned:
+            return
+        caps.queue_swap(event.name, record.version, record=record, revision=event.revision)
+        self._emit(
+            "swap_queued", name=event.name, version=record.version, action=event.action.value, revision=event.revision
+        )
+        self._wake.set()
+
+    def _on_registry_liveliness(self, sample: zenoh.Sample) -> None:
+        up = sample.kind == zenoh.SampleKind.PUT
+        was_up, seen = self._registry_up, self._seen_registry
+        self._registry_up = up
+        self._seen_registry = True
+        if up and seen and not was_up:
+            # Events committed while we were away are lost; re-read the set.
+            self._resync.set()
+            self._wake.set()
+        if not seen and up:
+            return
+        if up != was_up:
+            log.warning("registry %s", "is back" if up else "went away; running on the last good versions")
+            self._emit("registry", connected=up)
+
+    # --- main loop ----------------------------------------------------------------------------
+
+    def run(self, stop: threading.Event | None = None, *, handle_signals: bool = True) -> int:
+        """Serve until ``stop`` is set, SIGTERM/SIGINT arrives or the episode count is reached.
+
+        Returns:
+            Episodes run.
+
+        Raises:
+            Invalid, Corrupt: a capability set that cannot be loaded (bad artifacts, plans that
+                do not compose).
+        """
+        stop = stop if stop is not None else threading.Event()
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(_signals_set(stop, handle_signals))
+            stack.callback(self._drain, "runtime worker is shutting down")
+            client = self._open_client(stop)
+            if client is None:
+                return 0
+            stack.callback(client.close)
+            env = make_task(self.spec.name, perturbations=self.config.perturbations, horizon=self.config.horizon)
+            stack.callback(env.close)
+            env.reset(seed=self.config.seed)
+            shapes = {k: tuple(v.shape) for k, v in env.obs_dict.items()}
+            caps = self._load(client, shapes, stop)
+            if caps is None:
+                return 0
+            stack.callback(caps.close)
+            self._caps = caps
+            policy, identity_hash = self._policy()
+            evaluator = LocalEvaluator(
+                client,
+                policy=policy,
+                phi=self.phi,
+                trace_dir=self.config.trace_dir / "evaluations" if self.config.trace_dir is not None else None,
+                perturbations=self.config.perturbations,
+                horizon=self.config.horizon,
+                step_budget_per_ecm=self.config.step_budget_per_ecm,
+                timeout_s=self.config.timeout_s,
+                governance=self.config.governance,
+                agent_identity_hash=identity_hash,
+                cache=self._cache,
+                recovery=self.config.recovery,
+                worker_id=self.worker_id,
+                env=env,
+            )
+            session = self._open_session(stack)
+            subscription = client.subscribe_events("*", self._on_registry_event)
+            stack.callback(subscription.close)
+            liveliness = session.liveliness().declare_subscriber(
+                self.registry_keys.alive(), self._on_registry_liveliness, history=True
+            )
+            stack.callback(liveliness.undeclare)
+            # Events that landed between loading and subscribing are caught by one re-read.
+            self._resync.set()
+            self._emit(
+                "ready",
+                task=self.spec.name,
+                namespace=self.config.namespace,
+                revision=caps.revision,
+                versions=caps.versions,
+                pid=os.getpid(),
+                keys={
+                    "alive": self.keys.alive(self.worker_id),
+                    "adopted": self.keys.adopted(self.worker_id),
+                    "evaluate": self.keys.evaluate(self.worker_id),
+                    "evaluate_task": self.keys.evaluate_task(self.spec.name),
+                },
+            )
+            self._loop(env, caps, policy, identity_hash, evaluator, stop)
+            self._stopping = True
+        self._emit("stopped", episodes=self._episodes)
+        return self._episodes
+
+    def _open_client(self, stop: threading.Event) -> Any:
+        from capevo.registry.client import Client
+
+        announced = False
+        while not stop.is_set():
+            try:
+                return Client(
+                    self.config.connect,
+                    namespace=self.config.namespace,
+                    user=self.config.user,
+                    password=self.config.password,
+                    timeout=self.config.registry_timeout,
+                    actor=f"runtime:{self.worker_id}",
+                )
+            except Unavailable as exc:
+                if not announced:
+                    self._emit("waiting", reason=str(exc))
+                    announced = True
+                stop.wait(self.config.retry_interval_s)
+        return None
+
+    def _load(self, client: Any, shapes: Mapping[str, Sequence[int]], stop: threading.Event) -> Any:
+        announced = False
+        while not stop.is_set():
+            try:
+                return LoadedCapabilitySet(
+                    client,
+                    self.spec.name,
+                    cache=self._cache,
+                    recovery=self.config.recovery,
+                    observation_shapes=shapes,
+                )
+            except (Unavailable, Timeout, NotFound) as exc:
+                if not announced:
+                    self._emit("waiting", reason=str(exc))
+                    announced = True
+                log.warning("cannot load the capability set yet: %s", exc)
+                stop.wait(self.config.retry_interval_s)
+        return None
+
+    def _policy(self) -> tuple[Any, str]:
+        from capevo.agent.identity import IdentityMemory, load_identity
+        from capevo.agent.policy import DecompositionPolicy
+
+        identity = (
+            load_identity(self.config.identity_path)
+            if self.config.identity_path is not None
+            else IdentityMemory.default()
+        )
+        policy = DecompositionPolicy(identity=identity)
+        return policy, agent_identity_of(policy) or "unspecified"
+
+    def _open_session(self, stack: contextlib.ExitStack) -> zenoh.Session:
+        try:
+            session = zenoh.open(_zenoh_config(self.config.connect, self.config.user, self.config.password))
+        except zenoh.ZError as exc:
+            raise Unavailable(f"cannot open the worker's Zenoh session: {_first_line(exc)}") from None
+        stack.callback(session.close)
+        for key, handler, complete in (
+            (self.keys.adopted(self.worker_id), self._on_adopted, False),
+            (self.keys.evaluate(self.worker_id), self._on_evaluate, False),
+            # complete=True: a query on the shared key goes to one worker of the task, not all.
+            (self.keys.evaluate_task(self.spec.name), self._on_evaluate, True),
+        ):
+            queryable = session.declare_queryable(key, handler, complete=complete)
+            stack.callback(queryable.undeclare)
+        token = session.liveliness().declare_token(self.keys.alive(self.worker_id))
+        # Undeclared before the queryables (the stack unwinds in reverse): alive implies served.
+        stack.callback(token.undeclare)
+        return session
+
+    def _loop(
+        self,
+        env: TaskEnv,
+        caps: LoadedCapabilitySet,
+        policy: Any,
+        identity_hash: str,
+        evaluator: LocalEvaluator,
+        stop: threading.Event,
+    ) -> None:
+        governor = make_governor(env, self.phi, enforce=self.config.governance)
+        writer: TraceWriter | None = None
+        files = 0
+        try:
+            while not stop.is_set():
+                self._serve_requests(evaluator, stop)
+                if self._resync.is_set() and self._registry_up:
+                    try:
+                        queued = caps.refresh()
+                        self._resync.clear()
+                        if queued:
+                            self._emit("swap_queued", versions=queued, action="resync", revision=caps.revision)
+                    except (Unavailable, Timeout) as exc:
+                        log.info("re-reading the capability set failed: %s", exc)
+                if self.config.idle:
+                    self._wake.wait(0.2)
+                    self._wake.clear()
+                    continue
+                if self.config.episodes is not None and self._episodes >= self.config.episodes:
+                    break
+                swaps = caps.begin_episode()
+                for s in swaps:
+                    self._emit("swap", revision=caps.revision, **s.to_dict())
+                if self.config.trace_dir is not None and (writer is None or any(s.applied for s in swaps)):
+                    if writer is not None:
+                        writer.close()
+                    files += 1
+                    writer = self._open_trace(caps, identity_hash, files)
+                seed = self.config.seed + self._episodes
+                run = run_episode_detailed(
+                    env,
+                    caps,
+                    policy,
+                    governor,
+                    writer,
+                    seed=seed,
+                    episode=self._episodes,
+                    step_budget_per_ecm=self.config.step_budget_per_ecm,
+                    timeout_s=self.config.timeout_s,
+                    trace_path=str(writer.path) if writer is not None else None,
+                    should_stop=stop.is_set,
+                    apply_swaps=False,
+                )
+                self._episodes += 1
+                o = run.outcome
+                self._emit(
+                    "episode",
+                    episode=self._episodes - 1,
+                    seed=seed,
+                    success=o.success,
+                    steps=o.steps,
+                    reward=o.reward,
+                    interventions=o.interventions,
+                    unsafe_steps=o.unsafe_steps,
+                    ecm_failures=o.ecm_failures,
+                    versions=dict(o.capability_set),
+                    revision=caps.revision,
+                    end_reason=run.end_reason,
+                    duration_s=o.duration_s,
+                    registry_connected=self._registry_up,
+                    trace_path=o.trace_path,
+                )
+        finally:
+            if writer is not None:
+                writer.close()
+
+    def _open_trace(self, caps: LoadedCapabilitySet, identity_hash: str, index: int) -> TraceWriter:
+        assert self.config.trace_dir is not None
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(self._started_at))
+        run_id = f"{self.worker_id}-{stamp}-{index:04d}"
+        metadata = TraceMetadata.collect(
+            run_id=run_id,
+            task=self.spec.name,
+            capability_set=caps.capability_set,
+            phi_hash=self.phi.hash,
+            agent_identity_hash=identity_hash,
+            seeds=(self.config.seed + self._episodes,),
+            worker_id=self.worker_id,
+        )
+        return TraceWriter(self.config.trace_dir / f"{run_id}.mcap", metadata)
+
+    def _serve_requests(self, evaluator: LocalEvaluator, stop: threading.Event) -> None:
+        while not stop.is_set():
+            try:
+                item = self._requests.get_nowait()
+            except queue.Empty:
+                return
+            req = item.request
+            started = time.monotonic()
+            try:
+                outcomes = evaluator.evaluate(req.task, req.versions, req.seeds)
+                result: bytes | CapevoError = encode_outcomes(self.worker_id, outcomes)
+                self._emit(
+                    "evaluated",
+                    task=req.task,
+                    versions=dict(req.versions),
+                    seeds=len(req.seeds),
+                    successes=sum(o.success for o in outcomes),
+                    duration_s=time.monotonic() - started,
+                )
+            except CapevoError as exc:
+                result = exc
+            except Exception as exc:  # an evaluation bug must cost the request, never the worker
+                log.exception("evaluate request failed")
+                result = CapevoError(f"evaluation failed in runtime worker {self.worker_id}: {type(exc).__name__}")
+            _reply(item.query, result)
+
+    def _drain(self, why: str) -> None:
+        self._stopping = True
+        while True:
+            try:
+                item = self._requests.get_nowait()
+            except queue.Empty:
+                return
+            _reply(item.query, Unavailable(why))
+
+
+@contextlib.contextmanager
+def _signals_set(stop: threading.Event, enabled: bool) -> Iterator[None]:
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        log.info("received %s; shutting down", signal.Signals(signum).name)
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+# ---------------------------------------------------------------------------------------
+# Clients of workers
+# ---------------------------------------------------------------------------------------
+
+
+class _SessionOwner:
+    """A Zenoh session given by the caller, or opened (and later closed) here."""
+
+    def __init__(
+        self,
+        *,
+        session: zenoh.Session | None,
+        connect: Sequence[str] | str | None,
+        user: str | None,
+        password: str | None,
+    ) -> None:
+        from capevo.registry.zconfig import split_endpoints
+
+        if (session is None) == (not split_endpoints(connect)):
+            raise Invalid("give exactly one of session or connect", details={"field": "connect"})
+        self._own = session is None
+        if session is None:
+            endpoints = split_endpoints(connect)
+            try:
+                session = zenoh.open(_zenoh_config(endpoints, user, password))
+            except zenoh.ZError as exc:
+                raise Unavailable(
+                    f"cannot reach {', '.join(endpoints)}: {_first_line(exc)}", details={"connect": list(endpoints)}
+                ) from None
+        self.session: zenoh.Session = session
+        self._closed = False
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if self._own:
+            with contextlib.suppress(zenoh.ZError):
+                self.session.close()
+
+
+class RemoteEvaluator:
+    """:class:`capevo.runtime.evaluation.Evaluator` served by runtime workers over Zenoh.
+
+    Args:
+        connect: Endpoint(s) of the registry router (or any router the workers reach); or
+        session: an open Zenoh session to use (not closed here).
+        namespace: The registry's namespace.
+        user, password: Zenoh credentials when ``connect`` is given.
+        worker_id: Ask this worker; default any one worker of the task
+            (``<ns>/runtime/evaluate/<task>``).
+        timeout: Seconds to wait for the outcomes of one call.
+
+    Raises:
+        Invalid: neither or both of ``connect``/``session``; bad namespace or worker id.
+        Unavailable: the session cannot open.
+    """
+
+    def __init__(
+        self,
+        connect: Sequence[str] | str | None = None,
+        *,
+        session: zenoh.Session | None = None,
+        namespace: str = DEFAULT_NAMESPACE,
+        user: str | None = None,
+        password: str | None = None,
+        worker_id: str | None = None,
+        timeout: float = DEFAULT_EVALUATE_TIMEOUT_S,
+    ) -> None:
+        self.keys = RuntimeKeys(namespace)
+        self.worker_id = validate_worker_id(worker_id) if worker_id is not None else None
+        if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout > 0:
+            raise Invalid(
+                f"timeout must be a positive number of seconds, got {timeout!r}", details={"field": "timeout"}
+            )
+        self.timeout = float(timeout)
+        self._owner = _SessionOwner(session=session, connect=connect, user=user, password=password)
+
+    def evaluate(self, task: str, versions: Mapping[str, int], seeds: Sequence[int]) -> list[EpisodeOutcome]:
+        """Run the episodes on a worker and return its outcomes, one per seed in order.
+
+        Raises:
+            Invalid: bad arguments (checked here first) or refused by the worker.
+            Unavailable: no worker serves the task (or the chosen worker is gone or busy).
+            Timeout: no outcomes within ``timeout``.
+            CapevoError: whatever the worker's evaluation raised (same class and code).
+        """
+        request = EvaluateRequest(
+            task=task_spec(task).name, versions=check_versions(versions), seeds=tuple(check_seeds(seeds))
+        )
+        key = self.keys.evaluate(self.worker_id) if self.worker_id else self.keys.evaluate_task(request.task)
+        started = time.monotonic()
+        try:
+            replies = self._owner.session.get(
+                key,
+                payload=request.to_json(),
+                timeout=self.timeout,
+                target=zenoh.QueryTarget.BEST_MATCHING,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            for reply in replies:
+                if reply.ok is not None:
+                    _, outcomes = decode_outcomes(reply.ok.payload.to_bytes())
+                    if len(outcomes) != len(request.seeds):
+                        raise CapevoError(
+                            f"runtime worker returned {len(outcomes)} outcomes for {len(request.seeds)} seeds"
+                        )
+                    return outcomes
+                body = reply.err.payload.to_bytes() if reply.err is not None else b""
+                if body == b"Timeout":
+                    raise Timeout(f"{key}: no outcomes within {self.timeout:g}s", details={"key": key})
+                raise error_from_payload(body)
+        except zenoh.ZError as exc:
+            raise Unavailable(f"{key}: query failed: {_first_line(exc)}", details={"key": key}) from None
+        if time.monotonic() - started >= self.timeout * _NO_REPLY_GRACE:
+            raise Timeout(f"{key}: no outcomes within {self.timeout:g}s", details={"key": key})
+        who = f"runtime worker {self.worker_id!r}" if self.worker_id else f"no runtime worker of task {request.task!r}"
+        raise Unavailable(
+            f"{key}: {who} answered (namespace {self.keys.namespace!r}); is one running?", details={"key": key}
+        )
+
+    def close(self) -> None:
+        self._owner.close()
+
+    def __enter__(self) -> RemoteEvaluator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def list_workers(
+    connect: Sequence[str] | str | None = None,
+    *,
+    session: zenoh.Session | None = None,
+    namespace: str = DEFAULT_NAMESPACE,
+    user: str | None = None,
+    password: str | None = None,
+    timeout: float = 3.0,
+) -> list[Adoption]:
+    """Every runtime worker that answers ``<ns>/runtime/*/adopted``, sorted by worker id.
+
+    Raises:
+        Invalid: neither or both of ``connect``/``session``. Unavailable: the session cannot open.
+    """
+    keys = RuntimeKeys(namespace)
+    owner = _SessionOwner(session=session, connect=connect, user=user, password=password)
+    try:
+        found: dict[str, Adoption] = {}
+        try:
+            replies = owner.session.get(
+                keys.adopted_all(),
+                timeout=timeout,
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+            )
+            for reply in replies:
+                if reply.ok is None:
+                    continue
+                try:
+                    adoption = Adoption.from_dict(json.loads(reply.ok.payload.to_bytes()))
+                except (Invalid, ValueError) as exc:
+                    log.warning("ignoring a malformed adoption reply on %s: %s", reply.ok.key_expr, exc)
+                    continue
+                found[adoption.worker_id] = adoption
+        except zenoh.ZError as exc:
+            raise Unavailable(f"listing runtime workers failed: {_first_line(exc)}") from None
+        return [found[k] for k in sorted(found)]
+    finally:
+        owner.close()
+
+
+def new_worker_id(prefix: str = "worker") -> str:
+    """A fresh random worker id (``<prefix>-<8 hex>``)."""
+    return validate_worker_id(f"{prefix}-{uuid.uuid4().hex[:8]}")

@@ -1,0 +1,300 @@
+"""Content-addressed, durable blob storage for ECM artifacts.
+
+A blob whose sha256 is ``abcdef…`` lives at ``root/ab/cdef…``. Writers stream into a
+temporary file in the same shard directory, fsync it, ``os.replace`` it into place and
+fsync the directory, so a reader (or a process restarted after SIGKILL or power loss) sees
+either no file or the complete file, never a torn one.
+
+Invariants:
+1. A blob file at ``root/ab/cdef…`` is visible only once complete and durable
+   (temp file + fsync + atomic rename + directory fsync).
+2. :meth:`BlobStore.get` never returns bytes whose sha256 differs from the requested
+   address: a mismatch raises :class:`Corrupt`, a missing file :class:`NotFound`.
+3. Only strings of exactly 64 lowercase hex digits address a blob, so no address can
+   name a path outside ``root``; anything else raises :class:`Invalid`.
+4. ``put`` is idempotent: storing the same bytes twice yields the same address and one
+   file; a present but corrupt copy is replaced by the good bytes.
+5. Temporary files (``.tmp-*``) are never reported as blobs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import re
+import secrets
+import time
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import BinaryIO
+
+from capevo.errors import Corrupt, Invalid, NotFound, TooLarge, Unavailable
+
+SHA256_PATTERN = re.compile(r"[0-9a-f]{64}")
+CHUNK_BYTES = 1 << 20
+_TMP_PREFIX = ".tmp-"
+
+
+def validate_sha256(sha256: object) -> str:
+    """Return ``sha256`` if it is 64 lowercase hex digits.
+
+    Raises:
+        Invalid: for any other value (this is what rules out path traversal).
+    """
+    if not isinstance(sha256, str) or not SHA256_PATTERN.fullmatch(sha256):
+        shown = repr(sha256)[:80]
+        raise Invalid(f"blob address must be 64 lowercase hex digits, got {shown}", details={"field": "sha256"})
+    return sha256
+
+
+def fsync_dir(path: str | os.PathLike[str]) -> None:
+    """Make the entries of directory ``path`` (new files, renames) durable."""
+    # A rename is durable only once the directory entry is; O_DIRECTORY is POSIX-only.
+    flags = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0)
+    fd = os.open(path, flags)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def make_dir_durably(path: str | os.PathLike[str]) -> None:
+    """``mkdir -p path``, fsyncing the parent of every directory it creates.
+
+    Raises:
+        OSError: the directory cannot be created.
+    """
+    path = Path(path)
+    missing: list[Path] = []
+    probe = path
+    while not probe.exists():
+        missing.append(probe)
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    path.mkdir(parents=True, exist_ok=True)
+    for created in reversed(missing):
+        fsync_dir(created.parent)
+
+
+class BlobStore:
+    """Content-addressed bytes under one directory.
+
+    Safe to use from many threads and processes at once: every write goes through its own
+    uniquely named temporary file and an atomic rename.
+
+    Args:
+        root: Directory holding the shard directories; created if missing.
+
+    Raises:
+        Unavailable: ``root`` cannot be created.
+    """
+
+    def __init__(self, root: str | os.PathLike[str]) -> None:
+        self._root = Path(root)
+        try:
+            make_dir_durably(self._root)
+        except OSError as exc:
+            raise Unavailable(f"cannot create blob directory {self._root}: {exc}") from exc
+
+    @property
+    def root(self) -> Path:
+        return self._root
+
+    def path_for(self, sha256: str) -> Path:
+        """Where the blob ``sha256`` lives (whether or not it exists).
+
+        Raises:
+            Invalid: ``sha256`` is not 64 lowercase hex digits.
+        """
+        sha = validate_sha256(sha256)
+        return self._root / sha[:2] / sha[2:]
+
+    def exists(self, sha256: str) -> bool:
+        """Whether a file is stored at ``sha256``'s address (its contents are not checked)."""
+        return self.path_for(sha256).is_file()
+
+    # --- writing ----------------------------------------------------------------------
+    def put(self, data: bytes | bytearray | memoryview) -> tuple[str, int]:
+        """Store ``data`` durably.
+
+        Returns:
+            ``(sha256, size)`` of ``data``.
+
+        Raises:
+            Invalid: ``data`` is not bytes-like.
+            Unavailable: the filesystem refused the write (disk full, permissions).
+        """
+        if not isinstance(data, (bytes, bytearray, memoryview)):
+            raise Invalid(f"blob data must be bytes, got {type(data).__name__}", details={"field": "artifact"})
+        view = memoryview(data)
+        sha = hashlib.sha256(view).hexdigest()
+        if self._intact(sha, view.nbytes):
+            return sha, view.nbytes
+        self._write(sha, (view[i : i + CHUNK_BYTES] for i in range(0, view.nbytes, CHUNK_BYTES)))
+        return sha, view.nbytes
+
+    def put_stream(self, stream: BinaryIO | Iterable[bytes], *, max_bytes: int | None = None) -> tuple[str, int]:
+        """Store a large artifact without holding it in memory.
+
+        Args:
+            stream: A binary file object (read in 1 MiB chunks) or an iterable of byte chunks.
+            max_bytes: Refuse streams longer than this.
+
+        Returns:
+            ``(sha256, size)`` of everything read.
+
+        Raises:
+            TooLarge: the stream exceeded ``max_bytes`` (nothing is stored).
+            Unavailable: the filesystem refused the write.
+        """
+        chunks: Iterable[bytes]
+        if hasattr(stream, "read"):
+            reader = stream  # type: ignore[assignment]
+            chunks = iter(lambda: reader.read(CHUNK_BYTES), b"")  # type: ignore[union-attr]
+        else:
+            chunks = stream  # type: ignore[assignment]
+        shard_tmp = self._root / "incoming"
+        tmp = self._new_tmp(shard_tmp)
+        digest = hashlib.sha256()
+        size = 0
+        try:
+            with open(tmp, "wb") as fh:
+                for chunk in chunks:
+                    size += len(chunk)
+                    if max_bytes is not None and size > max_bytes:
+                        raise TooLarge(f"artifact exceeds the limit of {max_bytes} bytes", details={"limit": max_bytes})
+                    digest.update(chunk)
+                    fh.write(chunk)
+                fh.flush()
+                os.fsync(fh.fileno())
+            sha = digest.hexdigest()
+            if self._intact(sha, size):
+                return sha, size
+            final = self.path_for(sha)
+            self._ensure_shard(final.parent)
+            os.replace(tmp, final)
+            fsync_dir(final.parent)
+            return sha, size
+        except OSError as exc:
+            raise Unavailable(f"cannot write blob under {self._root}: {exc}") from exc
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+
+    def _write(self, sha: str, chunks: Iterable[memoryview | bytes]) -> None:
+        final = self.path_for(sha)
+        try:
+            self._ensure_shard(final.parent)
+            tmp = self._new_tmp(final.parent)
+            try:
+                with open(tmp, "wb") as fh:
+                    for chunk in chunks:
+                        fh.write(chunk)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                os.replace(tmp, final)
+            finally:
+                with contextlib.suppress(FileNotFoundError):
+                    tmp.unlink()
+            fsync_dir(final.parent)
+        except OSError as exc:
+            raise Unavailable(f"cannot write blob {sha} under {self._root}: {exc}") from exc
+
+    def _ensure_shard(self, shard: Path) -> None:
+        if shard.is_dir():
+            return
+        shard.mkdir(parents=True, exist_ok=True)
+        # The new shard's own entry in root must be durable too, or the blob can vanish.
+        fsync_dir(self._root)
+
+    def _new_tmp(self, directory: Path) -> Path:
+        directory.mkdir(parents=True, exist_ok=True)
+        return directory / f"{_TMP_PREFIX}{os.getpid()}-{secrets.token_hex(8)}"
+
+    def _intact(self, sha: str, size: int) -> bool:
+        # Idempotent put: skip the write only when the stored copy is really good.
+        path = self.path_for(sha)
+        try:
+            if path.stat().st_size != size:
+                return False
+        except OSError:
+            return False
+        return self.verify(sha) is None
+
+    # --- reading ----------------------------------------------------------------------
+    def get(self, sha256: str) -> bytes:
+        """The bytes stored at ``sha256``, checked against the address.
+
+        Raises:
+            Invalid: malformed address.
+            NotFound: no blob at that address.
+            Corrupt: the stored bytes hash to something else (they are not returned).
+        """
+        path = self.path_for(sha256)
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            raise NotFound(f"blob {sha256} is not stored", details={"sha256": sha256}) from None
+        except OSError as exc:
+            raise Unavailable(f"cannot read blob {sha256}: {exc}") from exc
+        actual = hashlib.sha256(data).hexdigest()
+        if actual != sha256:
+            raise Corrupt(
+                f"blob {sha256} is corrupt: its content hashes to {actual}",
+                details={"sha256": sha256, "actual": actual},
+            )
+        return data
+
+    def verify(self, sha256: str) -> str | None:
+        """Check one blob without loading it whole.
+
+        Returns:
+            ``None`` when intact, else a one-line description of the problem.
+
+        Raises:
+            Invalid: malformed address.
+        """
+        path = self.path_for(sha256)
+        digest = hashlib.sha256()
+        try:
+            with open(path, "rb") as fh:
+                for chunk in iter(lambda: fh.read(CHUNK_BYTES), b""):
+                    digest.update(chunk)
+        except FileNotFoundError:
+            return f"blob {sha256}: missing (expected at {path})"
+        except OSError as exc:
+            return f"blob {sha256}: unreadable: {exc}"
+        actual = digest.hexdigest()
+        if actual != sha256:
+            return f"blob {sha256}: content hashes to {actual} (corrupt or tampered)"
+        return None
+
+    def sweep_temp(self, *, older_than_s: float = 3600.0) -> int:
+        """Delete temporary files a killed writer left behind.
+
+        Args:
+            older_than_s: Only files untouched for this long; a live writer's file is younger.
+
+        Returns:
+            How many files were removed.
+        """
+        cutoff = time.time() - older_than_s
+        removed = 0
+        for tmp in self._root.glob(f"*/{_TMP_PREFIX}*"):
+            with contextlib.suppress(FileNotFoundError):
+                if tmp.stat().st_mtime < cutoff:
+                    tmp.unlink()
+                    removed += 1
+        return removed
+
+    def __iter__(self) -> Iterator[str]:
+        """Addresses of every stored blob (temporary files excluded), in no particular order."""
+        for shard in self._root.iterdir():
+            if len(shard.name) != 2 or not shard.is_dir():
+                continue
+            for entry in shard.iterdir():
+                sha = shard.name + entry.name
+                if SHA256_PATTERN.fullmatch(sha):
+                    yield sha

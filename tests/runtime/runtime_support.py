@@ -1,0 +1,298 @@
+"""Shared pieces of the runtime tests: code skills for T1 pick, publishing them, processes.
+
+The skills are real code ECMs (the module contract of :mod:`capevo.runtime.ecm.code`),
+published into a real registry with the descriptors of T1's decomposition.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from capevo.registry.api import Registry
+from capevo.registry.records import EcmVersion, Interface, IOSpec, Kind, Origin, PublishSpec
+from capevo.runtime.tasks import task_spec
+
+LOOPBACK = "127.0.0.1"
+PICK = task_spec("T1")
+
+ACTION = (IOSpec(name="action", shape=(7,), low=-1.0, high=1.0),)
+EEF = IOSpec(name="robot0_eef_pos", shape=(3,), units="m")
+CAN = IOSpec(name="Can_pos", shape=(3,), units="m")
+
+REACH = '''
+"""Bring the open gripper onto the can: hover above it, then descend."""
+import numpy as np
+
+PARAMS = {"gain": 10.0, "hover": 0.06, "xy_tol": 0.03, "dig": 0.015}
+
+
+def act(obs, params):
+    eef = obs["robot0_eef_pos"]
+    can = obs["Can_pos"]
+    err = can - eef
+    err[2] -= params["dig"]
+    if float(np.hypot(err[0], err[1])) > params["xy_tol"]:
+        err = np.array([err[0], err[1], can[2] + params["hover"] - eef[2]])
+    m = np.clip(err * params["gain"], -1.0, 1.0)
+    return [float(m[0]), float(m[1]), float(m[2]), 0.0, 0.0, 0.0, -1.0]
+'''
+
+GRASP = '''
+"""Close the gripper where it is."""
+PARAMS = {}
+
+
+def act(obs, params):
+    return [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+'''
+
+LIFT = '''
+"""Lift straight up with the gripper closed."""
+PARAMS = {"speed": 1.0}
+
+
+def act(obs, params):
+    return [0.0, 0.0, params["speed"], 0.0, 0.0, 0.0, 1.0]
+'''
+
+# A reach whose own done() ends it at once: lets tests see done() end an ECM.
+REACH_DONE_AT_ONCE = """
+def act(obs, params):
+    return [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0]
+
+
+def done(obs, params):
+    return True
+"""
+
+RAISES = """
+def act(obs, params):
+    raise ValueError("deliberate failure in act")
+"""
+
+NAN = """
+def act(obs, params):
+    return [float("nan")] * 7
+"""
+
+BAD_SHAPE = """
+def act(obs, params):
+    return [0.0, 0.0, 0.0]
+"""
+
+HANGS = """
+def act(obs, params):
+    x = 0
+    while True:
+        x = x + 1
+"""
+
+# Adversarial: straight up, full speed, far past the workspace box's +z face (1.3 m).
+OUT_OF_BOX = """
+def act(obs, params):
+    return [0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0]
+"""
+
+SOURCES: Mapping[str, str] = {"pick.reach": REACH, "pick.grasp": GRASP, "pick.lift": LIFT}
+INPUTS: Mapping[str, tuple[IOSpec, ...]] = {
+    "pick.reach": (EEF, CAN),
+    "pick.grasp": (EEF, CAN),
+    "pick.lift": (EEF,),
+}
+
+
+def step_of(name: str) -> Any:
+    return next(s for s in PICK.decomposition if s.ecm == name)
+
+
+def skill_spec(
+    name: str, *, origin: Origin = Origin.MANUAL, inputs: tuple[IOSpec, ...] | None = None, parent: int | None = None
+) -> PublishSpec:
+    """The publish spec of a T1 skill: the task's descriptor for ``name`` and a 7-dim action."""
+    return PublishSpec(
+        kind=Kind.CODE,
+        descriptor=step_of(name).descriptor(),
+        interface=Interface(inputs=INPUTS[name] if inputs is None else inputs, outputs=ACTION),
+        origin=origin,
+        parent=parent,
+    )
+
+
+def publish(
+    registry: Registry,
+    name: str,
+    source: str,
+    *,
+    origin: Origin = Origin.MANUAL,
+    promote: bool = True,
+    inputs: tuple[IOSpec, ...] | None = None,
+) -> EcmVersion:
+    """Publish ``source`` as the next version of ``name`` (and promote it)."""
+    record = registry.publish(name, source.encode(), skill_spec(name, origin=origin, inputs=inputs))
+    if promote:
+        record = registry.promote(name, record.version, reason="test")
+    return record
+
+
+def publish_pick(registry: Registry, *, origin: Origin = Origin.MANUAL, **overrides: str) -> dict[str, EcmVersion]:
+    """Publish and promote reach, grasp and lift (``overrides`` replaces sources by short name)."""
+    out = {}
+    for name, source in SOURCES.items():
+        short = name.split(".", 1)[1]
+        out[name] = publish(registry, name, overrides.get(short, source), origin=origin)
+    return out
+
+
+# --- processes -------------------------------------------------------------------------
+
+
+def free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((LOOPBACK, 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class Proc:
+    """A child process whose stdout carries JSON lines (``READY {...}`` or ``{...}``)."""
+
+    popen: subprocess.Popen[str]
+    log_path: Path
+    lines: list[dict[str, Any]] = field(default_factory=list)
+
+    def read_until(self, predicate: Any, timeout: float) -> dict[str, Any]:
+        """Read stdout lines until one satisfies ``predicate``; return it (or raise with the log)."""
+        deadline = time.monotonic() + timeout
+        for line in self.lines:
+            if predicate(line):
+                return line
+        assert self.popen.stdout is not None
+        while time.monotonic() < deadline:
+            ready, _, _ = select.select([self.popen.stdout], [], [], 0.2)
+            if ready:
+                text = self.popen.stdout.readline()
+                if not text:
+                    break
+                line = _parse(text)
+                if line is None:
+                    continue
+                self.lines.append(line)
+                if predicate(line):
+                    return line
+            elif self.popen.poll() is not None:
+                break
+        raise AssertionError(
+            f"no matching line within {timeout}s (exit {self.popen.poll()}); lines: {self.lines[-5:]}\n"
+            f"log:\n{self.log()[-4000:]}"
+        )
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
+
+    def running(self) -> bool:
+        return self.popen.poll() is None
+
+    def terminate(self, timeout: float = 30.0) -> int:
+        if self.running():
+            self.popen.send_signal(signal.SIGTERM)
+            try:
+                self.popen.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+                self.popen.wait()
+        if self.popen.stdout is not None:
+            self.popen.stdout.close()
+        return int(self.popen.returncode)
+
+    def kill(self) -> None:
+        if self.running():
+            self.popen.send_signal(signal.SIGKILL)
+            self.popen.wait()
+        if self.popen.stdout is not None:
+            self.popen.stdout.close()
+
+
+def _parse(text: str) -> dict[str, Any] | None:
+    text = text.strip()
+    if text.startswith("READY "):
+        text = text[len("READY ") :]
+        try:
+            return {"event": "ready", **json.loads(text)}
+        except ValueError:
+            return None
+    try:
+        value = json.loads(text)
+    except ValueError:
+        return None
+    return value if isinstance(value, dict) else None
+
+
+def spawn(cmd: list[str], log_path: Path, env: Mapping[str, str] | None = None) -> Proc:
+    with open(log_path, "a") as log_file:
+        popen = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=log_file, text=True, env={**os.environ, **(env or {})}
+        )
+    return Proc(popen=popen, log_path=log_path)
+
+
+def start_registry(root: Path, port: int, *, namespace: str = "capevo", timeout: float = 60.0) -> Proc:
+    """``python -m capevo.registry.service`` on ``tcp/127.0.0.1:port``, once it serves."""
+    root.mkdir(parents=True, exist_ok=True)
+    proc = spawn(
+        [
+            sys.executable,
+            "-m",
+            "capevo.registry.service",
+            "--root",
+            str(root),
+            "--listen",
+            f"tcp/{LOOPBACK}:{port}",
+            "--namespace",
+            namespace,
+        ],
+        root.parent / f"registry-{port}.log",
+    )
+    proc.read_until(lambda line: line.get("event") == "ready", timeout)
+    return proc
+
+
+def start_worker(
+    connect: str,
+    *,
+    task: str,
+    log_path: Path,
+    extra: list[str] | None = None,
+    namespace: str = "capevo",
+    timeout: float = 90.0,
+) -> Proc:
+    """``python -m capevo.cli.runtime serve --json ...`` once it reports ``ready``."""
+    proc = spawn(
+        [
+            sys.executable,
+            "-m",
+            "capevo.cli.runtime",
+            "serve",
+            "--connect",
+            connect,
+            "--task",
+            task,
+            "--namespace",
+            namespace,
+            "--json",
+            *(extra or []),
+        ],
+        log_path,
+    )
+    proc.read_until(lambda line: line.get("event") == "ready", timeout)
+    return proc
