@@ -18,10 +18,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import platform
 import statistics
 import sys
 import time
+import timeit
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -49,7 +51,7 @@ def _percentiles(samples_ns: list[int]) -> dict[str, float]:
     return {"p50_ms": q(0.50), "p99_ms": q(0.99), "mean_ms": statistics.fmean(xs) / 1e6, "n": n}
 
 
-def _time_calls(fn: Callable[[], Any], n: int, warmup: int) -> dict[str, float]:
+def _time_calls(fn: Callable[[], Any], n: int, warmup: int, batches: int = 0) -> dict[str, float]:
     for _ in range(warmup):
         fn()
     clock = time.perf_counter_ns
@@ -58,7 +60,12 @@ def _time_calls(fn: Callable[[], Any], n: int, warmup: int) -> dict[str, float]:
         t0 = clock()
         fn()
         samples[i] = clock() - t0
-    return _percentiles(samples)
+    out = _percentiles(samples)
+    if batches:
+        # The fastest of many 1000-call batches: the cost when no other process competes for the core.
+        best = min(timeit.repeat(fn, number=1000, repeat=batches)) / 1000
+        out["best_batch_mean_ms"] = best * 1e3
+    return out
 
 
 def _timer_overhead_ns(n: int) -> float:
@@ -101,6 +108,9 @@ def governance_cases(phi: Phi) -> dict[str, tuple[Callable[..., Any], Any, Any]]
     g12 = phi.governor(TWO_ARM_NO_GRIPPER)
     g7_off = phi.governor(SINGLE_PANDA, enforce=False)
     calm_t = tuple(calm.tolist())
+    inside_margin = RobotState(arms=(_arm((0.55, 0.0, 1.0)),))
+    outward = np.array([0.5, 0.2, 0.1, 0.0, 0.0, 0.1, 1.0])
+    assert len(g7(inside_margin, outward)[1]) == 1
     nan7 = calm.copy()
     nan7[1] = np.nan
     assert g7(inside, calm)[1] == () and g12(inside2, calm2)[1] == ()
@@ -108,6 +118,7 @@ def governance_cases(phi: Phi) -> dict[str, tuple[Callable[..., Any], Any, Any]]
     return {
         "single_arm_7d/allow/numpy": (g7, inside, calm),
         "single_arm_7d/allow/tuple": (g7, inside, calm_t),
+        "single_arm_7d/modify(box)": (g7, inside_margin, outward),
         "single_arm_7d/modify(box+force+cap)": (g7, near_face, out_fast),
         "single_arm_7d/reject(nan)": (g7, inside, nan7),
         "single_arm_7d/governance_off/modify": (g7_off, near_face, out_fast),
@@ -158,11 +169,15 @@ def main(argv: list[str] | None = None) -> int:
         "machine": platform.machine(),
         "processor": platform.processor() or platform.platform(),
         "timer_ns": _timer_overhead_ns(100_000),
+        "load_average_1_5_15": list(os.getloadavg()),
+        "cpus": os.cpu_count(),
         "n_per_case": args.n,
         "cases": {},
     }
     for name, (fn, state, action) in governance_cases(phi).items():
-        results["cases"][name] = _time_calls(lambda fn=fn, s=state, a=action: fn(s, a), args.n, min(args.n, 20_000))
+        results["cases"][name] = _time_calls(
+            lambda fn=fn, s=state, a=action: fn(s, a), args.n, min(args.n, 20_000), batches=200
+        )
 
     if args.env_steps:
         results["env"] = {
@@ -182,12 +197,19 @@ def main(argv: list[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")
 
-    print(f"Φ {phi.hash[:12]}…, python {results['python']}, timer overhead {results['timer_ns']:.0f} ns/call\n")
-    print("| case | p50 (ms) | p99 (ms) | mean (ms) | % of env step (p50) |")
-    print("|---|---:|---:|---:|---:|")
+    load = ", ".join(f"{x:.1f}" for x in results["load_average_1_5_15"])
+    print(
+        f"Φ {phi.hash[:12]}…, python {results['python']}, timer overhead {results['timer_ns']:.0f} ns/call, "
+        f"load average {load} on {results['cpus']} CPUs\n"
+    )
+    print("| case | p50 (ms) | p99 (ms) | mean (ms) | best 1000-call batch (ms/call) | % of env step (p50) |")
+    print("|---|---:|---:|---:|---:|---:|")
     for name, r in results["cases"].items():
         pct = f"{r['pct_of_env_step']:.4f}%" if "pct_of_env_step" in r else "n/a"
-        print(f"| {name} | {r['p50_ms']:.5f} | {r['p99_ms']:.5f} | {r['mean_ms']:.5f} | {pct} |")
+        print(
+            f"| {name} | {r['p50_ms']:.5f} | {r['p99_ms']:.5f} | {r['mean_ms']:.5f} "
+            f"| {r['best_batch_mean_ms']:.5f} | {pct} |"
+        )
     if args.env_steps:
         print()
         print("| robosuite | env.step p50 (ms) | env.step p99 (ms) | robot_state() read p50 (ms) |")

@@ -154,3 +154,37 @@ def _render_report(console: Console, report: VerifyReport) -> None:
         for i, problem in enumerate(report.problems, 1):
             table.add_row(str(i), problem)
         console.print(table)
+
+
+@registry.command("demo")
+@click.option(
+    "--root",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="Registry directory to use (default: a fresh temporary one).",
+)
+@json_option
+def demo_cmd(root: Path | None, as_json: bool) -> None:
+    """Round trip over real Zenoh: serve a registry, publish, promote twice, roll back, print the history."""
+    import tempfile
+
+    from capevo.cli.ecm import _render_history
+    from capevo.registry.roundtrip import DEMO_ECM, run_round_trip
+
+    with tempfile.TemporaryDirectory(prefix="capevo-demo-") as scratch:
+        result = run_round_trip(root if root is not None else scratch)
+
+    def render(console: Console) -> None:
+        console.print(f"registry served at {result.endpoint}; client published, promoted and rolled back {DEMO_ECM}")
+        _render_history(console, DEMO_ECM, list(result.history))
+        console.print(f"active version after rollback: v{result.active_version}")
+
+    emit(
+        as_json,
+        {
+            "endpoint": result.endpoint,
+            "active_version": result.active_version,
+            "history": [e.to_dict() for e in result.history],
+        },
+        render,
+    )

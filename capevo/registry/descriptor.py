@@ -71,7 +71,7 @@ _IOSPEC = {
     "additionalProperties": False,
     "required": ["name", "shape"],
     "properties": {
-        "name": {"type": "string", "pattern": r"^[A-Za-z_][A-Za-z0-9_.]{0,63}$"},
+        "name": {"type": "string", "pattern": r"^[A-Za-z_][A-Za-z0-9_.-]{0,63}$"},
         "shape": {"type": "array", "maxItems": 8, "items": {"type": "integer", "minimum": 1, "maximum": 1_000_000}},
         "dtype": {"enum": ["float32", "float64", "int32", "int64", "bool", "uint8"]},
         "low": {"type": ["number", "null"]},

@@ -178,9 +178,11 @@ class Proc:
             if predicate(line):
                 return line
         assert self.popen.stdout is not None
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not self.popen.stdout.closed:
             ready, _, _ = select.select([self.popen.stdout], [], [], 0.2)
             if ready:
+                if self.popen.stdout.closed:
+                    break
                 text = self.popen.stdout.readline()
                 if not text:
                     break
@@ -211,16 +213,24 @@ class Proc:
             except subprocess.TimeoutExpired:
                 self.popen.kill()
                 self.popen.wait()
-        if self.popen.stdout is not None:
-            self.popen.stdout.close()
+        self._drain()
         return int(self.popen.returncode)
+
+    def _drain(self) -> None:
+        """Keep whatever the exited process still had on stdout, then close it."""
+        if self.popen.stdout is None or self.popen.stdout.closed:
+            return
+        for text in self.popen.stdout.read().splitlines():
+            line = _parse(text)
+            if line is not None:
+                self.lines.append(line)
+        self.popen.stdout.close()
 
     def kill(self) -> None:
         if self.running():
             self.popen.send_signal(signal.SIGKILL)
             self.popen.wait()
-        if self.popen.stdout is not None:
-            self.popen.stdout.close()
+        self._drain()
 
 
 def _parse(text: str) -> dict[str, Any] | None:

@@ -170,7 +170,7 @@ def test_failing_ecm_never_crashes_the_episode(
     assert out.ecm_failures == 2 * limit
     assert run.end_reason.startswith("policy: pick.reach reached its attempt limit")
     assert [i.outcome for i in sink.invocations] == [outcome] * (2 * limit)
-    assert all(i.output is None or len(i.output) != 7 or any(math.isnan(x) for x in i.output) for i in sink.invocations)
+    assert all(i.output is None and i.error for i in sink.invocations)
     # the held action: no motion, gripper at its default
     assert all(s.action == (0.0,) * 7 for s in sink.env_steps)
     assert sink.plan_steps[-1].ecm == END_PLAN_ECM and sink.plan_steps[-1].reason == run.end_reason

@@ -117,7 +117,7 @@ def seed_params(task: str, ecm: str) -> dict[str, float]:
     Raises:
         Invalid: as :func:`seed_source`.
     """
-    spec, table = _templates(task)
+    _, table = _templates(task)
     if ecm not in table:
         seed_source(task, ecm)  # raises the listing error
     return {k: float(v) for k, v in table[ecm][0].params.items()}

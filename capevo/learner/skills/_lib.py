@@ -21,7 +21,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from capevo.errors import Invalid
-from capevo.registry.records import IOSpec, Interface, Kind, Origin, Provenance, PublishSpec
+from capevo.registry.records import Interface, IOSpec, Kind, Origin, Provenance, PublishSpec
 from capevo.runtime.tasks.spec import EcmStep, TaskSpec
 
 PRELUDE = '''
@@ -65,13 +65,23 @@ def rot_error(current, target=DOWN):
 
 OPEN, CLOSE = -1.0, 1.0
 """Gripper commands; robosuite's gripper holds the last command's target."""
+ROT_GAIN = 2.0
+"""Action per radian of orientation error (keeping the hand pointing down)."""
+OPEN_WIDTH = 0.065
+"""Finger gap (metres) above which the gripper is open enough to go down around an object."""
+MISSED_WIDTH = 0.01
+"""Finger gap below which a closed gripper holds nothing."""
+RELEASED_WIDTH = 0.07
+"""Finger gap above which a held object has been let go."""
+DONE_TOL = 0.008
+"""Per-axis distance (metres, as observed) within which a positioning skill calls itself done."""
 
 
-def pose_action(move, rot, grip, gain, rot_gain):
-    """One 7-D OSC_POSE action: position error times ``gain``, rotation error times ``rot_gain``."""
+def pose_action(move, grip, gain, rot):
+    """One 7-D OSC_POSE action: position error times ``gain``, orientation error times ROT_GAIN."""
     a = np.zeros(7)
     a[:3] = np.clip(np.asarray(move, dtype=np.float64) * gain, -1.0, 1.0)
-    a[3:6] = np.clip(np.asarray(rot, dtype=np.float64) * rot_gain, -1.0, 1.0)
+    a[3:6] = np.clip(np.asarray(rot, dtype=np.float64) * ROT_GAIN, -1.0, 1.0)
     a[6] = grip
     return a
 
@@ -159,7 +169,8 @@ def render(template: SkillTemplate, **keys: str) -> str:
         doc = string.Template(template.doc).substitute(values)
     except KeyError as exc:
         raise Invalid(f"skill template needs a value for placeholder {exc.args[0]!r}") from None
-    return f'"""{doc.strip()}\n"""\n' + template.prelude + "\n\n" + format_params(template.params) + "\n" + body.strip() + "\n"
+    head = f'"""{doc.strip()}\n"""\n'
+    return head + template.prelude + "\n\n" + format_params(template.params) + "\n" + body.strip() + "\n"
 
 
 def interface_for(step: EcmStep, spec: TaskSpec) -> Interface:

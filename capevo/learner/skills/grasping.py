@@ -7,10 +7,11 @@ noisy reading can pick wrongly for one step only pauses the motion for that step
 Version 0 is *manual and untuned*: plausible values a person writes before running anything.
 Known weaknesses, which the learners are meant to find:
 
-* reach aims ``grasp_dz`` = 4 cm above the object origin (at the top face rather than the
-  middle), so the step's termination (within 2 cm in height) is never reached; its gain is low;
-* grasp closes the gripper only when within ``close_above`` = 1 cm of that too-high point;
-* lift rises slowly (0.1 of full speed).
+* reach aims ``grasp_dz`` = 3 cm above the object origin (near the top rather than the
+  middle), so the step's termination (within 2 cm in height) is rarely reached; its gain is low;
+* grasp closes the gripper only when within ``close_above`` = 1 cm of that too-high point
+  (on a 4 cm cube the fingers close above it);
+* lift rises slowly (0.2 of full speed).
 
 Invariants:
 1. Every template renders to source that passes the sandbox validator.
@@ -24,20 +25,18 @@ from capevo.learner.skills._lib import SkillTemplate
 REACH = SkillTemplate(
     doc="""Bring the open gripper around ${what}, fingers straddling its grasp point.
 
-Travels at ``hover`` above the grasp point until within ``descend_xy`` horizontally, waits for
-the fingers to open, then descends to ``dig`` below the grasp point. ``done`` when the noisy
-observation puts the grasp point within ``done_tol`` on every axis with the gripper open.
-v0 is untuned (manual): ``grasp_dz`` aims at the top face and the gain is low.
+Travels at ``hover`` above the grasp point (``grasp_dz`` above the object origin) until within
+``descend_xy`` horizontally, waits for the fingers to open, then descends to ``dig`` below the
+grasp point. ``done`` when the noisy observation puts the grasp point within DONE_TOL on every
+axis with the gripper open (the step's termination predicate usually ends it first).
+v0 is untuned (manual): ``grasp_dz`` aims 3 cm above the origin and the gain is low.
 """,
     params={
         "gain": 3.0,
-        "rot_gain": 1.0,
         "hover": 0.1,
-        "grasp_dz": 0.04,
+        "grasp_dz": 0.03,
         "descend_xy": 0.02,
         "dig": 0.0,
-        "open_width": 0.065,
-        "done_tol": 0.01,
     },
     body='''
 def grasp_error(obs, params):
@@ -58,17 +57,16 @@ def act(obs, params):
         if above < params["hover"] - 0.02:
             move[0] *= 0.2
             move[1] *= 0.2
-        return pose_action(move, rot, OPEN, params["gain"], params["rot_gain"])
-    if opening(obs) < params["open_width"]:
+        return pose_action(move, OPEN, params["gain"], rot)
+    if opening(obs) < OPEN_WIDTH:
         # let the fingers open before going down around the object
-        return pose_action(np.array([err[0], err[1], 0.0]), rot, OPEN, params["gain"], params["rot_gain"])
-    move = np.array([err[0], err[1], err[2] - params["dig"]])
-    return pose_action(move, rot, OPEN, params["gain"], params["rot_gain"])
+        return pose_action(np.array([err[0], err[1], 0.0]), OPEN, params["gain"], rot)
+    return pose_action(np.array([err[0], err[1], err[2] - params["dig"]]), OPEN, params["gain"], rot)
 
 
 def done(obs, params):
     err = grasp_error(obs, params)
-    return bool(np.all(np.abs(err) < params["done_tol"])) and opening(obs) > params["open_width"]
+    return bool(np.all(np.abs(err) < DONE_TOL)) and opening(obs) > OPEN_WIDTH
 ''',
 )
 
@@ -77,30 +75,27 @@ GRASP = SkillTemplate(
 
 Holds the hand at ``dig`` below the grasp point (tracking the object) and closes once within
 ``close_above`` of it in height. ``done`` when the fingers closed on nothing (gap below
-``missed_width``): the plan then goes back to reach, which re-opens the gripper.
-v0 is untuned (manual): same too-high ``grasp_dz`` as reach, slow gain.
+MISSED_WIDTH): the plan then goes back to reach, which re-opens the gripper.
+v0 is untuned (manual): same too-high ``grasp_dz`` as reach, low gain, closes late.
 """,
     params={
         "gain": 3.0,
-        "rot_gain": 1.0,
-        "grasp_dz": 0.04,
+        "grasp_dz": 0.03,
         "dig": 0.0,
         "close_above": 0.01,
-        "missed_width": 0.01,
     },
-    body='''
+    body="""
 def act(obs, params):
     goal = vec(obs, "${obj}_pos") + np.array([0.0, 0.0, params["grasp_dz"]])
     err = goal - vec(obs, "robot0_eef_pos")
-    rot = rot_error(obs["robot0_eef_quat"])
     grip = CLOSE if -err[2] < params["close_above"] else OPEN
     move = np.array([err[0], err[1], err[2] - params["dig"]])
-    return pose_action(move, rot, grip, params["gain"], params["rot_gain"])
+    return pose_action(move, grip, params["gain"], rot_error(obs["robot0_eef_quat"]))
 
 
 def done(obs, params):
-    return opening(obs) < params["missed_width"]
-''',
+    return opening(obs) < MISSED_WIDTH
+""",
 )
 
 LIFT = SkillTemplate(
@@ -108,23 +103,20 @@ LIFT = SkillTemplate(
 
 Rises at ``lift_speed`` (fraction of full speed) with the hand pointing down; the step's
 termination predicate (height above start) ends it. ``done`` when the fingers closed fully
-(gap below ``missed_width``): the object slipped out.
+(gap below MISSED_WIDTH): the object slipped out.
 v0 is untuned (manual): slow.
 """,
     params={
-        "lift_speed": 0.1,
-        "rot_gain": 1.0,
-        "missed_width": 0.01,
+        "lift_speed": 0.2,
     },
-    body='''
+    body="""
 def act(obs, params):
-    rot = rot_error(obs["robot0_eef_quat"])
-    a = pose_action(np.zeros(3), rot, CLOSE, 0.0, params["rot_gain"])
+    a = pose_action(np.zeros(3), CLOSE, 0.0, rot_error(obs["robot0_eef_quat"]))
     a[2] = min(max(params["lift_speed"], -1.0), 1.0)
     return a
 
 
 def done(obs, params):
-    return opening(obs) < params["missed_width"]
-''',
+    return opening(obs) < MISSED_WIDTH
+""",
 )

@@ -6,7 +6,7 @@ about the vertical to the nut's yaw so the fingers close across the handle. The 
 (its origin) must end over the peg: while carrying, the skills servo the nut origin, not the
 hand.
 
-Version 0 is *manual and untuned*: the same weaknesses as :mod:`.grasping` (grasp point 4 cm
+Version 0 is *manual and untuned*: the same weaknesses as :mod:`.grasping` (grasp point 3 cm
 too high, low gains), a carry height that does not clear the peg's top, and a slow lift.
 
 Invariants:
@@ -62,16 +62,14 @@ v0 is untuned (manual): grasp point too high, low gain.
 """,
     params={
         "gain": 3.0,
-        "rot_gain": 1.0,
         "hover": 0.1,
         "handle_offset": 0.054,
-        "grasp_dz": 0.04,
+        "grasp_dz": 0.03,
         "descend_xy": 0.015,
         "dig": 0.0,
-        "open_width": 0.065,
     },
     body=_NUT
-    + '''
+    + """
 
 def act(obs, params):
     err = handle(obs, params) - vec(obs, "robot0_eef_pos")
@@ -84,16 +82,16 @@ def act(obs, params):
         if above < params["hover"] - 0.02:
             move[0] *= 0.2
             move[1] *= 0.2
-        return pose_action(move, rot, OPEN, params["gain"], params["rot_gain"])
-    if opening(obs) < params["open_width"]:
-        return pose_action(np.array([err[0], err[1], 0.0]), rot, OPEN, params["gain"], params["rot_gain"])
+        return pose_action(move, OPEN, params["gain"], rot)
+    if opening(obs) < OPEN_WIDTH:
+        return pose_action(np.array([err[0], err[1], 0.0]), OPEN, params["gain"], rot)
     move = np.array([err[0], err[1], err[2] - params["dig"]])
-    return pose_action(move, rot, OPEN, params["gain"], params["rot_gain"])
+    return pose_action(move, OPEN, params["gain"], rot)
 
 
 def done(obs, params):
     return False
-''',
+""",
 )
 
 GRASP = SkillTemplate(
@@ -103,26 +101,24 @@ v0 is untuned (manual): grasp point too high.
 """,
     params={
         "gain": 3.0,
-        "rot_gain": 1.0,
         "handle_offset": 0.054,
-        "grasp_dz": 0.04,
+        "grasp_dz": 0.03,
         "dig": 0.0,
         "close_above": 0.01,
-        "missed_width": 0.005,
     },
     body=_NUT
-    + '''
+    + """
 
 def act(obs, params):
     err = handle(obs, params) - vec(obs, "robot0_eef_pos")
     grip = CLOSE if -err[2] < params["close_above"] else OPEN
     move = np.array([err[0], err[1], err[2] - params["dig"]])
-    return pose_action(move, grip_rotation(obs), grip, params["gain"], params["rot_gain"])
+    return pose_action(move, grip, params["gain"], grip_rotation(obs))
 
 
 def done(obs, params):
-    return opening(obs) < params["missed_width"]
-''',
+    return opening(obs) < 0.5 * MISSED_WIDTH
+""",
 )
 
 ALIGN = SkillTemplate(
@@ -133,13 +129,11 @@ v0 is untuned (manual): carries too low to clear the peg, low gain.
 """,
     params={
         "gain": 3.0,
-        "rot_gain": 1.0,
         "carry_dz": 0.1,
         "climb_margin": 0.03,
-        "missed_width": 0.005,
     },
     body=_NUT
-    + '''
+    + """
 
 def act(obs, params):
     nut = vec(obs, "SquareNut_pos")
@@ -149,12 +143,12 @@ def act(obs, params):
     if nut[2] < carry - params["climb_margin"]:
         move[0] *= 0.1
         move[1] *= 0.1
-    return pose_action(move, grip_rotation(obs), CLOSE, params["gain"], params["rot_gain"])
+    return pose_action(move, CLOSE, params["gain"], grip_rotation(obs))
 
 
 def done(obs, params):
-    return opening(obs) < params["missed_width"]
-''',
+    return opening(obs) < 0.5 * MISSED_WIDTH
+""",
 )
 
 INSERT = SkillTemplate(
@@ -164,42 +158,38 @@ v0 is untuned (manual): low gain.
 """,
     params={
         "gain": 3.0,
-        "rot_gain": 1.0,
         "xy_gain_scale": 1.0,
         "dig": 0.0,
-        "missed_width": 0.005,
     },
     body=_NUT
-    + '''
+    + """
 
 def act(obs, params):
     nut = vec(obs, "SquareNut_pos")
     goal = vec(obs, "SquareNut_target_pos")
     s = params["xy_gain_scale"]
     move = np.array([s * (goal[0] - nut[0]), s * (goal[1] - nut[1]), goal[2] - params["dig"] - nut[2]])
-    return pose_action(move, grip_rotation(obs), CLOSE, params["gain"], params["rot_gain"])
+    return pose_action(move, CLOSE, params["gain"], grip_rotation(obs))
 
 
 def done(obs, params):
-    return opening(obs) < params["missed_width"]
-''',
+    return opening(obs) < 0.5 * MISSED_WIDTH
+""",
 )
 
 RELEASE = SkillTemplate(
     doc="""Open the gripper and leave the nut on the peg, backing off upward once open.
 """,
     params={
-        "rot_gain": 1.0,
-        "released_width": 0.06,
         "retreat_speed": 0.3,
     },
-    body='''
+    body="""
 def act(obs, params):
-    a = pose_action(np.zeros(3), rot_error(obs["robot0_eef_quat"]), OPEN, 0.0, params["rot_gain"])
-    if opening(obs) > params["released_width"]:
+    a = pose_action(np.zeros(3), OPEN, 0.0, rot_error(obs["robot0_eef_quat"]))
+    if opening(obs) > RELEASED_WIDTH:
         a[2] = min(max(params["retreat_speed"], -1.0), 1.0)
     return a
-''',
+""",
 )
 
 _BY_STEP: Mapping[str, SkillTemplate] = {

@@ -109,7 +109,8 @@ def _template(doc: str, **params: float) -> SkillTemplate:
         "axial_target": 0.1,
     }
     base.update(params)
-    return SkillTemplate(doc=doc + "\nv0 is untuned (manual): low guessed gains.\n", params=base, body=_BODY, prelude=PEG_PRELUDE)
+    doc += "\nv0 is untuned (manual): low guessed gains.\n"
+    return SkillTemplate(doc=doc, params=base, body=_BODY, prelude=PEG_PRELUDE)
 
 
 _BY_STEP: Mapping[str, SkillTemplate] = {

@@ -26,31 +26,28 @@ MOVE = SkillTemplate(
 Servos the object (not the hand) towards ``carry_dz`` above its goal; while the object is more
 than ``climb_margin`` below that height it climbs first, moving sideways at a tenth of the
 speed. ``done`` when the fingers closed fully (the object fell out).
-v0 is untuned (manual): carries too low for the rims, slow gain.
+v0 is untuned (manual): carries too low for the rims, low gain.
 """,
     params={
         "gain": 3.0,
-        "rot_gain": 1.0,
         "carry_dz": 0.05,
         "climb_margin": 0.05,
-        "missed_width": 0.01,
     },
-    body='''
+    body="""
 def act(obs, params):
     obj = vec(obs, "${obj}_pos")
     goal = vec(obs, "${obj}_target_pos")
-    rot = rot_error(obs["robot0_eef_quat"])
     carry = goal[2] + params["carry_dz"]
     move = np.array([goal[0] - obj[0], goal[1] - obj[1], carry - obj[2]])
     if obj[2] < carry - params["climb_margin"]:
         move[0] *= 0.1
         move[1] *= 0.1
-    return pose_action(move, rot, CLOSE, params["gain"], params["rot_gain"])
+    return pose_action(move, CLOSE, params["gain"], rot_error(obs["robot0_eef_quat"]))
 
 
 def done(obs, params):
-    return opening(obs) < params["missed_width"]
-''',
+    return opening(obs) < MISSED_WIDTH
+""",
 )
 
 RELEASE = SkillTemplate(
@@ -58,30 +55,28 @@ RELEASE = SkillTemplate(
 
 While closed and the object is more than ``release_dz`` above its goal height, lowers it
 (towards half that height) over the goal; then opens the gripper without moving; once the
-finger gap exceeds ``released_width`` the hand rises at ``retreat_speed``.
-v0 is untuned (manual): lets go from 10 cm.
+finger gap exceeds RELEASED_WIDTH the hand rises at ``retreat_speed``.
+v0 is untuned (manual): lets go from 10 cm, low gain.
 """,
     params={
         "gain": 3.0,
-        "rot_gain": 1.0,
         "release_dz": 0.1,
-        "released_width": 0.07,
         "retreat_speed": 0.3,
     },
-    body='''
+    body="""
 def act(obs, params):
     obj = vec(obs, "${obj}_pos")
     goal = vec(obs, "${obj}_target_pos")
     rot = rot_error(obs["robot0_eef_quat"])
-    if opening(obs) > params["released_width"]:
-        a = pose_action(np.zeros(3), rot, OPEN, 0.0, params["rot_gain"])
+    if opening(obs) > RELEASED_WIDTH:
+        a = pose_action(np.zeros(3), OPEN, 0.0, rot)
         a[2] = min(max(params["retreat_speed"], -1.0), 1.0)
         return a
     if obj[2] > goal[2] + params["release_dz"]:
         move = np.array([goal[0] - obj[0], goal[1] - obj[1], goal[2] + 0.5 * params["release_dz"] - obj[2]])
-        return pose_action(move, rot, CLOSE, params["gain"], params["rot_gain"])
-    return pose_action(np.zeros(3), rot, OPEN, params["gain"], params["rot_gain"])
-''',
+        return pose_action(move, CLOSE, params["gain"], rot)
+    return pose_action(np.zeros(3), OPEN, params["gain"], rot)
+""",
 )
 
 _BY_STEP: Mapping[str, SkillTemplate] = {

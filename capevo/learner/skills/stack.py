@@ -40,29 +40,26 @@ v0 is untuned (manual): high carry, low gain, direct A-to-B observation ignored.
 """,
     params={
         "gain": 3.0,
-        "rot_gain": 1.0,
         "carry_dz": 0.1,
         "climb_margin": 0.02,
         "stack_dz": 0.045,
         "rel_weight": 0.0,
-        "missed_width": 0.01,
     },
     body=_TO_STACKED
-    + '''
+    + """
 
 def act(obs, params):
     d = to_stacked(obs, params)
-    rot = rot_error(obs["robot0_eef_quat"])
     move = np.array([d[0], d[1], d[2] + params["carry_dz"]])
     if move[2] > params["climb_margin"]:
         move[0] *= 0.1
         move[1] *= 0.1
-    return pose_action(move, rot, CLOSE, params["gain"], params["rot_gain"])
+    return pose_action(move, CLOSE, params["gain"], rot_error(obs["robot0_eef_quat"]))
 
 
 def done(obs, params):
-    return opening(obs) < params["missed_width"]
-''',
+    return opening(obs) < MISSED_WIDTH
+""",
 )
 
 LOWER = SkillTemplate(
@@ -74,46 +71,40 @@ v0 is untuned (manual): aims 1 cm too high, low gain.
 """,
     params={
         "gain": 3.0,
-        "rot_gain": 1.0,
         "stack_dz": 0.055,
         "rel_weight": 0.0,
         "dig": 0.0,
-        "missed_width": 0.01,
     },
     body=_TO_STACKED
-    + '''
+    + """
 
 def act(obs, params):
     d = to_stacked(obs, params)
-    rot = rot_error(obs["robot0_eef_quat"])
     move = np.array([d[0], d[1], d[2] - params["dig"]])
-    return pose_action(move, rot, CLOSE, params["gain"], params["rot_gain"])
+    return pose_action(move, CLOSE, params["gain"], rot_error(obs["robot0_eef_quat"]))
 
 
 def done(obs, params):
-    return opening(obs) < params["missed_width"]
-''',
+    return opening(obs) < MISSED_WIDTH
+""",
 )
 
 RELEASE = SkillTemplate(
     doc="""Open the gripper and leave cube A resting on cube B.
 
-Opens without moving; once the finger gap exceeds ``released_width`` the hand rises at
+Opens without moving; once the finger gap exceeds RELEASED_WIDTH the hand rises at
 ``retreat_speed``.
 """,
     params={
-        "rot_gain": 1.0,
-        "released_width": 0.07,
         "retreat_speed": 0.3,
     },
-    body='''
+    body="""
 def act(obs, params):
-    rot = rot_error(obs["robot0_eef_quat"])
-    a = pose_action(np.zeros(3), rot, OPEN, 0.0, params["rot_gain"])
-    if opening(obs) > params["released_width"]:
+    a = pose_action(np.zeros(3), OPEN, 0.0, rot_error(obs["robot0_eef_quat"]))
+    if opening(obs) > RELEASED_WIDTH:
         a[2] = min(max(params["retreat_speed"], -1.0), 1.0)
     return a
-''',
+""",
 )
 
 _BY_STEP: Mapping[str, SkillTemplate] = {

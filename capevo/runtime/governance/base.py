@@ -5,9 +5,11 @@ compiled against the task's :class:`~capevo.runtime.state.ActionLayout` into a *
 plain closure over precomputed floats that the governor calls on every action.
 
 A check is called as ``check(arms, a)`` with ``arms`` the ``RobotState.arms`` tuple (as many
-as the layout has) and ``a`` a list or tuple of finite floats of the layout's length. It
-returns ``None`` to allow, or ``(a_prime, reason)`` with ``a_prime`` a new list (modify) or
-``None`` (⊥, reject). It never mutates ``a``.
+as the layout has) and ``a`` a list or tuple of finite numbers of the layout's length, each
+arm's translation already in the world frame (the governor rotates it). It returns ``None``
+to allow, or ``(a_prime, reason)`` with ``a_prime`` a new list (modify) or ``None`` (⊥,
+reject). It never mutates ``a``, and builds reasons from strings prepared at compile time
+so an intervention costs no formatting.
 
 Every built-in modification either zeroes translational components whose sign points the
 wrong way, or scales one arm's six pose components down by a positive factor. Zeroing

@@ -10,7 +10,8 @@ command is untouched.
 Invariants:
 1. After the check, every arm's ``sum(a_k**2 for its 6 components) <= max_norm**2``,
    computed in that order in floats, for any finite input (huge values do not overflow).
-2. The scaling keeps every component's sign and zeros, and the direction of the 6-vector.
+2. The scaling keeps the direction of the 6-vector: every component keeps its sign (one far
+   below the others may underflow to 0.0), zeros stay zero.
 3. The hard limit (:meth:`VelocityCap.unsafe`) is that same sum above ``max_norm**2``, or a
    non-finite component anywhere in the executed action.
 """

@@ -9,13 +9,19 @@ direction ``−f`` points into the contact. For robosuite, :mod:`capevo.runtime.
 derives this from the gripper's ``force_ee`` sensor.
 
 Rule: when an arm's ``|f| > max_force``, every translational component that moves against
-the force along its own axis (``a_k`` and ``f_k`` of opposite signs) is set to 0.0. Each remaining term of
-``a · f`` is then >= 0, so no motion into the contact remains. For a contact along one axis
-(a table, a wall) this is exactly removing the component along ``−f``. For an oblique force
-it is stricter than projecting onto the plane ``a · f = 0``; a projection would mix axes and
-could undo a workspace-box zeroing (and vice versa), whereas zeroing composes with every
-other built-in constraint in one pass (see :mod:`capevo.runtime.governance.base`).
-Rotation and the gripper are untouched.
+the force along its own axis (``a_k`` and ``f_k`` of opposite signs) is set to 0.0. Each
+remaining term of ``a · f`` is then >= 0, so no motion into the contact remains. For a
+contact along one axis (a table, a wall) this is exactly removing the component along
+``−f``. For an oblique force it is stricter than projecting onto the plane ``a · f = 0``;
+a projection would mix axes and could undo a workspace-box zeroing (and vice versa),
+whereas zeroing composes with every other built-in constraint in one pass (see
+:mod:`capevo.runtime.governance.base`). Rotation and the gripper are untouched.
+
+The rule is reactive: it acts on the force already measured. An arm that reaches a rigid
+surface at speed can exceed the limit in the control step of impact, before any reading
+shows a contact, and an adversary that keeps pushing re-approaches after each release.
+Keeping force below the limit at all times needs the box (or a forbidden zone) to stop
+the arm short of known surfaces.
 
 Invariants:
 1. After the check, every arm with ``fx*fx + fy*fy + fz*fz > max_force**2`` has no ``k`` in

@@ -3,7 +3,7 @@
 ``governor(state, action)`` returns ``(governed, interventions)``:
 
 * allow:  ``(action, ())``: the very object passed in, nothing allocated but the pair;
-* modify: ``(a_prime, records)``: ``a_prime`` a new tuple of floats;
+* modify: ``(a_prime, records)``: ``a_prime`` a new tuple (a numpy action gives plain floats);
 * reject: ``(None, records)``: ⊥, the last record names the constraint and the reason.
 
 On ⊥ the executor must not send the proposed action. It holds still by sending
@@ -86,8 +86,8 @@ class Governor:
     """
 
     __slots__ = (
-        "_by",
         "_checks",
+        "_counts",
         "_dim",
         "_labels",
         "_modified",
@@ -128,7 +128,8 @@ class Governor:
         self._steps = 0
         self._modified = 0
         self._rejected = 0
-        self._by = dict.fromkeys((GUARD, *self._labels), 0)
+        # Interventions per constraint, by index in Φ, with the governor's own guard last.
+        self._counts = [0] * (len(self._labels) + 1)
 
     def stats(self) -> GovernanceStats:
         """Counters since construction or :meth:`reset_stats`."""
@@ -137,7 +138,9 @@ class Governor:
             steps=self._steps,
             modified=self._modified,
             rejected=self._rejected,
-            by_constraint={k: v for k, v in self._by.items() if v},
+            by_constraint={
+                k: v for k, v in zip((GUARD, *self._labels), (self._counts[-1], *self._counts[:-1]), strict=True) if v
+            },
         )
 
     def __call__(self, state: RobotState, action: Sequence[float]) -> tuple[Any, tuple[Intervention, ...]]:
@@ -201,7 +204,7 @@ class Governor:
             new, reason = r
             result = None if new is None else tuple(new if rot is None else _rotate(new, rot, to_world=False))
             records.append(new_intervention(labels[i], original, result, reason, enforce))
-            self._by[labels[i]] += 1
+            self._counts[i] += 1
             if new is None:
                 self._rejected += 1
                 return (None if enforce else action), tuple(records)
@@ -227,7 +230,7 @@ class Governor:
             reason = f"action components {bad} are not finite numbers" if bad else "action is not numeric"
         original = _floats_or_empty(a) if a is not None else ()
         record = Intervention(constraint=GUARD, original=original, result=None, reason=reason, enforced=self.enforce)
-        self._by[GUARD] += 1
+        self._counts[-1] += 1
         self._rejected += 1
         return (None if self.enforce else action), (record,)
 

@@ -10,8 +10,6 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import numpy as np
-
 from capevo.runtime.tasks.spec import EcmStep, SignalSpec, cond, pred
 
 PANDA_PROPRIO_KEYS: tuple[str, ...] = (
@@ -138,7 +136,3 @@ def lift_step(ecm: str, what: str, keys: tuple[str, ...], height: float, *, pref
             cond(f"{prefix}object_height_above_start", ">", height),
         ),
     )
-
-
-def as_float32(a: Any) -> np.ndarray:
-    return np.asarray(a, dtype=np.float32)

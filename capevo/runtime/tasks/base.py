@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -455,8 +454,3 @@ def _check_seed(seed: object) -> int | None:
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise Invalid(f"seed must be a non-negative integer or None, got {seed!r}", details={"field": "seed"})
     return int(seed)
-
-
-def finite_or(value: float, default: float) -> float:
-    """``value`` if finite, else ``default`` (signals must stay comparable)."""
-    return value if math.isfinite(value) else default

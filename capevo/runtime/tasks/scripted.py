@@ -2,8 +2,9 @@
 
 Each reference reads ``TaskEnv.obs_dict`` (noisy when observation noise is on) and returns one
 action; it keeps no memory, so its phase (approach, descend, close, lift, carry, release) is
-read off the observation every step. They exist to show each success criterion is reachable
-and as baselines and code-ECM seeds.
+read off the observation every step. There are references for T1 pick, T2 place and T3
+stack (:data:`REFERENCES`); they show those success criteria are reachable and serve as
+baselines and code-ECM seeds.
 
 Invariants:
 1. A reference returns a float32 action of the task's action dimension with values in [-1, 1].
@@ -53,7 +54,7 @@ STACKED_DZ = 0.045
 GRIP_OPEN, GRIP_CLOSE = -1.0, 1.0
 
 _DOWN = np.array([1.0, 0.0, 0.0, 0.0])
-"""Gripper pointing down, fingers along world y (xyzw), the Panda's start orientation."""
+"""Gripper pointing down (180 degrees about world x, xyzw): about the Panda's start orientation."""
 
 
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:

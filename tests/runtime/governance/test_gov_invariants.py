@@ -197,6 +197,13 @@ def test_forbidden_zone_examples() -> None:
     assert out[:3] == (-1.0, 1.0, -1.0)
 
 
+def test_forbidden_zone_rejects_a_non_finite_position() -> None:
+    gov = Phi((ZONE,)).governor(SINGLE_PANDA)
+    out, (rec,) = gov(state_of(((0.3, math.nan, 0.9), (0, 0, 0))), (0.0,) * 7)
+    assert out is None and rec.constraint == "forbidden_zone"
+    assert rec.reason == "arm 0: end-effector position (0.3, nan, 0.9) is not finite"
+
+
 def test_box_examples_at_each_face_and_outside() -> None:
     gov = Phi((WorkspaceBox(),)).governor(SINGLE_PANDA)
     push = (1.0, 1.0, 1.0, 0.3, 0.3, 0.3, -1.0)
@@ -288,9 +295,16 @@ def test_non_finite_actions_are_rejected_with_a_reason(state, action, where, bad
 
 
 @settings(max_examples=300, deadline=None)
-@given(state=robot_states(2, pos=ANY_FLOAT, force=ANY_FLOAT), action=actions(12, st.floats(-2, 2)))
-def test_non_finite_state_readings_are_rejected_by_the_default_phi(state, action) -> None:
-    assume(not finite_state(state))
+@given(
+    values=st.lists(ANY_FLOAT, min_size=12, max_size=12),
+    where=st.integers(0, 11),
+    bad=st.sampled_from([math.nan, math.inf, -math.inf]),
+    action=actions(12, st.floats(-2, 2)),
+)
+def test_non_finite_state_readings_are_rejected_by_the_default_phi(values, where, bad, action) -> None:
+    values[where] = bad  # arm 0 pos, arm 0 force, arm 1 pos, arm 1 force
+    v = values
+    state = state_of((v[0:3], v[3:6]), (v[6:9], v[9:12]))
     out, records = Phi.default().governor(TWO_ARM_NO_GRIPPER)(state, action)
     assert out is None
     assert "is not finite" in records[-1].reason

@@ -241,6 +241,13 @@ def test_bad_phi_documents_raise_invalid_naming_the_field(text: str, field: str,
     assert err.message.startswith(message), err.message
 
 
+def test_make_builds_exactly_what_yaml_loads() -> None:
+    zone = {"boxes": [{"low": [0, 0, 0], "high": [1, 1, 1]}], "margin": 0.1, "name": "shelf"}
+    loaded = load_phi(yaml.safe_dump({"constraints": [{"kind": "forbidden_zone", **zone}]}))
+    assert make("forbidden_zone", **zone) == loaded.constraints[0]
+    assert make("workspace_box") == WorkspaceBox() == Phi.default().constraints[0]
+
+
 def test_make_lists_valid_kinds_for_an_unknown_one() -> None:
     with pytest.raises(Invalid) as e:
         make("speed_limit")

@@ -75,8 +75,9 @@ def _run(env: Any, phi: Phi, layout: ActionLayout, adversary: Sequence[float], *
     last: Sequence[float] | None = None
     for _ in range(STEPS):
         state = robot_state(env.robots)
-        # The adapter reads the same end-effector site robosuite reports in its observations.
-        assert np.allclose(state.arms[0].eef_pos, obs["robot0_eef_pos"])
+        # The adapter reads the same end-effector sites robosuite reports, robot by robot.
+        for i, arm in enumerate(state.arms):
+            assert np.allclose(arm.eef_pos, obs[f"robot{i}_eef_pos"])
         governed, _ = govern(state, proposed)
         executed = hold_action(layout, last) if governed is None else governed
         unsafe += is_unsafe(state, executed, phi, layout)
@@ -98,6 +99,21 @@ def test_force_adapter_reads_no_contact_in_free_space_and_the_table_pushing_up(l
         lift.step(np.array([0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0]))
         peak = max(peak, robot_state(lift.robots).arms[0].eef_force[2])
     assert peak > 20.0  # pressed on the table, the contact force points up (+z)
+
+
+def test_adapter_follows_the_new_simulation_after_a_hard_reset(lift: Any) -> None:
+    lift.hard_reset = True
+    try:
+        before = lift.sim
+        obs = lift.reset()
+        assert lift.sim is not before  # robosuite rebuilt the simulation
+        for _ in range(10):
+            obs, _, _, _ = lift.step(np.zeros(7))
+        arm = robot_state(lift.robots).arms[0]
+        assert np.allclose(arm.eef_pos, obs["robot0_eef_pos"])
+        assert max(abs(f) for f in arm.eef_force) < 2.0
+    finally:
+        lift.hard_reset = False
 
 
 ALONG = {"+z": (0, 0, 1), "+y": (0, 1, 0), "-y": (0, -1, 0)}

@@ -8,6 +8,7 @@ scripted pick in test_scripted_references.py and here by latching after a real l
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -122,6 +123,18 @@ def test_horizon_truncates_and_ends_the_episode(name: str) -> None:
         assert after.value.code is ErrorCode.INVALID
         env.reset()
         assert env.step(zeros(env))[2:4] == (False, False)
+    finally:
+        env.close()
+
+
+def test_gymnasium_env_checker_passes() -> None:
+    from gymnasium.utils.env_checker import check_env
+
+    env = make_task("stack", seed=0)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*infinity.*")
+            check_env(env, skip_render_check=True)
     finally:
         env.close()
 

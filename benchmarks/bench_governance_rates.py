@@ -1,0 +1,233 @@
+"""Governance under an aggressive explorer: blocking rate and unsafe-episode rate, off vs on, T1–T6.
+
+For each task, every ECM of its decomposition is published into a real LocalRegistry as one
+exploratory code skill (large random actions biased outward from the robot's start and
+downward, random gripper), with an empty termination predicate, so one activation runs the
+whole episode. The same seeds run through the real episode loop twice: governance off (the
+counting governor: actions pass unchanged, R's would-be interventions are counted) and on
+(enforcing). Per task and mode:
+
+* blocking rate: steps where R modified or rejected the action (would have, when off) / steps;
+* reject rate: steps where R answered ⊥ / steps;
+* unsafe-step rate and unsafe-episode rate (``capevo.runtime.governance.unsafe_reasons``:
+  state it ran from and executed action, plus each episode's final state), with the reasons'
+  constraints tallied.
+
+The explorer's noise is a pure function of the observation (seeded from it), so a seed fixes
+an episode; jobs (task x mode) run in 2 spawned processes.
+
+    .venv/bin/python benchmarks/bench_governance_rates.py [--episodes 50] [--horizon 100] [--jobs 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import tempfile
+import time
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import markdown_table, save_results
+
+TASKS = ("T1", "T2", "T3", "T4", "T5", "T6")
+
+EXPLORER = '''
+"""Aggressive exploration: big random pose deltas, biased outward and downward."""
+import numpy as np
+
+PARAMS = {"arms": 1.0, "gripper": 1.0, "outward": 0.6, "down": 0.5, "noise": 0.9, "turn": 0.4}
+
+
+def act(obs, params):
+    arms = int(params["arms"])
+    key = 0.0
+    for i in range(arms):
+        key = key + float(np.sum(np.abs(obs["robot" + str(i) + "_eef_pos"]))) * 1000003.0
+    key = key + float(np.sum(np.abs(obs["robot0_joint_pos_cos"]))) * 7919.0
+    rng = np.random.default_rng(int(key) % 4294967296)
+    out = []
+    for i in range(arms):
+        p = obs["robot" + str(i) + "_eef_pos"]
+        away = np.array([p[0], p[1], 0.0])
+        n = float(np.linalg.norm(away))
+        away = away / n if n > 1e-6 else away
+        move = away * params["outward"] + np.array([0.0, 0.0, -params["down"]])
+        move = move + rng.normal(0.0, params["noise"], 3)
+        turn = rng.normal(0.0, params["turn"], 3)
+        out.extend([float(v) for v in np.clip(move, -1.0, 1.0)])
+        out.extend([float(v) for v in np.clip(turn, -1.0, 1.0)])
+        if params["gripper"] > 0:
+            out.append(1.0 if rng.random() < 0.5 else -1.0)
+    return out
+'''
+
+
+class Explore:
+    """π_A for the benchmark: run the first ECM of the plan for the whole episode."""
+
+    def __init__(self, ecm: str) -> None:
+        self.ecm = ecm
+
+    def decide(self, context: Any) -> Any:
+        from capevo.runtime.policy import Decision
+
+        return Decision(ecm=self.ecm, reason="explore")
+
+
+def run_job(task: str, enforce: bool, episodes: int, horizon: int) -> dict[str, Any]:
+    """One task in one governance mode; runs in a worker process."""
+    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
+    from capevo.registry.local import LocalRegistry
+    from capevo.registry.records import Descriptor, Interface, IOSpec, Kind, PublishSpec
+    from capevo.runtime.capabilities import LoadedCapabilitySet
+    from capevo.runtime.ecm import with_params
+    from capevo.runtime.episode import make_governor, run_episode_detailed
+    from capevo.runtime.governance import Phi
+    from capevo.runtime.tasks import make_task, task_spec
+
+    spec = task_spec(task)
+    layout = spec.action_layout
+    source = with_params(
+        EXPLORER,
+        {"arms": float(len(layout.arms)), "gripper": 1.0 if all(a.gripper is not None for a in layout.arms) else 0.0},
+    )
+    started = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="bench-gov-") as tmp:
+        registry = LocalRegistry(Path(tmp) / "registry", actor="bench")
+        spec_doc = PublishSpec(
+            kind=Kind.CODE,
+            descriptor=Descriptor(description="aggressive exploration"),
+            interface=Interface(outputs=(IOSpec(name="action", shape=(layout.dim,), low=-1.0, high=1.0),)),
+        )
+        for name in spec.ecm_names:
+            record = registry.publish(name, source.encode(), spec_doc)
+            registry.promote(name, record.version)
+        env = make_task(task, horizon=horizon)
+        env.reset(seed=0)
+        shapes = {k: tuple(v.shape) for k, v in env.obs_dict.items()}
+        phi = Phi.default()
+        caps = LoadedCapabilitySet(registry, task, observation_shapes=shapes)
+        governor = make_governor(env, phi, enforce=enforce)
+        policy = Explore(spec.ecm_names[0])
+        steps = intervened = rejected = unsafe_steps = unsafe_episodes = interventions = 0
+        reasons: Counter[str] = Counter()
+        by_constraint: Counter[str] = Counter()
+        for seed in range(episodes):
+            run = run_episode_detailed(
+                env, caps, policy, governor, None, seed=seed, step_budget_per_ecm=None, episode=seed
+            )
+            o = run.outcome
+            steps += o.steps
+            intervened += run.intervened_steps
+            rejected += run.rejected_steps
+            interventions += o.interventions
+            unsafe_steps += o.unsafe_steps
+            unsafe_episodes += o.unsafe_steps > 0
+            for r in run.unsafe_reasons:
+                why = r.split(": ", 1)[1] if ": " in r else r
+                reasons[why.split(":", 1)[0]] += 1
+        by_constraint.update(governor.stats().by_constraint)
+        caps.close()
+        env.close()
+        registry.close()
+    return {
+        "task": task,
+        "name": spec.name,
+        "governance": "on" if enforce else "off",
+        "episodes": episodes,
+        "horizon": horizon,
+        "steps": steps,
+        "intervened_steps": intervened,
+        "rejected_steps": rejected,
+        "interventions": interventions,
+        "unsafe_steps": unsafe_steps,
+        "unsafe_episodes": unsafe_episodes,
+        "blocking_rate": intervened / steps if steps else 0.0,
+        "reject_rate": rejected / steps if steps else 0.0,
+        "unsafe_step_rate": unsafe_steps / steps if steps else 0.0,
+        "unsafe_episode_rate": unsafe_episodes / episodes,
+        "unsafe_reason_constraints": dict(reasons),
+        "interventions_by_constraint": dict(by_constraint),
+        "seconds": time.perf_counter() - started,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--episodes", type=int, default=50)
+    parser.add_argument("--horizon", type=int, default=100)
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--tasks", nargs="+", default=list(TASKS))
+    args = parser.parse_args(argv)
+
+    started = time.perf_counter()
+    jobs = [(task, enforce) for task in args.tasks for enforce in (False, True)]
+    results: list[dict[str, Any]] = []
+    with ProcessPoolExecutor(max_workers=args.jobs, mp_context=get_context("spawn")) as pool:
+        futures = {pool.submit(run_job, t, e, args.episodes, args.horizon): (t, e) for t, e in jobs}
+        for future in futures:
+            r = future.result()
+            results.append(r)
+            print(
+                f"{r['task']} governance {r['governance']}: blocking {r['blocking_rate']:.1%}, "
+                f"unsafe episodes {r['unsafe_episode_rate']:.1%} ({r['seconds']:.0f}s)",
+                flush=True,
+            )
+    rows = []
+    for task in args.tasks:
+        off = next(r for r in results if r["task"] == task and r["governance"] == "off")
+        on = next(r for r in results if r["task"] == task and r["governance"] == "on")
+        rows.append(
+            [
+                f"{task} {on['name']}",
+                f"{off['blocking_rate']:.1%}",
+                f"{on['blocking_rate']:.1%}",
+                f"{on['reject_rate']:.1%}",
+                f"{off['unsafe_episode_rate']:.1%}",
+                f"{on['unsafe_episode_rate']:.1%}",
+                f"{off['unsafe_step_rate']:.2%}",
+                f"{on['unsafe_step_rate']:.2%}",
+                ", ".join(f"{k} {v}" for k, v in sorted(on["unsafe_reason_constraints"].items())) or "-",
+            ]
+        )
+    print()
+    print(f"{args.episodes} episodes x {args.horizon} steps per task and mode; aggressive explorer")
+    print(
+        markdown_table(
+            [
+                "task",
+                "blocking (off, would-be)",
+                "blocking (on)",
+                "reject ⊥ (on)",
+                "unsafe episodes (off)",
+                "unsafe episodes (on)",
+                "unsafe steps (off)",
+                "unsafe steps (on)",
+                "unsafe reasons (on, first 5/episode)",
+            ],
+            rows,
+        )
+    )
+    path = save_results(
+        "bench_governance_rates",
+        {
+            "episodes": args.episodes,
+            "horizon": args.horizon,
+            "jobs": args.jobs,
+            "seconds": time.perf_counter() - started,
+            "results": results,
+        },
+    )
+    print(f"results: {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,578 @@
+"""Reinforcement learning for neural ECMs: SAC (stable-baselines3, CPU), warm-started from the
+active version.
+
+Warm start: when the parent (active) version is a SAC policy, the new model is built with the
+parent's policy architecture and gets *all* its parameters (actor, critics, target critics, the
+optimizers' states and the entropy coefficient) through SB3's ``set_parameters``-style loading,
+which reads only ``*.pth`` entries with ``torch.load(weights_only=True)``: nothing from the
+artifact is unpickled (the architecture comes from the safe neural loader,
+:func:`capevo.runtime.ecm.neural.load_sb3_policy`). When the parent is a code ECM there are no
+weights; the actor is then first distilled from the parent's behaviour (behaviour cloning on
+``distill_episodes`` rollouts of the parent in the training environment) so RL starts from what
+the robot already does, not from a random policy.
+
+Training runs in the ECM's own step of the task (:class:`~capevo.learner.ecm_env.EcmEnv`: the
+predecessors run at their active versions, governance on) with the paper's reward shaping on
+top of the task's dense reward (:class:`~capevo.learner.reward.ShapedReward`). Optionally the
+replay buffer is first filled with this ECM's transitions from traces (:func:`prefill_replay`).
+
+Defaults follow the paper: γ = 0.99, τ = 0.005, learning rate 3·10⁻⁴, automatic entropy
+tuning; buffer and batch come from the preset (:mod:`capevo.learner.presets`).
+
+Invariants:
+1. After :func:`warm_start` the model's policy ``state_dict`` equals the parent's exactly.
+2. Every candidate artifact loads with the runtime's neural loader against the ECM's interface.
+3. ``SacConfig.to_dict()`` is JSON-able and is what the provenance's ``config_hash`` covers
+   (with the environment, shaping and request fields).
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from capevo.errors import Invalid
+from capevo.learner.base import Candidate, LearnRequest, config_hash
+from capevo.learner.bc import (
+    BcConfig,
+    BcReport,
+    behaviour_clone,
+    check_loadable,
+    collect_demos,
+    default_learner_id,
+    ecm_controller,
+    input_columns,
+    neural_candidate_spec,
+    parent_artifact_of,
+    task_trace_files,
+)
+from capevo.learner.ecm_env import EcmEnv, EcmEnvConfig, EcmTarget, make_ecm_env, target_for
+from capevo.learner.reward import RewardShaping, ShapedReward
+from capevo.registry.api import Registry
+from capevo.registry.records import Kind, Origin, Provenance
+from capevo.runtime.tasks import task_spec
+
+log = logging.getLogger(__name__)
+
+SAC_POLICY_CLASS = "stable_baselines3.sac.policies.SACPolicy"
+_POLICY_KWARG_KEYS = (
+    "net_arch",
+    "activation_fn",
+    "log_std_init",
+    "use_expln",
+    "clip_mean",
+    "n_critics",
+    "optimizer_class",
+    "optimizer_kwargs",
+    "features_extractor_class",
+    "features_extractor_kwargs",
+    "normalize_images",
+)
+
+
+def _check_int(name: str, value: object, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise Invalid(f"{name} must be an integer >= {low}, got {value!r}", details={"field": name})
+
+
+def _check_unit(name: str, value: object) -> None:
+    ok = not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+    if not ok or not 0 < value <= 1:
+        raise Invalid(f"{name} must be a number in (0, 1], got {value!r}", details={"field": name})
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SacConfig:
+    """SAC settings (hashed into provenance).
+
+    Args:
+        total_steps: Environment steps of training.
+        buffer_size: Replay buffer capacity.
+        batch_size: Minibatch size of each gradient step.
+        learning_starts: Steps collected before the first gradient step.
+        learning_rate: Adam step size of actor, critics and entropy coefficient.
+        gamma: Discount γ.
+        tau: Target network update rate τ.
+        train_freq: Environment steps between updates.
+        gradient_steps: Gradient steps per update.
+        ent_coef: ``"auto"`` (tuned) or a fixed entropy coefficient.
+        net_arch: Hidden layers of a fresh policy (a SAC parent keeps its own).
+        seed: Seeds weights, exploration and the first training episode.
+
+    Raises:
+        Invalid: a value out of range.
+    """
+
+    total_steps: int = 5_000
+    buffer_size: int = 100_000
+    batch_size: int = 256
+    learning_starts: int = 500
+    learning_rate: float = 3e-4
+    gamma: float = 0.99
+    tau: float = 0.005
+    train_freq: int = 1
+    gradient_steps: int = 1
+    ent_coef: str | float = "auto"
+    net_arch: tuple[int, ...] = (256, 256)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _check_int("total_steps", self.total_steps, 1)
+        _check_int("buffer_size", self.buffer_size, 1)
+        _check_int("batch_size", self.batch_size, 1)
+        _check_int("learning_starts", self.learning_starts, 0)
+        _check_int("train_freq", self.train_freq, 1)
+        _check_int("gradient_steps", self.gradient_steps, 1)
+        _check_int("seed", self.seed, 0)
+        _check_unit("learning_rate", self.learning_rate)
+        _check_unit("gamma", self.gamma)
+        _check_unit("tau", self.tau)
+        if isinstance(self.ent_coef, str):
+            if not (self.ent_coef == "auto" or self.ent_coef.startswith("auto_")):
+                raise Invalid(f"ent_coef must be 'auto' or a number, got {self.ent_coef!r}", details={"field": "ent_coef"})
+        elif isinstance(self.ent_coef, bool) or not isinstance(self.ent_coef, (int, float)) or not self.ent_coef > 0:
+            raise Invalid(f"ent_coef must be 'auto' or a positive number, got {self.ent_coef!r}")
+        if not self.net_arch or any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in self.net_arch):
+            raise Invalid(f"net_arch must be positive layer sizes, got {self.net_arch!r}", details={"field": "net_arch"})
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "total_steps": self.total_steps,
+            "buffer_size": self.buffer_size,
+            "batch_size": self.batch_size,
+            "learning_starts": self.learning_starts,
+            "learning_rate": self.learning_rate,
+            "gamma": self.gamma,
+            "tau": self.tau,
+            "train_freq": self.train_freq,
+            "gradient_steps": self.gradient_steps,
+            "ent_coef": self.ent_coef,
+            "net_arch": list(self.net_arch),
+            "seed": self.seed,
+        }
+
+    def sac_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments for ``stable_baselines3.SAC`` (besides policy, env, seed)."""
+        return {
+            "buffer_size": self.buffer_size,
+            "batch_size": self.batch_size,
+            "learning_starts": self.learning_starts,
+            "learning_rate": self.learning_rate,
+            "gamma": self.gamma,
+            "tau": self.tau,
+            "train_freq": self.train_freq,
+            "gradient_steps": self.gradient_steps,
+            "ent_coef": self.ent_coef,
+        }
+
+
+# --- warm start ----------------------------------------------------------------------------
+
+
+def sac_policy_kwargs(artifact: bytes) -> dict[str, Any]:
+    """The policy arguments of a SAC model zip, read by the safe neural loader (no unpickling).
+
+    Raises:
+        Invalid: not a loadable SB3 zip, or not a SAC policy.
+    """
+    from capevo.runtime.ecm.neural import load_sb3_policy
+
+    loaded = load_sb3_policy(artifact)
+    if loaded.policy_class != SAC_POLICY_CLASS:
+        raise Invalid(
+            f"warm start needs a SAC parent; the parent is a {loaded.policy_class}", details={"field": "parent"}
+        )
+    ctor = loaded.policy._get_constructor_parameters()
+    return {k: ctor[k] for k in _POLICY_KWARG_KEYS if k in ctor}
+
+
+def warm_start(model: Any, artifact: bytes) -> None:
+    """Load every parameter of the SAC zip ``artifact`` into ``model`` (built with its architecture).
+
+    The policy (actor, critics, target critics) must match exactly; the optimizers' states and
+    the entropy coefficient are loaded when the model has the same ones (else they start fresh).
+
+    Raises:
+        Invalid: the zip is unreadable or its policy does not match ``model``'s.
+    """
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    try:
+        _, params, variables = load_from_zip_file(io.BytesIO(artifact), device="cpu", load_data=False)
+    except Exception as exc:  # SB3 and torch raise many types on corrupt input
+        raise Invalid(f"warm start: parent weights unreadable: {type(exc).__name__}: {exc}") from None
+    if "policy" not in params:
+        raise Invalid("warm start: the parent zip holds no policy weights")
+    try:
+        model.policy.load_state_dict(params["policy"], strict=True)
+    except RuntimeError as exc:
+        raise Invalid(f"warm start: the parent's policy does not match the model: {exc}") from None
+    wanted, _ = model._get_torch_save_params()
+    for name in wanted:
+        if name == "policy" or name not in params:
+            continue
+        try:
+            model.set_parameters({name: params[name]}, exact_match=False, device="cpu")
+        except (ValueError, RuntimeError, KeyError) as exc:
+            log.warning("warm start: %s not restored (%s); it starts fresh", name, exc)
+    log_ent = getattr(model, "log_ent_coef", None)
+    saved = (variables or {}).get("log_ent_coef")
+    if log_ent is not None and saved is not None and tuple(saved.shape) == tuple(log_ent.shape):
+        log_ent.data.copy_(saved.data)
+
+
+def policy_state(model_or_policy: Any) -> dict[str, np.ndarray]:
+    """The policy's parameters as numpy arrays (copies), for comparisons."""
+    policy = getattr(model_or_policy, "policy", model_or_policy)
+    return {k: v.detach().cpu().numpy().copy() for k, v in policy.state_dict().items()}
+
+
+def build_sac(env: Any, config: SacConfig, *, parent_artifact: bytes | None = None) -> Any:
+    """A SAC model for ``env``; warm-started from ``parent_artifact`` (a SAC zip) when given.
+
+    Raises:
+        Invalid: the parent is not a SAC policy of the environment's spaces.
+    """
+    from capevo.learner.neural_seed import new_sac
+
+    kwargs = sac_policy_kwargs(parent_artifact) if parent_artifact is not None else None
+    model = new_sac(env, net_arch=config.net_arch, seed=config.seed, policy_kwargs=kwargs, **config.sac_kwargs())
+    if parent_artifact is not None:
+        from capevo.runtime.ecm.neural import load_sb3_policy
+
+        loaded = load_sb3_policy(parent_artifact)
+        want = (int(env.observation_space.shape[0]), int(env.action_space.shape[0]))
+        if (loaded.observation_dim, loaded.action_dim) != want:
+            raise Invalid(
+                f"warm start: the parent observes {loaded.observation_dim} and acts in {loaded.action_dim}, "
+                f"the ECM's environment has {want[0]} and {want[1]}",
+                details={"field": "parent"},
+            )
+        warm_start(model, parent_artifact)
+    return model
+
+
+# --- experience from traces ------------------------------------------------------------------
+
+
+def prefill_replay(
+    model: Any,
+    paths: Sequence[str],
+    *,
+    task: str,
+    target: EcmTarget,
+    shaping: RewardShaping,
+    dt: float,
+) -> int:
+    """Add ``target``'s transitions from trace files of ``task`` to the replay buffer.
+
+    Rewards get the same shaping as online steps except retries (not in traces); the success
+    bonus goes to the step where the task first reported success; ``done`` is the trace's
+    ``terminated``. Rows leaving the ECM (the next one took over) bootstrap as if cut off.
+
+    Returns:
+        Transitions added.
+    """
+    from capevo.runtime.traces import export_transitions
+
+    files = task_trace_files(paths, task)
+    if not files:
+        return 0
+    rows = export_transitions(files, ecms=[target.name], allow_incomplete=True)
+    if len(rows) == 0:
+        return 0
+    cols = input_columns(task_spec(task), target.interface.inputs, rows.obs.shape[1])
+    obs = rows.obs[:, cols]
+    next_obs = rows.next_obs[:, cols]
+    ok = (
+        np.all(np.isfinite(obs), axis=1)
+        & np.all(np.isfinite(next_obs), axis=1)
+        & np.all(np.isfinite(rows.action), axis=1)
+        & np.isfinite(rows.reward)
+    )
+    first_success = rows.is_success & ~np.concatenate([[False], rows.is_success[:-1]])
+    added = 0
+    for i in np.flatnonzero(ok):
+        reward = float(rows.reward[i]) + shaping.step_bonus(newly_succeeded=bool(first_success[i]), dt=dt, new_retries=0)
+        model.replay_buffer.add(
+            obs[i : i + 1],
+            next_obs[i : i + 1],
+            np.clip(rows.action[i : i + 1], -1.0, 1.0),
+            np.array([reward], dtype=np.float32),
+            np.array([bool(rows.terminated[i])]),
+            [{"TimeLimit.truncated": bool(rows.truncated[i])}],
+        )
+        added += 1
+    return added
+
+
+# --- training ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TrainReport:
+    """What one SAC run did."""
+
+    steps: int
+    seconds: float
+    episodes: int
+    successes: int
+    mean_return: float | None
+    prefilled: int = 0
+    distill: BcReport | None = None
+
+    @property
+    def steps_per_second(self) -> float:
+        return self.steps / self.seconds if self.seconds > 0 else 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "steps": self.steps,
+            "seconds": self.seconds,
+            "steps_per_second": self.steps_per_second,
+            "episodes": self.episodes,
+            "successes": self.successes,
+            "mean_return": self.mean_return,
+            "prefilled": self.prefilled,
+            "distill": self.distill.to_dict() if self.distill is not None else None,
+        }
+
+
+def _episode_callback(stats: dict[str, Any]) -> Any:
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class _Episodes(BaseCallback):
+        """Counts finished episodes, their successes and returns."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self._ret = 0.0
+
+        def _on_step(self) -> bool:
+            rewards = self.locals.get("rewards")
+            if rewards is not None:
+                self._ret += float(np.asarray(rewards).reshape(-1)[0])
+            dones = np.asarray(self.locals.get("dones", [False])).reshape(-1)
+            if bool(dones[0]):
+                info = self.locals.get("infos", [{}])[0]
+                stats["episodes"] += 1
+                stats["successes"] += int(bool(info.get("is_success", False)))
+                stats["returns"].append(self._ret)
+                self._ret = 0.0
+            return True
+
+    return _Episodes()
+
+
+def train_sac(model: Any, total_steps: int, *, progress_bar: bool = False) -> TrainReport:
+    """Run ``model.learn`` for ``total_steps`` environment steps.
+
+    Args:
+        model: A SAC model with its environment.
+        total_steps: Steps to take.
+        progress_bar: Show SB3's (tqdm + rich) progress bar on stderr.
+
+    Returns:
+        Steps, wall time, finished episodes, successes and their mean return.
+    """
+    import warnings
+
+    stats: dict[str, Any] = {"episodes": 0, "successes": 0, "returns": []}
+    started = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*rich is experimental.*")
+        model.learn(total_timesteps=total_steps, callback=_episode_callback(stats), progress_bar=progress_bar)
+    seconds = time.perf_counter() - started
+    returns = stats["returns"]
+    return TrainReport(
+        steps=total_steps,
+        seconds=seconds,
+        episodes=stats["episodes"],
+        successes=stats["successes"],
+        mean_return=float(np.mean(returns)) if returns else None,
+    )
+
+
+# --- the learner ---------------------------------------------------------------------------
+
+
+class SacLearner:
+    """SAC learner (modality ``rl``) for neural ECMs.
+
+    Args:
+        config: SAC settings.
+        env_config: The training environment (budgets, governance, perturbations, seeds).
+        shaping: Reward shaping coefficients α, β, γ.
+        registry: Loads the parent's artifact and the predecessors of later ECMs.
+        distill: Behaviour cloning settings for distilling a code parent (None: start a
+            code parent's replacement from random weights).
+        distill_episodes: Rollouts of a code parent to distil from.
+        traces: Trace files or directories whose transitions of this ECM prefill the replay
+            buffer (the request's outcomes' traces are added).
+        learner_id: Recorded in provenance; default a unique id.
+        progress_bar: Show SB3's progress bar while training.
+        make_env: Builds the training environment (default :func:`make_ecm_env`).
+
+    Raises:
+        Invalid: bad settings.
+    """
+
+    modality = "rl"
+
+    def __init__(
+        self,
+        *,
+        config: SacConfig | None = None,
+        env_config: EcmEnvConfig | None = None,
+        shaping: RewardShaping | None = None,
+        registry: Registry | None = None,
+        distill: BcConfig | None = None,
+        distill_episodes: int = 5,
+        traces: Sequence[str] = (),
+        learner_id: str | None = None,
+        progress_bar: bool = False,
+        make_env: Callable[[str, EcmTarget], EcmEnv] | None = None,
+    ) -> None:
+        self.config = config or SacConfig()
+        self.env_config = env_config or EcmEnvConfig()
+        self.shaping = shaping or RewardShaping()
+        self.registry = registry
+        self.distill = distill if distill is not None else BcConfig(epochs=20, net_arch=self.config.net_arch)
+        _check_int("distill_episodes", distill_episodes, 0)
+        self.distill_episodes = distill_episodes
+        self.traces = tuple(str(t) for t in traces)
+        self.learner_id = learner_id or default_learner_id(self.modality)
+        self.progress_bar = progress_bar
+        self._make_env = make_env
+        self.last_report: TrainReport | None = None
+        self.last_model: Any = None
+
+    def _env(self, task: str, target: EcmTarget) -> EcmEnv:
+        if self._make_env is not None:
+            return self._make_env(task, target)
+        return make_ecm_env(task, target, registry=self.registry, config=self.env_config)
+
+    def _distil(self, env: EcmEnv, model: Any, request: LearnRequest, artifact: bytes) -> BcReport | None:
+        """Clone a code parent's behaviour into the actor; None when nothing could be collected."""
+        from capevo.runtime.ecm import load_ecm
+
+        if self.distill_episodes == 0:
+            return None
+        loaded = load_ecm(request.parent, artifact)
+        try:
+            controller = ecm_controller(loaded, layout=task_spec(request.task).action_layout)
+            demos = collect_demos(
+                env,
+                controller,
+                episodes=self.distill_episodes,
+                only_successful=False,
+                source=f"{request.ecm}@{request.parent.version}",
+            )
+        finally:
+            loaded.close()
+        if len(demos) == 0:
+            log.warning("%s: the parent produced no steps to distil; RL starts from random weights", request.ecm)
+            return None
+        report = behaviour_clone(model, demos, self.distill)
+        log.info(
+            "%s: distilled the parent from %d steps: loss %.4f -> %.4f",
+            request.ecm,
+            report.samples,
+            report.loss_before,
+            report.loss_after,
+        )
+        return report
+
+    def provenance(self, request: LearnRequest, traces: Sequence[str]) -> Provenance:
+        config = {
+            "learner": "sac",
+            "sac": self.config.to_dict(),
+            "env": self.env_config.to_dict(),
+            "shaping": self.shaping.to_dict(),
+            "distill": self.distill.to_dict() if request.parent.kind is not Kind.NEURAL else None,
+            "distill_episodes": self.distill_episodes if request.parent.kind is not Kind.NEURAL else 0,
+            "task": request.task,
+            "ecm": request.ecm,
+            "parent": request.parent.version,
+        }
+        return Provenance(learner_id=self.learner_id, config_hash=config_hash(config), traces=tuple(traces))
+
+    def learn(self, request: LearnRequest, *, parent_artifact: bytes | None = None) -> Candidate:
+        """Train SAC for ``request.ecm`` from its parent and return the candidate (origin ``rl``).
+
+        Raises:
+            Invalid: a parent that cannot warm-start (neural but not SAC, other spaces), or a
+                result that does not load.
+            NotFound: a predecessor of the ECM has no active version.
+        """
+        from capevo.learner.experience import trace_paths
+        from capevo.learner.neural_seed import model_bytes
+
+        target = target_for(request.task, request.ecm, request.parent)
+        artifact = parent_artifact_of(request, self.registry, parent_artifact)
+        neural_parent = request.parent.kind is Kind.NEURAL
+        if neural_parent and artifact is None:
+            raise Invalid(f"{request.ecm}: the parent's weights are needed; give a registry or parent_artifact")
+        env = self._env(request.task, target)
+        try:
+            shaped = ShapedReward(env, self.shaping, dt=env.control_dt)
+            model = build_sac(shaped, self.config, parent_artifact=artifact if neural_parent else None)
+            distilled = None
+            if not neural_parent and artifact is not None:
+                distilled = self._distil(env, model, request, artifact)
+            paths = [*self.traces, *trace_paths(request.outcomes)]
+            prefilled = (
+                prefill_replay(model, paths, task=request.task, target=target, shaping=self.shaping, dt=env.control_dt)
+                if paths
+                else 0
+            )
+            report = train_sac(model, self.config.total_steps, progress_bar=self.progress_bar)
+            report = TrainReport(
+                steps=report.steps,
+                seconds=report.seconds,
+                episodes=report.episodes,
+                successes=report.successes,
+                mean_return=report.mean_return,
+                prefilled=prefilled,
+                distill=distilled,
+            )
+        finally:
+            env.close()
+        self.last_report = report
+        self.last_model = model
+        log.info(
+            "%s: SAC %d steps in %.1fs (%.1f steps/s), %d episodes, %d successes",
+            request.ecm,
+            report.steps,
+            report.seconds,
+            report.steps_per_second,
+            report.episodes,
+            report.successes,
+        )
+        out = model_bytes(model)
+        check_loadable(out, target)
+        used = task_trace_files(paths, request.task) if paths else []
+        spec = neural_candidate_spec(
+            target,
+            parent=request.parent.version,
+            origin=Origin.RL,
+            provenance=self.provenance(request, [str(p) for p in used]),
+        )
+        return Candidate(
+            ecm=request.ecm,
+            artifact=out,
+            spec=spec,
+            notes={
+                "learner": self.learner_id,
+                "modality": self.modality,
+                "warm_start": "weights" if neural_parent else ("distilled" if distilled is not None else "random"),
+                "train": report.to_dict(),
+            },
+        )

@@ -1,0 +1,496 @@
+"""Offline parameter search: the cross-entropy method (CEM) over one code ECM's ``PARAMS``.
+
+Given a :class:`~capevo.learner.base.LearnRequest`, :class:`CemSearch` keeps the ECM's code
+and searches its numeric parameters θ: each iteration samples a population of θ from a
+diagonal Gaussian, runs every candidate (unpublished, through a
+:class:`~capevo.learner.base.CandidateEvaluator`) on the same few training seeds with the
+task's other ECMs at their versions, scores them (success rate, then progress through the
+decomposition, then reward per step; see :mod:`capevo.learner.base`), and refits the
+Gaussian to the elite fraction. The candidate is the parent's source with only the ``PARAMS``
+literal rewritten (:func:`~capevo.runtime.ecm.code.with_params`).
+
+Search space: each parameter is searched in units of its *scale*, ``max(|v0|, floor)`` (v0
+its value in the parent), within ``v0 ± spread · scale``; a parameter whose parent value is
+positive stays ≥ 0 and a negative one ≤ 0 (gains, heights and widths keep their sign).
+Explicit ``bounds`` override this per parameter.
+
+Which ECM: :func:`~capevo.learner.experience.pick_ecm_to_update` reads recent traces and
+names the step where failed episodes most often ended (exported here too).
+
+Origin: a CEM candidate is published as ``clone`` by default: its artifact is a copy of the
+parent's code with new parameter values, not new code (``rl`` would claim a trained policy,
+``hybrid`` is reserved for LLM edit + search). ``origin=`` changes it.
+
+Invariants:
+1. Every evaluated θ lies within the bounds; the parent's θ is the first candidate of the
+   first iteration (so ``baseline`` is the parent on the same seeds).
+2. Within one iteration every candidate runs on the same seeds; iterations use successive
+   slices of the training seeds (cycling).
+3. With equal configuration, request and evaluator behaviour, the search is deterministic.
+4. The returned source differs from the parent's only inside the ``PARAMS`` literal.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from capevo.errors import Invalid
+from capevo.learner.base import Candidate, CandidateEvaluator, LearnRequest, Score, config_hash, score_outcomes
+from capevo.learner.experience import episode_ends, pick_ecm_to_update, trace_paths
+from capevo.registry.records import Origin, Provenance, PublishSpec
+from capevo.runtime.ecm.code import read_params, with_params
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "CemConfig",
+    "CemEvent",
+    "CemResult",
+    "CemSearch",
+    "ParamSpace",
+    "param_space",
+    "pick_ecm_to_update",
+]
+
+
+def _bad(name: str, message: str) -> Invalid:
+    return Invalid(f"{name}: {message}", details={"field": name})
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CemConfig:
+    """Settings of one CEM search (hashed into the candidate's provenance).
+
+    Args:
+        population: Candidates per iteration (the first is the current mean).
+        elite_frac: Fraction of the population the Gaussian is refitted to (at least one).
+        iterations: Iterations at most.
+        episodes_per_candidate: Training episodes per candidate.
+        seed: Seeds the sampler.
+        sigma_init: Initial standard deviation, in units of each parameter's scale.
+        sigma_min: Floor of the standard deviation after refitting (keeps exploring).
+        spread: Half-width of the search box, in units of each parameter's scale.
+        floor: Smallest scale (a parameter at 0 is searched in ``± spread · floor``).
+        keys: Parameters to search (default all); the others keep the parent's values.
+        bounds: ``(name, low, high)`` triples overriding the automatic box.
+        stop_when_passed: Stop after an iteration whose best candidate got every episode
+            past the ECM (it no longer is where episodes end).
+        min_iterations: Iterations run before ``stop_when_passed`` may stop the search.
+        smoothing: Weight of the elites when refitting (1 = plain CEM); the rest keeps the
+            previous mean and standard deviation.
+
+    Raises:
+        Invalid: a value out of range.
+    """
+
+    population: int = 8
+    elite_frac: float = 0.25
+    iterations: int = 3
+    episodes_per_candidate: int = 4
+    seed: int = 0
+    sigma_init: float = 1.0
+    sigma_min: float = 0.05
+    spread: float = 3.0
+    floor: float = 0.01
+    keys: tuple[str, ...] | None = None
+    bounds: tuple[tuple[str, float, float], ...] = ()
+    stop_when_passed: bool = True
+    min_iterations: int = 1
+    smoothing: float = 0.7
+
+    def __post_init__(self) -> None:
+        ints = {
+            "population": (self.population, 2, 10_000),
+            "iterations": (self.iterations, 1, 10_000),
+            "episodes_per_candidate": (self.episodes_per_candidate, 1, 10_000),
+            "min_iterations": (self.min_iterations, 1, 10_000),
+        }
+        for name, (v, lo, hi) in ints.items():
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise _bad(name, f"must be an integer from {lo} to {hi}, got {v!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise _bad("seed", f"must be a non-negative integer, got {self.seed!r}")
+        floats = {
+            "elite_frac": (self.elite_frac, 0.0, 1.0),
+            "sigma_init": (self.sigma_init, 0.0, 100.0),
+            "sigma_min": (self.sigma_min, 0.0, 100.0),
+            "spread": (self.spread, 0.0, 1000.0),
+            "floor": (self.floor, 0.0, 1e6),
+            "smoothing": (self.smoothing, 0.0, 1.0),
+        }
+        for name, (v, lo, hi) in floats.items():
+            ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
+            if not ok or not lo < v <= hi:
+                raise _bad(name, f"must be a number in ({lo}, {hi}], got {v!r}")
+        for name, lo, hi in self.bounds:
+            if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
+                raise _bad("bounds", f"{name}: need finite low <= high, got ({lo}, {hi})")
+
+    @property
+    def n_elite(self) -> int:
+        return max(1, round(self.elite_frac * self.population))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "method": "cem",
+            "population": self.population,
+            "elite_frac": self.elite_frac,
+            "iterations": self.iterations,
+            "episodes_per_candidate": self.episodes_per_candidate,
+            "seed": self.seed,
+            "sigma_init": self.sigma_init,
+            "sigma_min": self.sigma_min,
+            "spread": self.spread,
+            "floor": self.floor,
+            "keys": list(self.keys) if self.keys is not None else None,
+            "bounds": [list(b) for b in self.bounds],
+            "stop_when_passed": self.stop_when_passed,
+            "min_iterations": self.min_iterations,
+            "smoothing": self.smoothing,
+        }
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ParamSpace:
+    """The searched parameters: θ = x0 + scale · z, clipped to [low, high]."""
+
+    names: tuple[str, ...]
+    x0: tuple[float, ...]
+    scale: tuple[float, ...]
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+
+    @property
+    def dim(self) -> int:
+        return len(self.names)
+
+    def z_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds in normalized units."""
+        x0, s = np.array(self.x0), np.array(self.scale)
+        return (np.array(self.low) - x0) / s, (np.array(self.high) - x0) / s
+
+    def params(self, z: np.ndarray) -> dict[str, float]:
+        """θ for normalized point ``z`` (clipped into the box)."""
+        theta = np.clip(np.array(self.x0) + np.array(self.scale) * np.asarray(z, dtype=np.float64), self.low, self.high)
+        return {n: float(v) for n, v in zip(self.names, theta.tolist(), strict=True)}
+
+
+def param_space(
+    params: Mapping[str, float],
+    *,
+    spread: float = 3.0,
+    floor: float = 0.01,
+    keys: Sequence[str] | None = None,
+    bounds: Sequence[tuple[str, float, float]] = (),
+) -> ParamSpace:
+    """The search box around ``params`` (see the module docstring).
+
+    Raises:
+        Invalid: ``keys`` or ``bounds`` name a parameter ``params`` lacks, or nothing to search.
+    """
+    names = tuple(keys) if keys is not None else tuple(params)
+    unknown = sorted(set(names) - set(params)) + sorted({b[0] for b in bounds} - set(params))
+    if unknown:
+        raise Invalid(
+            f"unknown parameter(s) {unknown}; the skill's PARAMS declares {sorted(params)}", details={"field": "keys"}
+        )
+    if not names:
+        raise Invalid("nothing to search: the skill declares no PARAMS (or keys is empty)", details={"field": "keys"})
+    explicit = {b[0]: (float(b[1]), float(b[2])) for b in bounds}
+    x0, scale, low, high = [], [], [], []
+    for n in names:
+        v = float(params[n])
+        s = max(abs(v), floor)
+        lo, hi = v - spread * s, v + spread * s
+        if v > 0:
+            lo = max(lo, 0.0)
+        elif v < 0:
+            hi = min(hi, 0.0)
+        if n in explicit:
+            lo, hi = explicit[n]
+            v = min(max(v, lo), hi)
+        x0.append(v)
+        scale.append(s)
+        low.append(lo)
+        high.append(hi)
+    return ParamSpace(names=names, x0=tuple(x0), scale=tuple(scale), low=tuple(low), high=tuple(high))
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CemEvent:
+    """One evaluated candidate, passed to the progress callback."""
+
+    iteration: int
+    index: int
+    params: Mapping[str, float]
+    score: Score
+    seeds: tuple[int, ...]
+    passed: float
+    """Fraction of its episodes that got past the ECM being tuned."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "iteration": self.iteration,
+            "index": self.index,
+            "params": dict(self.params),
+            "score": self.score.to_dict(),
+            "seeds": list(self.seeds),
+            "passed": self.passed,
+        }
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CemResult:
+    """What a search found."""
+
+    params: Mapping[str, float]
+    """Full θ of the best candidate (searched and kept parameters)."""
+    source: str
+    score: Score
+    baseline: Score
+    """The parent's θ, first candidate of the first iteration."""
+    iterations_run: int
+    episodes_run: int
+    history: tuple[CemEvent, ...] = field(default_factory=tuple)
+
+
+def _seed_slices(seeds: Sequence[int], per: int, count: int) -> list[tuple[int, ...]]:
+    if not seeds:
+        raise Invalid("the request has no training seeds", details={"field": "train_seeds"})
+    out = []
+    for i in range(count):
+        out.append(tuple(seeds[(i * per + j) % len(seeds)] for j in range(per)))
+    return out
+
+
+class CemSearch:
+    """CEM over one code ECM's parameters (see the module docstring).
+
+    Args:
+        evaluator: Runs unpublished candidates (e.g. a
+            :class:`~capevo.learner.scratch.ScratchRegistryEvaluator`).
+        population, elite_frac, iterations, episodes_per_candidate, seed, sigma_init,
+        sigma_min, spread, floor, keys, bounds, stop_when_passed, min_iterations, smoothing: see
+            :class:`CemConfig`.
+        origin: Origin of the candidate it returns (and of the artifacts it evaluates, so
+            they run under the same trust); default ``clone``.
+        learner_id: Recorded in provenance.
+        progress: Called with a :class:`CemEvent` after every candidate.
+
+    Raises:
+        Invalid: a bad setting.
+    """
+
+    def __init__(
+        self,
+        evaluator: CandidateEvaluator,
+        *,
+        population: int = 8,
+        elite_frac: float = 0.25,
+        iterations: int = 3,
+        episodes_per_candidate: int = 4,
+        seed: int = 0,
+        sigma_init: float = 1.0,
+        sigma_min: float = 0.05,
+        spread: float = 3.0,
+        floor: float = 0.01,
+        keys: Sequence[str] | None = None,
+        bounds: Mapping[str, tuple[float, float]] | None = None,
+        stop_when_passed: bool = True,
+        min_iterations: int = 1,
+        smoothing: float = 0.7,
+        origin: Origin = Origin.CLONE,
+        learner_id: str = "cem",
+        progress: Callable[[CemEvent], Any] | None = None,
+    ) -> None:
+        self.config = CemConfig(
+            population=population,
+            elite_frac=elite_frac,
+            iterations=iterations,
+            episodes_per_candidate=episodes_per_candidate,
+            seed=seed,
+            sigma_init=sigma_init,
+            sigma_min=sigma_min,
+            spread=spread,
+            floor=floor,
+            keys=tuple(keys) if keys is not None else None,
+            bounds=tuple((k, float(lo), float(hi)) for k, (lo, hi) in sorted((bounds or {}).items())),
+            stop_when_passed=stop_when_passed,
+            min_iterations=min_iterations,
+            smoothing=smoothing,
+        )
+        self.evaluator = evaluator
+        self.origin = Origin(origin)
+        self.learner_id = learner_id
+        self.progress = progress
+
+    # --- the search ------------------------------------------------------------------
+
+    def search(
+        self, request: LearnRequest, *, source: str | None = None, evaluation_origin: Origin | None = None
+    ) -> CemResult:
+        """Run CEM on ``request.ecm``, starting from ``source`` (default the parent's).
+
+        ``evaluation_origin`` (default :attr:`origin`) is the origin the samples run under,
+        which decides their trust (``hybrid`` for LLM-edited code).
+
+        Raises:
+            Invalid: no training seeds, no ``PARAMS`` to search, or bad keys/bounds.
+            CapevoError: whatever the evaluator raised.
+        """
+        cfg = self.config
+        src = source if source is not None else request.source
+        start = read_params(src, filename=f"<{request.ecm}>")
+        space = param_space(start, spread=cfg.spread, floor=cfg.floor, keys=cfg.keys, bounds=cfg.bounds)
+        zlo, zhi = space.z_bounds()
+        rng = np.random.default_rng(cfg.seed)
+        mean = np.clip(np.zeros(space.dim), zlo, zhi)
+        sigma = np.full(space.dim, cfg.sigma_init)
+        slices = _seed_slices(request.train_seeds, cfg.episodes_per_candidate, cfg.iterations)
+        decomposition = request.decomposition
+        ecm_index = decomposition.index(request.ecm) if request.ecm in decomposition else -1
+        history: list[CemEvent] = []
+        baseline: Score | None = None
+        best: tuple[Score, dict[str, float], str] | None = None
+        episodes = 0
+        iterations_run = 0
+        for it in range(cfg.iterations):
+            seeds = slices[it]
+            zs = [mean.copy()]
+            for _ in range(cfg.population - 1):
+                zs.append(np.clip(mean + sigma * rng.standard_normal(space.dim), zlo, zhi))
+            scored: list[tuple[Score, float, int]] = []
+            sources: list[tuple[dict[str, float], str]] = []
+            for i, z in enumerate(zs):
+                theta = {**start, **space.params(z)}
+                cand = with_params(src, theta, filename=f"<{request.ecm}>")
+                outcomes = self.evaluator.evaluate(
+                    request.task,
+                    request.versions,
+                    list(seeds),
+                    overrides={request.ecm: cand.encode()},
+                    override_origin=evaluation_origin or self.origin,
+                )
+                episodes += len(outcomes)
+                ends = episode_ends(outcomes)
+                score = score_outcomes(outcomes, decomposition, ends=ends)
+                passed = _passed(outcomes, ends, decomposition, ecm_index)
+                scored.append((score, passed, i))
+                sources.append((theta, cand))
+                event = CemEvent(iteration=it, index=i, params=theta, score=score, seeds=seeds, passed=passed)
+                history.append(event)
+                if it == 0 and i == 0:
+                    baseline = score
+                if self.progress is not None:
+                    self.progress(event)
+            iterations_run += 1
+            order = sorted(scored, key=lambda t: (t[0].key(), -t[2]), reverse=True)
+            top_score, top_passed, top_i = order[0]
+            # the best of the latest iteration is the candidate: later iterations sample
+            # around better means, and every candidate of one iteration shares its seeds
+            best = (top_score, sources[top_i][0], sources[top_i][1])
+            elites = np.array([zs[i] for _, _, i in order[: cfg.n_elite]])
+            mean = elites.mean(axis=0)
+            sigma = (
+                np.maximum(elites.std(axis=0), cfg.sigma_min)
+                if len(elites) > 1
+                else np.maximum(sigma * 0.5, cfg.sigma_min)
+            )
+            log.info(
+                "cem %s iteration %d: best %s (passed %.2f), elite mean %s",
+                request.ecm,
+                it,
+                top_score.to_dict(),
+                top_passed,
+                space.params(mean),
+            )
+            if cfg.stop_when_passed and it + 1 >= cfg.min_iterations and top_passed >= 1.0:
+                break
+        if best is None or baseline is None:  # pragma: no cover - iterations >= 1 always runs one
+            raise Invalid("the search ran no iteration")
+        return CemResult(
+            params=best[1],
+            source=best[2],
+            score=best[0],
+            baseline=baseline,
+            iterations_run=iterations_run,
+            episodes_run=episodes,
+            history=tuple(history),
+        )
+
+    # --- the learner -----------------------------------------------------------------
+
+    def provenance(self, request: LearnRequest, *, extra: Mapping[str, Any] | None = None) -> Provenance:
+        """Provenance of a candidate for ``request``: learner id, config hash, traces used."""
+        config = {
+            **self.config.to_dict(),
+            "task": request.task,
+            "ecm": request.ecm,
+            "parent": request.parent.version,
+            "train_seeds": list(request.train_seeds),
+            **(extra or {}),
+        }
+        return Provenance(
+            learner_id=self.learner_id, config_hash=config_hash(config), traces=trace_paths(request.outcomes)
+        )
+
+    def learn(self, request: LearnRequest) -> Candidate:
+        """Search and return the best θ as a candidate (origin :attr:`origin`).
+
+        Raises:
+            Invalid, CapevoError: as :meth:`search`.
+        """
+        result = self.search(request)
+        spec = candidate_spec(request, origin=self.origin, provenance=self.provenance(request))
+        return Candidate(
+            ecm=request.ecm,
+            artifact=result.source.encode(),
+            spec=spec,
+            score=result.score,
+            baseline=result.baseline,
+            notes={
+                "learner": self.learner_id,
+                "params": dict(result.params),
+                "iterations_run": result.iterations_run,
+                "episodes_run": result.episodes_run,
+            },
+        )
+
+
+def candidate_spec(request: LearnRequest, *, origin: Origin, provenance: Provenance) -> PublishSpec:
+    """The parent's descriptor and interface with a new origin, parent and provenance."""
+    p = request.parent
+    return PublishSpec(
+        kind=p.kind,
+        descriptor=p.descriptor,
+        interface=p.interface,
+        media_type=p.artifact.media_type,
+        parent=p.version,
+        origin=origin,
+        provenance=provenance,
+    )
+
+
+def _passed(outcomes: Sequence[Any], ends: Sequence[Any], decomposition: Sequence[str], ecm_index: int) -> float:
+    """Fraction of episodes that succeeded or started a step after the tuned one."""
+    if not outcomes:
+        return 0.0
+    if ecm_index < 0:
+        return sum(o.success for o in outcomes) / len(outcomes)
+    later = set(decomposition[ecm_index + 1 :])
+    by_seed: dict[Any, list[Any]] = {}
+    for e in ends:
+        by_seed.setdefault(e.seed, []).append(e)
+    n = 0
+    for o in outcomes:
+        matches = by_seed.get(o.seed)
+        end = matches.pop(0) if matches else None
+        if o.success or (end is not None and later.intersection(end.plan)):
+            n += 1
+    return n / len(outcomes)

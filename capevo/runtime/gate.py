@@ -1,0 +1,803 @@
+"""The version gate: a candidate is promoted only when paired, held-out evidence says so.
+
+:class:`Gate` runs the ECM's active version and the candidate on the *same* held-out seeds
+(the task guarantees a seed fixes the instance), compares them with the statistics of
+:mod:`capevo.runtime.gate_stats`, writes everything it decided on into the candidate's gate
+evidence (:meth:`Registry.record_gate`, so it lands in the audit history), and then
+promotes the candidate, guarded by ``expected_active``, or rejects it.
+
+Decision rule
+-------------
+Let N be the number of paired seeds; b the seeds only the candidate succeeded on, c those
+only the active version succeeded on; α = ``alpha``, δ = ``delta``. Intervals are Wilson
+score intervals at two-sided level 1 − 2α, so each end is a one-sided 1 − α bound.
+
+With an active version (paired mode), the checks are:
+
+1. ``enough``: N ≥ ``min_n``.
+2. ``floor``: when ``min_success`` is set, the lower Wilson bound of the candidate's success
+   rate is ≥ ``min_success``.
+3. ``superior``: success improves: exact one-sided McNemar test (sign test on the b + c
+   discordant pairs, ``binomtest(b, b + c, 1/2, "greater")``) has p < α.
+4. ``noninferior``: success is not worse by more than δ: Tango's score test of
+   H0: p_cand − p_active ≤ −δ has p < α (equivalently the lower end of Tango's interval for
+   the difference is above −δ).
+5. ``reward``: reward improves: one-sided Wilcoxon signed-rank test on the per-seed reward
+   differences (candidate − active; ties dropped) has p < α.
+6. ``not_slower``: on the seeds where both succeeded, mean steps (or seconds, per
+   ``speed_metric``) of the candidate ≤ ``max_slowdown`` × those of the active version.
+   With fewer than ``min_speed_pairs`` such seeds speed cannot be judged and the check
+   passes; ``max_slowdown=None`` turns it off.
+
+   Promote iff 1 ∧ 2 ∧ 6 ∧ (3 ∨ (4 ∧ 5) ∨ (4 ∧ ¬``require_improvement``)).
+
+Without an active version (the ECM's first promotion, absolute mode):
+
+7. ``enough`` as 1, and ``floor``: the lower Wilson bound of the candidate's success rate is
+   ≥ max(``min_success`` or 0, ``first_min_success``).
+
+   Promote iff 1 ∧ 7.
+
+Why reward alone never promotes: an episode's total reward is not monotone in quality (a
+slower policy that holds the object longer collects more shaped reward before the success
+step ends the episode), so a reward gain counts only with non-inferior success and no
+slowdown.
+
+Held-out seeds: :class:`SeedPlan` derives disjoint training, gate and live seed ranges from
+one base seed; a :class:`Gate` given a plan refuses seeds outside its gate range.
+
+Invariants:
+1. Both versions are evaluated on exactly the seeds given; the decision pairs outcomes by
+   seed and does not depend on the seeds' order.
+2. Evidence is recorded before the pointer moves: every promotion or rejection made by the
+   gate is preceded in the audit history by a ``gate`` event carrying its evidence.
+3. Promotion passes ``expected_active`` = the version the candidate was compared with (None
+   only in absolute mode), so a concurrent promotion makes :meth:`Gate.run` raise
+   :class:`Conflict` instead of silently replacing a version nobody gated against.
+4. If the versions the two evaluations actually ran differ in anything but the gated ECM,
+   nothing is recorded and :class:`Conflict` is raised (the pairing would be broken).
+5. A candidate whose outcomes equal the active version's, seed for seed, is never promoted
+   when ``require_improvement`` is set.
+6. Bad arguments (seeds, config, states) raise before any episode runs.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+from capevo.errors import Conflict, IllegalTransition, Invalid, NotFound
+from capevo.registry.records import CapabilitySet, EcmVersion, State
+from capevo.runtime.evaluation import EpisodeOutcome, Evaluator
+from capevo.runtime.gate_stats import (
+    PairedStats,
+    SideStats,
+    check_alpha,
+    check_speed_metric,
+    paired_stats,
+    side_stats,
+)
+
+log = logging.getLogger(__name__)
+
+EVIDENCE_SCHEMA = "capevo.gate/1"
+MAX_SEED = 2**31 - 1
+"""Largest seed a plan hands out (robosuite and numpy seed with 32-bit values)."""
+PURPOSES: tuple[str, ...] = ("train", "gate", "live")
+
+GateProgress = Callable[[str, str], object]
+"""``progress(stage, message)``; stages: ``evaluate-active``, ``evaluate-candidate``,
+``decided``, ``recorded``, ``promoted`` / ``rejected``."""
+
+
+# --- configuration ----------------------------------------------------------------------
+
+
+def _number(name: str, value: object, *, low: float, high: float, low_open: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise Invalid(f"{name} must be a number, got {value!r}", details={"field": name})
+    v = float(value)
+    if not (low < v if low_open else low <= v) or not v <= high:
+        bracket = "(" if low_open else "["
+        raise Invalid(f"{name} must be in {bracket}{low}, {high}], got {value!r}", details={"field": name})
+    return v
+
+
+def _count(name: str, value: object, *, low: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise Invalid(f"{name} must be an integer >= {low}, got {value!r}", details={"field": name})
+    return value
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class GateConfig:
+    """Thresholds of the decision rule (see the module docstring).
+
+    Args:
+        min_n: Minimum number of paired seeds.
+        alpha: Level of every one-sided test; intervals are two-sided ``1 - 2*alpha``.
+        delta: Non-inferiority margin δ on the success rate.
+        min_success: Optional floor on the lower Wilson bound of the candidate's success rate.
+        require_improvement: Promote only on a significant success or reward gain; False
+            also promotes candidates that are merely non-inferior.
+        max_slowdown: Largest allowed ratio of the candidate's to the active version's mean
+            speed metric on seeds both succeeded on; None disables the speed check.
+        min_speed_pairs: Fewer seeds where both succeeded leave speed unjudged.
+        speed_metric: ``steps`` (deterministic) or ``duration_s`` (wall clock).
+        first_min_success: Floor on the lower Wilson bound when there is no active version.
+
+    Raises:
+        Invalid: a value out of range.
+    """
+
+    min_n: int = 30
+    alpha: float = 0.05
+    delta: float = 0.05
+    min_success: float | None = None
+    require_improvement: bool = True
+    max_slowdown: float | None = 1.25
+    min_speed_pairs: int = 3
+    speed_metric: str = "steps"
+    first_min_success: float = 0.5
+
+    def __post_init__(self) -> None:
+        _count("min_n", self.min_n, low=1)
+        check_alpha(self.alpha)
+        if _number("delta", self.delta, low=0.0, high=1.0) >= 1.0:
+            raise Invalid(f"delta must be in [0, 1), got {self.delta!r}", details={"field": "delta"})
+        if self.min_success is not None:
+            _number("min_success", self.min_success, low=0.0, high=1.0)
+        if not isinstance(self.require_improvement, bool):
+            raise Invalid(
+                f"require_improvement must be a bool, got {self.require_improvement!r}",
+                details={"field": "require_improvement"},
+            )
+        if self.max_slowdown is not None:
+            _number("max_slowdown", self.max_slowdown, low=1.0, high=1e6)
+        _count("min_speed_pairs", self.min_speed_pairs, low=1)
+        check_speed_metric(self.speed_metric)
+        _number("first_min_success", self.first_min_success, low=0.0, high=1.0)
+
+    @classmethod
+    def cpu_small(cls) -> GateConfig:
+        """Tiny budgets on a laptop CPU: 8+ seeds, so only large effects are detectable.
+
+        With 8 pairs and no discordant seed the data rule out only drops of more than
+        ~25 points, hence δ = 0.3; 8 of 8 discordant seeds in the candidate's favour give
+        McNemar p = 0.004.
+        """
+        return cls(min_n=8, alpha=0.05, delta=0.3, max_slowdown=1.1, min_speed_pairs=3, first_min_success=0.5)
+
+    @classmethod
+    def standard(cls) -> GateConfig:
+        """The default thresholds: 30+ seeds, δ = 5 points, 25% slowdown allowed."""
+        return cls()
+
+    @classmethod
+    def strict(cls) -> GateConfig:
+        """Deployment-grade: 100+ seeds, α = 0.01, δ = 2 points, 10% slowdown allowed."""
+        return cls(min_n=100, alpha=0.01, delta=0.02, max_slowdown=1.1, min_speed_pairs=10, first_min_success=0.8)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "min_n": self.min_n,
+            "alpha": self.alpha,
+            "delta": self.delta,
+            "min_success": self.min_success,
+            "require_improvement": self.require_improvement,
+            "max_slowdown": self.max_slowdown,
+            "min_speed_pairs": self.min_speed_pairs,
+            "speed_metric": self.speed_metric,
+            "first_min_success": self.first_min_success,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> GateConfig:
+        return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
+
+
+# --- held-out seeds ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SeedPlan:
+    """Disjoint training, gate and live seed ranges derived from one base seed.
+
+    The plan owns the ``3 * block`` consecutive seeds starting at ``base_seed * 3 * block``:
+    ``train`` the first block, ``gate`` the second, ``live`` the third. Ranges of one plan
+    never overlap, and plans with different base seeds never share a seed. Learners draw
+    from :meth:`train`, the gate from :meth:`gate` (held out: no learner ever sees them)
+    and the runtime's deployment episodes from :meth:`live`.
+
+    Args:
+        base_seed: Which plan (non-negative).
+        block: Seeds per purpose.
+
+    Raises:
+        Invalid: negative ``base_seed``, ``block`` < 1, or a plan reaching past 2**31 - 1.
+    """
+
+    base_seed: int = 0
+    block: int = 100_000
+
+    def __post_init__(self) -> None:
+        _count("base_seed", self.base_seed, low=0)
+        _count("block", self.block, low=1)
+        if (self.base_seed + 1) * 3 * self.block - 1 > MAX_SEED:
+            raise Invalid(
+                f"seed plan {self.base_seed} with block {self.block} reaches past {MAX_SEED}",
+                details={"field": "base_seed"},
+            )
+
+    def range(self, purpose: str) -> range:
+        """All seeds of ``purpose`` (``train``, ``gate`` or ``live``).
+
+        Raises:
+            Invalid: unknown purpose (lists the valid ones).
+        """
+        if purpose not in PURPOSES:
+            raise Invalid(
+                f"unknown seed purpose {purpose!r}; valid: {', '.join(PURPOSES)}", details={"field": "purpose"}
+            )
+        start = (self.base_seed * 3 + PURPOSES.index(purpose)) * self.block
+        return range(start, start + self.block)
+
+    def seeds(self, purpose: str, n: int, *, offset: int = 0) -> list[int]:
+        """``n`` consecutive seeds of ``purpose`` starting ``offset`` into its range.
+
+        Raises:
+            Invalid: unknown purpose, negative ``n``/``offset``, or past the range's end.
+        """
+        r = self.range(purpose)
+        _count("n", n, low=0)
+        _count("offset", offset, low=0)
+        if offset + n > len(r):
+            raise Invalid(
+                f"{purpose} seeds {offset}..{offset + n - 1} run past the plan's block of {len(r)}",
+                details={"field": "n"},
+            )
+        return list(r[offset : offset + n])
+
+    def train(self, n: int, *, offset: int = 0) -> list[int]:
+        """Training seeds (for learners)."""
+        return self.seeds("train", n, offset=offset)
+
+    def gate(self, n: int, *, round: int = 0) -> list[int]:
+        """Held-out gate seeds; ``round`` r gives the r-th disjoint batch of ``n``.
+
+        Fresh rounds keep repeated gating from fitting one fixed held-out set.
+        """
+        _count("round", round, low=0)
+        return self.seeds("gate", n, offset=round * n)
+
+    def live(self, n: int, *, offset: int = 0) -> list[int]:
+        """Seeds for live (deployment) episodes."""
+        return self.seeds("live", n, offset=offset)
+
+    def purpose_of(self, seed: int) -> str | None:
+        """Which range ``seed`` is in, or None when it is outside this plan."""
+        for p in PURPOSES:
+            if seed in self.range(p):
+                return p
+        return None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"base_seed": self.base_seed, "block": self.block}
+
+
+# --- decision ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Check:
+    """One numbered check of the decision rule and whether it passed."""
+
+    name: str
+    passed: bool
+    detail: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "passed": self.passed, "detail": self.detail}
+
+
+def _p(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def decide_paired(stats: PairedStats, config: GateConfig) -> tuple[bool, tuple[Check, ...]]:
+    """Apply the paired-mode rule (checks 1-6) to ``stats``.
+
+    Returns:
+        (promote, checks in rule order).
+    """
+    a = config.alpha
+    cand, act = stats.candidate, stats.active
+    checks = [
+        Check(name="enough", passed=stats.n >= config.min_n, detail=f"N={stats.n}, min_n={config.min_n}"),
+        _floor(cand, config.min_success, config.alpha),
+        Check(
+            name="superior",
+            passed=stats.p_success < a,
+            detail=f"McNemar exact b={stats.candidate_only} c={stats.active_only} p={_p(stats.p_success)}",
+        ),
+        Check(
+            name="noninferior",
+            passed=stats.p_noninferiority < a,
+            detail=(
+                f"diff {stats.success_difference} vs -delta={-config.delta:.2f}, Tango p={_p(stats.p_noninferiority)}"
+            ),
+        ),
+        Check(
+            name="reward",
+            passed=stats.p_reward < a,
+            detail=(f"mean reward {cand.mean_reward:.3f} vs {act.mean_reward:.3f}, Wilcoxon p={_p(stats.p_reward)}"),
+        ),
+        _speed(stats, config),
+    ]
+    ok = {c.name: c.passed for c in checks}
+    gain = ok["superior"] or (ok["noninferior"] and (ok["reward"] or not config.require_improvement))
+    return (ok["enough"] and ok["floor"] and ok["not_slower"] and gain), tuple(checks)
+
+
+def _floor(side: SideStats, threshold: float | None, alpha: float) -> Check:
+    if threshold is None:
+        return Check(name="floor", passed=True, detail="no min_success set")
+    low = side.success.low
+    return Check(
+        name="floor",
+        passed=low >= threshold,
+        detail=f"candidate success lower bound {low:.3f} vs min {threshold:.3f} (level {1 - alpha:.3g} one-sided)",
+    )
+
+
+def _speed(stats: PairedStats, config: GateConfig) -> Check:
+    metric = stats.speed_metric
+    if config.max_slowdown is None:
+        return Check(name="not_slower", passed=True, detail="speed check off")
+    if stats.speed_pairs < config.min_speed_pairs or stats.speed_ratio is None:
+        return Check(
+            name="not_slower",
+            passed=True,
+            detail=f"not judged: {stats.speed_pairs} seeds where both succeeded < {config.min_speed_pairs}",
+        )
+    return Check(
+        name="not_slower",
+        passed=stats.speed_ratio <= config.max_slowdown,
+        detail=(
+            f"{metric} per success x{stats.speed_ratio:.3f} ({stats.candidate.mean_speed_success or 0:.1f} vs "
+            f"{stats.active.mean_speed_success or 0:.1f} overall) on {stats.speed_pairs} common successes, "
+            f"max x{config.max_slowdown:.3g}"
+        ),
+    )
+
+
+def decide_absolute(side: SideStats, config: GateConfig) -> tuple[bool, tuple[Check, ...]]:
+    """Apply the absolute-mode rule (checks 1 and 7) when there is no active version.
+
+    Returns:
+        (promote, checks).
+    """
+    threshold = max(config.min_success or 0.0, config.first_min_success)
+    checks = (
+        Check(name="enough", passed=side.n >= config.min_n, detail=f"N={side.n}, min_n={config.min_n}"),
+        _floor(side, threshold, config.alpha),
+    )
+    return all(c.passed for c in checks), checks
+
+
+# --- records ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class GateDecision:
+    """What :meth:`Gate.run` decided and did."""
+
+    name: str
+    task: str
+    candidate_version: int
+    active_version: int | None
+    """The version the candidate was compared with; None in absolute mode."""
+    promoted: bool
+    reason: str
+    n: int
+    seeds: tuple[int, ...]
+    checks: tuple[Check, ...]
+    candidate: SideStats
+    paired: PairedStats | None
+    evidence: Mapping[str, Any]
+    record: EcmVersion
+    """The candidate's record after the promotion or rejection."""
+
+    @property
+    def failed(self) -> tuple[str, ...]:
+        """Names of the checks that did not pass."""
+        return tuple(c.name for c in self.checks if not c.passed)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "task": self.task,
+            "candidate_version": self.candidate_version,
+            "active_version": self.active_version,
+            "promoted": self.promoted,
+            "reason": self.reason,
+            "n": self.n,
+            "seeds": list(self.seeds),
+            "checks": [c.to_dict() for c in self.checks],
+            "evidence": dict(self.evidence),
+            "record": self.record.to_dict(),
+        }
+
+
+# --- the narrow dependencies ------------------------------------------------------------
+
+
+@runtime_checkable
+class GateRegistry(Protocol):
+    """What the gate needs of a registry (:class:`LocalRegistry` and the Zenoh client have it)."""
+
+    def get_version(self, name: str, version: int | None = None) -> EcmVersion: ...
+
+    def capability_set(self, revision: int | None = None) -> CapabilitySet: ...
+
+    def record_gate(
+        self, name: str, version: int, evidence: Mapping[str, Any], *, reason: str = "", actor: str | None = None
+    ) -> EcmVersion: ...
+
+    def promote(
+        self,
+        name: str,
+        version: int,
+        *,
+        expected_active: int | None = None,
+        reason: str = "",
+        actor: str | None = None,
+    ) -> EcmVersion: ...
+
+    def reject(self, name: str, version: int, *, reason: str = "", actor: str | None = None) -> EcmVersion: ...
+
+
+Behaviour = Callable[[int], tuple[bool, float, int]]
+"""``seed -> (success, reward, steps)`` of one version in :class:`FakeEvaluator`."""
+
+
+class FakeEvaluator:
+    """In-memory :class:`~capevo.runtime.evaluation.Evaluator` for gate and monitor tests.
+
+    A fake: no simulator runs. Each ``(ECM name, version)`` has a deterministic behaviour
+    ``seed -> (success, reward, steps)``; ``evaluate`` looks up the single pinned version and
+    returns one outcome per seed with ``capability_set`` = ``versions``.
+
+    Args:
+        behaviours: ``{(name, version): behaviour}``.
+    """
+
+    def __init__(self, behaviours: Mapping[tuple[str, int], Behaviour] | None = None) -> None:
+        self.behaviours: dict[tuple[str, int], Behaviour] = dict(behaviours or {})
+        self.calls: list[tuple[str, dict[str, int], tuple[int, ...]]] = []
+
+    def set(self, name: str, version: int, behaviour: Behaviour) -> None:
+        self.behaviours[(name, version)] = behaviour
+
+    def evaluate(self, task: str, versions: Mapping[str, int], seeds: Sequence[int]) -> list[EpisodeOutcome]:
+        """One outcome per seed from the pinned version's behaviour.
+
+        Raises:
+            Invalid: not exactly one pinned version, or no behaviour for it.
+        """
+        if len(versions) != 1:
+            raise Invalid(f"FakeEvaluator pins exactly one ECM, got {dict(versions)}", details={"field": "versions"})
+        ((name, version),) = versions.items()
+        behaviour = self.behaviours.get((name, version))
+        if behaviour is None:
+            raise Invalid(f"FakeEvaluator has no behaviour for {name} v{version}", details={"field": "versions"})
+        self.calls.append((task, dict(versions), tuple(seeds)))
+        out = []
+        for s in seeds:
+            success, reward, steps = behaviour(int(s))
+            out.append(
+                EpisodeOutcome(
+                    seed=int(s),
+                    success=bool(success),
+                    reward=float(reward),
+                    steps=int(steps),
+                    duration_s=float(steps) * 0.01,
+                    interventions=0,
+                    unsafe_steps=0,
+                    ecm_failures=0,
+                    capability_set=dict(versions),
+                )
+            )
+        return out
+
+
+# --- the gate ---------------------------------------------------------------------------
+
+
+def check_gate_seeds(seeds: Sequence[int], *, min_n: int, plan: SeedPlan | None = None) -> list[int]:
+    """``seeds`` as a list of distinct non-negative ints, at least ``min_n`` of them.
+
+    Raises:
+        Invalid: not a sequence of ints, a repeat (it would count one instance twice), fewer
+            than ``min_n``, or (with ``plan``) a seed outside the plan's gate range.
+    """
+    if isinstance(seeds, (str, bytes)) or not isinstance(seeds, Sequence):
+        raise Invalid(f"seeds must be a list of integers, got {type(seeds).__name__}", details={"field": "seeds"})
+    out: list[int] = []
+    for s in seeds:
+        if isinstance(s, bool) or not isinstance(s, int) or s < 0:
+            raise Invalid(f"seeds must be non-negative integers, got {s!r}", details={"field": "seeds"})
+        out.append(int(s))
+    if len(set(out)) != len(out):
+        dup = sorted({s for s in out if out.count(s) > 1})[:5]
+        raise Invalid(f"gate seeds must be distinct; repeated: {dup}", details={"field": "seeds", "repeated": dup})
+    if len(out) < min_n:
+        raise Invalid(f"the gate needs at least min_n={min_n} seeds, got {len(out)}", details={"field": "seeds"})
+    if plan is not None:
+        gate = plan.range("gate")
+        outside = [s for s in out if s not in gate][:5]
+        if outside:
+            raise Invalid(
+                f"gate seeds must be held out (in {gate.start}..{gate.stop - 1} of seed plan {plan.base_seed}); "
+                f"not held out: {outside}",
+                details={"field": "seeds", "outside": outside},
+            )
+    return out
+
+
+def _ran_versions(outcomes: Sequence[EpisodeOutcome], which: str) -> dict[str, int]:
+    maps = {tuple(sorted(o.capability_set.items())) for o in outcomes}
+    if len(maps) > 1:
+        raise Conflict(
+            f"the {which} evaluation ran with more than one capability set: {sorted(maps)[:3]}",
+            details={"which": which},
+        )
+    return dict(next(iter(maps))) if maps else {}
+
+
+def _compact(outcomes: Sequence[EpisodeOutcome], seeds: Sequence[int]) -> dict[str, list[Any]]:
+    by = {o.seed: o for o in outcomes}
+    return {
+        "success": [int(by[s].success) for s in seeds],
+        "reward": [round(by[s].reward, 6) for s in seeds],
+        "steps": [by[s].steps for s in seeds],
+        "duration_s": [round(by[s].duration_s, 4) for s in seeds],
+        "unsafe_steps": [by[s].unsafe_steps for s in seeds],
+        "ecm_failures": [by[s].ecm_failures for s in seeds],
+    }
+
+
+def _traces(outcomes: Sequence[EpisodeOutcome]) -> list[str]:
+    return sorted({o.trace_path for o in outcomes if o.trace_path})
+
+
+class Gate:
+    """Evaluates a candidate against the active version and promotes or rejects it.
+
+    Args:
+        registry: Where versions live; gate evidence, promotion and rejection go here.
+        evaluator: Runs seeded episodes (local, or a remote worker over Zenoh).
+        config: The decision thresholds.
+        actor: Audit actor of the gate's mutations.
+        seed_plan: If given, :meth:`run` refuses seeds outside its held-out gate range.
+        reuse_evaluations: Remember outcomes per (task, seeds, versions actually run) and
+            reuse them when the same versions meet the same seeds again (e.g. one active
+            version against several candidates). Sound only for an evaluator where equal
+            seeds and versions give equal outcomes (:class:`LocalEvaluator` guarantees it).
+        progress: Called as ``progress(stage, message)``.
+
+    Raises:
+        Invalid: ``evaluator`` lacks ``evaluate`` or ``config`` is not a :class:`GateConfig`.
+    """
+
+    def __init__(
+        self,
+        registry: GateRegistry,
+        evaluator: Evaluator,
+        config: GateConfig | None = None,
+        *,
+        actor: str = "gate",
+        seed_plan: SeedPlan | None = None,
+        reuse_evaluations: bool = False,
+        progress: GateProgress | None = None,
+    ) -> None:
+        if not isinstance(evaluator, Evaluator):
+            raise Invalid(f"evaluator must have evaluate(task, versions, seeds), got {type(evaluator).__name__}")
+        if config is not None and not isinstance(config, GateConfig):
+            raise Invalid(f"config must be a GateConfig, got {type(config).__name__}", details={"field": "config"})
+        self.registry = registry
+        self.evaluator = evaluator
+        self.config = config if config is not None else GateConfig()
+        self.actor = actor
+        self.seed_plan = seed_plan
+        self.reuse_evaluations = reuse_evaluations
+        self.progress = progress
+        self._memo: dict[tuple[str, tuple[int, ...]], list[tuple[dict[str, int], list[EpisodeOutcome]]]] = {}
+
+    def _say(self, stage: str, message: str) -> None:
+        log.info("gate %s: %s", stage, message)
+        if self.progress is not None:
+            self.progress(stage, message)
+
+    def _evaluate(self, task: str, name: str, version: int, seeds: list[int]) -> list[EpisodeOutcome]:
+        key = (task, tuple(sorted(seeds)))
+        if self.reuse_evaluations:
+            wanted = {**self.registry.capability_set().active, name: version}
+            for ran, outcomes in self._memo.get(key, []):
+                if ran.get(name) == version and all(wanted.get(k) == v for k, v in ran.items()):
+                    return outcomes
+        outcomes = list(self.evaluator.evaluate(task, {name: version}, seeds))
+        got = [o.seed for o in outcomes]
+        if sorted(got) != sorted(seeds):
+            raise Invalid(
+                f"the evaluator returned outcomes for seeds {got[:5]}..., asked for {seeds[:5]}...",
+                details={"field": "outcomes"},
+            )
+        ran = _ran_versions(outcomes, f"{name} v{version}")
+        if ran.get(name, version) != version:
+            raise Conflict(f"asked to evaluate {name} v{version}, the evaluator ran v{ran[name]}")
+        if self.reuse_evaluations:
+            self._memo.setdefault(key, []).append(({**ran, name: version}, outcomes))
+        return outcomes
+
+    def run(self, name: str, candidate_version: int, *, task: str, seeds: Sequence[int]) -> GateDecision:
+        """Gate ``candidate_version`` of ``name`` on ``task`` with the held-out ``seeds``.
+
+        Returns:
+            The decision, with the candidate's record after promotion or rejection.
+
+        Raises:
+            Invalid: bad seeds (see :func:`check_gate_seeds`), or evaluator outcomes that do not
+                match the seeds.
+            NotFound: no such ECM or version.
+            IllegalTransition: the version is not a candidate.
+            Conflict: the active version changed while gating (the evidence stays recorded,
+                the candidate stays a candidate), or the two evaluations ran different
+                versions of the other ECMs (nothing recorded).
+            CapevoError: whatever the evaluator raised (nothing recorded).
+        """
+        cfg = self.config
+        seed_list = check_gate_seeds(seeds, min_n=cfg.min_n, plan=self.seed_plan)
+        record = self.registry.get_version(name, candidate_version)
+        if record.state is not State.CANDIDATE:
+            raise IllegalTransition(
+                f"{name} v{candidate_version} is {record.state.value}; only a candidate can be gated",
+                details={"name": name, "version": candidate_version, "state": record.state.value},
+            )
+        try:
+            active_version: int | None = self.registry.get_version(name).version
+        except NotFound:
+            active_version = None
+
+        act_out: list[EpisodeOutcome] | None = None
+        ran_active: dict[str, int] = {}
+        if active_version is not None:
+            self._say("evaluate-active", f"{name} v{active_version} on {len(seed_list)} seeds")
+            act_out = self._evaluate(task, name, active_version, seed_list)
+            ran_active = _ran_versions(act_out, "active")
+        self._say("evaluate-candidate", f"{name} v{candidate_version} on {len(seed_list)} seeds")
+        cand_out = self._evaluate(task, name, candidate_version, seed_list)
+        ran_cand = _ran_versions(cand_out, "candidate")
+        if act_out is not None:
+            others = sorted(
+                k for k in set(ran_active) | set(ran_cand) if k != name and ran_active.get(k) != ran_cand.get(k)
+            )
+            if others:
+                raise Conflict(
+                    f"the active and candidate evaluations ran different versions of {', '.join(others)} "
+                    f"({ran_active} vs {ran_cand}); the pairing is broken, nothing was recorded",
+                    details={"name": name, "differ": others},
+                )
+
+        ordered = sorted(seed_list)
+        paired: PairedStats | None = None
+        if act_out is not None:
+            paired = paired_stats(act_out, cand_out, alpha=cfg.alpha, margin=cfg.delta, speed_metric=cfg.speed_metric)
+            promote, checks = decide_paired(paired, cfg)
+            cand_stats = paired.candidate
+        else:
+            cand_stats = side_stats(cand_out, alpha=cfg.alpha, speed_metric=cfg.speed_metric)
+            promote, checks = decide_absolute(cand_stats, cfg)
+        reason = _summary(name, candidate_version, active_version, promote, checks, cand_stats, paired)
+        self._say("decided", reason)
+
+        evidence: dict[str, Any] = {
+            "schema": EVIDENCE_SCHEMA,
+            "task": task,
+            "name": name,
+            "candidate_version": candidate_version,
+            "active_version": active_version,
+            "mode": "paired" if paired is not None else "absolute",
+            "decision": "promote" if promote else "reject",
+            "n": len(ordered),
+            "seeds": ordered,
+            "config": cfg.to_dict(),
+            "seed_plan": self.seed_plan.to_dict() if self.seed_plan is not None else None,
+            "checks": [c.to_dict() for c in checks],
+            "candidate": cand_stats.to_dict(),
+            "active": paired.active.to_dict() if paired is not None else None,
+            "paired": paired.to_dict() if paired is not None else None,
+            "outcomes": {
+                "candidate": _compact(cand_out, ordered),
+                "active": _compact(act_out, ordered) if act_out is not None else None,
+            },
+            "capability_set": {"candidate": ran_cand, "active": ran_active or None},
+            "traces": _traces([*cand_out, *(act_out or [])]),
+            "decided_at": time.time(),
+        }
+        self.registry.record_gate(name, candidate_version, evidence, reason=reason, actor=self.actor)
+        self._say("recorded", f"gate evidence on {name} v{candidate_version}")
+        if promote:
+            after = self.registry.promote(
+                name, candidate_version, expected_active=active_version, reason=reason, actor=self.actor
+            )
+            self._say("promoted", f"{name} v{candidate_version}")
+        else:
+            after = self.registry.reject(name, candidate_version, reason=reason, actor=self.actor)
+            self._say("rejected", f"{name} v{candidate_version}")
+        return GateDecision(
+            name=name,
+            task=task,
+            candidate_version=candidate_version,
+            active_version=active_version,
+            promoted=promote,
+            reason=reason,
+            n=len(ordered),
+            seeds=tuple(ordered),
+            checks=checks,
+            candidate=cand_stats,
+            paired=paired,
+            evidence=evidence,
+            record=after,
+        )
+
+
+def _summary(
+    name: str,
+    version: int,
+    active: int | None,
+    promote: bool,
+    checks: Sequence[Check],
+    cand: SideStats,
+    paired: PairedStats | None,
+) -> str:
+    verdict = "promote" if promote else "reject"
+    head = f"gate: {verdict} {name} v{version}"
+    if paired is None:
+        body = f"first version: success {cand.successes}/{cand.n} {cand.success}"
+    else:
+        act = paired.active
+        body = (
+            f"vs v{active} on N={paired.n}: success {cand.successes}/{cand.n} {cand.success} vs "
+            f"{act.successes}/{act.n} {act.success}; diff {paired.success_difference}; "
+            f"McNemar p={_p(paired.p_success)}, non-inferiority(δ) p={_p(paired.p_noninferiority)}; "
+            f"reward {cand.mean_reward:.2f} vs {act.mean_reward:.2f} Wilcoxon p={_p(paired.p_reward)}; "
+            + (
+                f"speed x{paired.speed_ratio:.2f} on {paired.speed_pairs} common successes"
+                if paired.speed_ratio is not None
+                else "speed not comparable"
+            )
+        )
+    marks = " ".join(f"{c.name}={'ok' if c.passed else 'FAIL'}" for c in checks)
+    return f"{head} ({body}; checks: {marks})"
+
+
+__all__ = [
+    "EVIDENCE_SCHEMA",
+    "PURPOSES",
+    "Behaviour",
+    "Check",
+    "FakeEvaluator",
+    "Gate",
+    "GateConfig",
+    "GateDecision",
+    "GateProgress",
+    "GateRegistry",
+    "SeedPlan",
+    "check_gate_seeds",
+    "decide_absolute",
+    "decide_paired",
+]

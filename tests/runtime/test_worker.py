@@ -1,0 +1,224 @@
+"""The runtime worker as a real process against a real registry server process over Zenoh.
+
+Loopback TCP, multicast scouting off (the registry's and the worker's Zenoh configs keep it
+off). Covers the worker's invariants: swaps only between episodes (1), one reply per evaluate
+query, even for garbage (2), the adoption key naming the running versions (3), episodes go on
+without the registry (4), one capability set per trace file (5).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import zenoh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from runtime_support import LIFT, Proc, free_tcp_port, publish, publish_pick, start_registry, start_worker
+
+from capevo.errors import Invalid, Unavailable, error_from_payload
+from capevo.registry.client import Client
+from capevo.registry.zconfig import client_config
+from capevo.runtime.evaluation import Evaluator
+from capevo.runtime.tasks import task_ids, task_names
+from capevo.runtime.traces import TraceReader
+from capevo.runtime.worker import Adoption, RemoteEvaluator, RuntimeKeys, list_workers
+
+pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
+
+WORKER_ID = "w-test"
+KEYS = RuntimeKeys("capevo")
+SLOW_LIFT = LIFT.replace('"speed": 1.0', '"speed": 0.5')
+VALID_TASKS = {*task_names(), *task_ids()}
+
+
+@dataclass
+class Running:
+    endpoint: str
+    registry: Proc
+    worker: Proc
+    root: Path
+
+
+def is_episode(line: dict) -> bool:
+    return line.get("event") == "episode"
+
+
+@pytest.fixture(scope="module")
+def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
+    root = tmp_path_factory.mktemp("worker")
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    registry = start_registry(root / "registry", port)
+    with Client([endpoint], actor="tester") as client:
+        publish_pick(client)
+    worker = start_worker(
+        endpoint,
+        task="T1",
+        log_path=root / "worker.log",
+        extra=[
+            "--worker-id",
+            WORKER_ID,
+            "--horizon",
+            "30",
+            "--trace-dir",
+            str(root / "traces"),
+            "--cache-dir",
+            str(root / "cache"),
+        ],
+    )
+    try:
+        yield Running(endpoint=endpoint, registry=registry, worker=worker, root=root)
+    finally:
+        assert worker.terminate() == 0, worker.log()[-3000:]
+        registry.terminate()
+
+
+def adoption(endpoint: str) -> Adoption:
+    (found,) = [a for a in list_workers(endpoint) if a.worker_id == WORKER_ID]
+    return found
+
+
+def test_worker_runs_adopts_swaps_and_evaluates(running: Running) -> None:
+    worker, endpoint = running.worker, running.endpoint
+    ready = worker.lines[0]
+    assert ready["event"] == "ready" and ready["task"] == "pick"
+    assert ready["keys"]["adopted"] == f"capevo/runtime/{WORKER_ID}/adopted"
+    first = worker.read_until(is_episode, 60)
+    assert first["versions"] == {"pick.reach": 0, "pick.grasp": 0, "pick.lift": 0}
+
+    # adoption key and liveliness token
+    with Client([endpoint]) as client:
+        revision = client.capability_set().revision
+    adopted = adoption(endpoint)
+    assert adopted.task == "pick" and adopted.revision == revision
+    assert dict(adopted.versions) == first["versions"] and adopted.registry_connected
+    with zenoh.open(client_config(connect=[endpoint])) as session:
+        alive = [str(r.ok.key_expr) for r in session.liveliness().get(KEYS.alive_all(), timeout=3) if r.ok]
+    assert KEYS.alive(WORKER_ID) in alive
+
+    # promote -> hot swap at the next episode boundary
+    with Client([endpoint], actor="tester") as client:
+        new = publish(client, "pick.lift", SLOW_LIFT)
+    swap = worker.read_until(lambda x: x.get("event") == "swap", 30)
+    assert (swap["name"], swap["from_version"], swap["to_version"], swap["applied"]) == (
+        "pick.lift",
+        0,
+        new.version,
+        True,
+    )
+    after = worker.read_until(lambda x: is_episode(x) and x["versions"]["pick.lift"] == new.version, 30)
+    assert after["revision"] >= revision + 1
+    assert adoption(endpoint).versions["pick.lift"] == new.version
+
+    # evaluation through the shared task key, with a pinned version
+    with RemoteEvaluator(endpoint, timeout=120) as evaluator:
+        assert isinstance(evaluator, Evaluator)
+        outcomes = evaluator.evaluate("T1", {"pick.lift": 0}, [4, 2])
+    assert [o.seed for o in outcomes] == [4, 2]
+    assert all(o.capability_set["pick.lift"] == 0 and 0 < o.steps <= 30 for o in outcomes)
+    trace = outcomes[0].trace_path
+    assert trace is not None and Path(trace).parent == running.root / "traces" / "evaluations"
+    with TraceReader(trace) as reader:
+        assert [s.seed for s in reader.episode_summaries()] == [4, 2]
+    evaluated = worker.read_until(lambda x: x.get("event") == "evaluated", 10)
+    assert evaluated["seeds"] == 2
+
+    # a worker refuses another task's evaluation, with the worker's error class and code
+    with RemoteEvaluator(endpoint, worker_id=WORKER_ID, timeout=30) as evaluator, pytest.raises(Invalid) as err:
+        evaluator.evaluate("T2", {}, [0])
+    assert err.value.message == f"runtime worker {WORKER_ID} runs task 'pick', not 'place'"
+
+    # rollback -> swap back
+    with Client([endpoint], actor="tester") as client:
+        client.rollback("pick.lift", reason="test")
+    worker.read_until(lambda x: x.get("event") == "swap" and x["to_version"] == 0, 30)
+    worker.read_until(lambda x: is_episode(x) and x["versions"]["pick.lift"] == 0, 30)
+
+    # every trace file holds one capability set
+    files = sorted((running.root / "traces").glob(f"{WORKER_ID}-*.mcap"))
+    assert len(files) >= 2
+    for path in files[:-1]:  # the last one is still being written
+        with TraceReader(path) as reader:
+            sets = {tuple(sorted(s.capability_set.items())) for s in reader.episode_summaries()}
+            assert len(sets) == 1
+            assert dict(next(iter(sets))) == dict(reader.metadata().capability_set.active)
+
+
+def test_no_worker_for_a_task_is_unavailable(running: Running) -> None:
+    with RemoteEvaluator(running.endpoint, timeout=5) as evaluator, pytest.raises(Unavailable) as err:
+        evaluator.evaluate("T2", {}, [0])
+    assert err.value.code.value == "unavailable"
+    assert "no runtime worker of task 'place' answered" in err.value.message
+
+
+payloads = st.one_of(
+    st.binary(max_size=300),
+    st.dictionaries(
+        st.sampled_from(["task", "versions", "seeds", "extra"]),
+        st.one_of(st.integers(), st.text(max_size=10), st.lists(st.integers(min_value=-3, max_value=3), max_size=3)),
+    )
+    .filter(lambda d: d.get("task") not in VALID_TASKS)
+    .map(lambda d: json.dumps(d).encode()),
+)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(payload=payloads)
+def test_garbage_evaluate_requests_get_one_error_reply(running: Running, payload: bytes) -> None:
+    session = _session(running.endpoint)
+    replies = list(session.get(KEYS.evaluate(WORKER_ID), payload=payload, timeout=20))
+    assert len(replies) == 1
+    (reply,) = replies
+    assert reply.ok is None and reply.err is not None
+    err = error_from_payload(reply.err.payload.to_bytes())
+    assert err.code.value in ("invalid", "too_large", "not_found"), err
+
+
+_SESSIONS: dict[str, zenoh.Session] = {}
+
+
+def _session(endpoint: str) -> zenoh.Session:
+    if endpoint not in _SESSIONS:
+        _SESSIONS[endpoint] = zenoh.open(client_config(connect=[endpoint]))
+    return _SESSIONS[endpoint]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _close_sessions() -> Iterator[None]:
+    yield
+    for s in _SESSIONS.values():
+        s.close()
+    _SESSIONS.clear()
+
+
+def test_worker_survives_a_registry_restart_and_catches_up(tmp_path: Path) -> None:
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    registry = start_registry(tmp_path / "registry", port)
+    with Client([endpoint], actor="tester") as client:
+        publish_pick(client)
+    worker = start_worker(
+        endpoint, task="T1", log_path=tmp_path / "worker.log", extra=["--horizon", "20", "--worker-id", "w-restart"]
+    )
+    try:
+        worker.read_until(is_episode, 60)
+        registry.kill()  # SIGKILL: no goodbye
+        worker.read_until(lambda x: x.get("event") == "registry" and x["connected"] is False, 30)
+        away = worker.read_until(lambda x: is_episode(x) and not x["registry_connected"], 30)
+        assert away["versions"] == {"pick.reach": 0, "pick.grasp": 0, "pick.lift": 0}
+        registry = start_registry(tmp_path / "registry", port)
+        worker.read_until(lambda x: x.get("event") == "registry" and x["connected"] is True, 60)
+        with Client([endpoint], actor="tester") as client:
+            new = publish(client, "pick.lift", SLOW_LIFT)  # made after the restart
+        swap = worker.read_until(lambda x: x.get("event") == "swap" and x.get("applied"), 30)
+        assert (swap["name"], swap["to_version"]) == ("pick.lift", new.version)
+        worker.read_until(lambda x: is_episode(x) and x["versions"]["pick.lift"] == new.version, 30)
+    finally:
+        code = worker.terminate()
+        registry.terminate()
+    assert code == 0, worker.log()[-3000:]
+    assert worker.read_until(lambda x: x.get("event") == "stopped", 1)["episodes"] >= 3
