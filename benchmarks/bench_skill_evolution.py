@@ -31,6 +31,7 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -44,21 +45,19 @@ from capevo.agent.policy import DecompositionPolicy
 from capevo.learner.base import request_for, score_outcomes
 from capevo.learner.experience import episode_ends, failed_step_counts, pick_ecm_to_update
 from capevo.learner.scratch import ScratchRegistryEvaluator
-from capevo.learner.search import CemEvent, CemSearch
+from capevo.learner.search import CemConfig, CemEvent, CemSearch, cem_preset
 from capevo.learner.skills import seed_registry
 from capevo.registry.local import LocalRegistry
 from capevo.runtime.ecm.code import read_params
 from capevo.runtime.evaluator import LocalEvaluator
+from capevo.runtime.gate import Gate, GateConfig
 from capevo.runtime.tasks import Perturbations, task_spec
 
 log = logging.getLogger("bench_skill_evolution")
 
 PRESETS: dict[str, dict[str, Any]] = {
     "cpu-small": {
-        "population": 8,
-        "elite_frac": 0.25,
-        "iterations": 3,
-        "episodes_per_candidate": 3,
+        **cem_preset("cpu-small").to_dict(),
         "experience_episodes": 8,
         "gate_episodes": 10,
         "test_episodes": 30,
@@ -66,10 +65,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "horizon": None,
     },
     "tiny": {
-        "population": 3,
-        "elite_frac": 0.34,
-        "iterations": 1,
-        "episodes_per_candidate": 1,
+        **cem_preset("tiny").to_dict(),
         "experience_episodes": 2,
         "gate_episodes": 2,
         "test_episodes": 3,
@@ -78,6 +74,27 @@ PRESETS: dict[str, dict[str, Any]] = {
     },
 }
 TRAIN_BASE, TEST_BASE, GATE_BASE = 0, 10_000, 20_000
+
+
+class _Memo:
+    """An evaluator that answers repeated (versions, seeds) requests from memory.
+
+    The gate re-runs the active and candidate sets the benchmark already ran on the gate seeds;
+    the LocalEvaluator is deterministic per seed and versions, so the memo changes nothing.
+    """
+
+    def __init__(self, inner: LocalEvaluator, registry: LocalRegistry) -> None:
+        self.inner = inner
+        self.registry = registry
+        self.memo: dict[tuple[str, tuple[tuple[str, int], ...], tuple[int, ...]], list[Any]] = {}
+
+    def evaluate(self, task: str, versions: Mapping[str, int], seeds: Sequence[int]) -> list[Any]:
+        names = task_spec(task).ecm_names
+        resolved = {**self.registry.capability_set().active, **versions}
+        key = (task, tuple(sorted((n, resolved[n]) for n in names)), tuple(seeds))
+        if key not in self.memo:
+            self.memo[key] = self.inner.evaluate(task, versions, seeds)
+        return self.memo[key]
 
 
 def rate(outcomes: list[Any]) -> float:
@@ -101,6 +118,10 @@ def evolve_task(task: str, cfg: dict[str, Any], work: Path, *, seed: int) -> dic
         lambda reg: LocalEvaluator(reg, trace_dir=scratch_traces, **common),
         root=work / task / "scratch",
     )
+    gate_eval = _Memo(evaluator, registry)
+    stats_gate = None
+    if cfg["gate"] == "stats":
+        stats_gate = Gate(registry, gate_eval, GateConfig.cpu_small(), actor="bench-gate")
     test_seeds = list(range(TEST_BASE, TEST_BASE + cfg["test_episodes"]))
     gate_seeds = list(range(GATE_BASE, GATE_BASE + cfg["gate_episodes"]))
     next_train = TRAIN_BASE
@@ -117,7 +138,6 @@ def evolve_task(task: str, cfg: dict[str, Any], work: Path, *, seed: int) -> dic
     print(f"[{task}] v0: {sum(o.success for o in v0)}/{len(v0)} on test seeds ({v0_wall:.0f} s)", flush=True)
     rounds: list[dict[str, Any]] = []
     learn_episodes = 0
-    active_gate: list[Any] | None = None
     for r in range(cfg["max_rounds"]):
         t_round = time.perf_counter()
         experience = evaluator.evaluate(task, {}, take(cfg["experience_episodes"]))
@@ -139,31 +159,35 @@ def evolve_task(task: str, cfg: dict[str, Any], work: Path, *, seed: int) -> dic
                 flush=True,
             )
 
-        search = CemSearch(
-            scratch,
+        cem = CemConfig(
             population=cfg["population"],
             elite_frac=cfg["elite_frac"],
             iterations=cfg["iterations"],
             episodes_per_candidate=cfg["episodes_per_candidate"],
+            sigma_init=cfg["sigma_init"],
+            smoothing=cfg["smoothing"],
             seed=seed + r,
-            progress=show,
         )
+        search = CemSearch.from_config(scratch, cem, progress=show)
         candidate = search.learn(request)
         learn_episodes += int(candidate.notes["episodes_run"])
         published = candidate.publish(registry)
-        if active_gate is None:
-            active_gate = evaluator.evaluate(task, {}, gate_seeds)
-        cand_gate = evaluator.evaluate(task, {ecm: published.version}, gate_seeds)
+        active_gate = gate_eval.evaluate(task, {ecm: request.parent.version}, gate_seeds)
+        cand_gate = gate_eval.evaluate(task, {ecm: published.version}, gate_seeds)
         a_score = score_outcomes(active_gate, decomposition)
         c_score = score_outcomes(cand_gate, decomposition)
-        promote = c_score.key()[:2] > a_score.key()[:2]
-        evidence = {"active": a_score.to_dict(), "candidate": c_score.to_dict(), "seeds": gate_seeds}
-        registry.record_gate(ecm, published.version, evidence, reason="bench gate")
-        if promote:
-            registry.promote(ecm, published.version, reason="gate: better on gate seeds")
-            active_gate = cand_gate  # the candidate set is the active set now, same seeds
+        if stats_gate is not None:
+            # the runtime's statistical gate, on the same seeds (it reuses the runs above)
+            decision = stats_gate.run(ecm, published.version, task=task, seeds=gate_seeds)
+            promote = decision.promoted
         else:
-            registry.reject(ecm, published.version, reason="gate: not better on gate seeds")
+            promote = c_score.key()[:2] > a_score.key()[:2]
+            evidence = {"active": a_score.to_dict(), "candidate": c_score.to_dict(), "seeds": gate_seeds}
+            registry.record_gate(ecm, published.version, evidence, reason="bench gate")
+            if promote:
+                registry.promote(ecm, published.version, reason="gate: better on gate seeds")
+            else:
+                registry.reject(ecm, published.version, reason="gate: not better on gate seeds")
         entry = {
             "round": r,
             "experience_success": rate(experience),
@@ -222,6 +246,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-rounds", type=int, default=None)
     parser.add_argument("--horizon", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--gate",
+        choices=["simple", "stats"],
+        default="simple",
+        help="simple: promote when (success rate, progress) is strictly better on the gate seeds; "
+        "stats: the runtime's statistical Gate with GateConfig.cpu_small()",
+    )
     parser.add_argument("--work", type=Path, default=None, help="keep registries and traces here")
     parser.add_argument("--name", default="skill_evolution", help="results file name")
     args = parser.parse_args(argv)
@@ -230,6 +261,7 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
     cfg = dict(PRESETS[args.preset])
+    cfg["gate"] = args.gate
     for key in list(cfg):
         value = getattr(args, key, None)
         if value is not None:

@@ -175,6 +175,9 @@ def serve_cmd(
     logging.basicConfig(
         level=log_level.upper(), stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
+    if log_level.upper() != "DEBUG":
+        # robosuite repeats its controller-config warnings on every reset.
+        logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
     config = WorkerConfig(
         connect=split_endpoints(connect),
         task=task,

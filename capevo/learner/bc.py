@@ -33,12 +33,13 @@ Invariants:
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
 import time
 import uuid
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -100,7 +101,9 @@ class BcConfig:
         if self.loss not in LOSSES:
             raise Invalid(f"unknown loss {self.loss!r}; valid: {', '.join(LOSSES)}", details={"field": "loss"})
         if not self.net_arch or any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in self.net_arch):
-            raise Invalid(f"net_arch must be positive layer sizes, got {self.net_arch!r}", details={"field": "net_arch"})
+            raise Invalid(
+                f"net_arch must be positive layer sizes, got {self.net_arch!r}", details={"field": "net_arch"}
+            )
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise Invalid(f"seed must be a non-negative integer, got {self.seed!r}", details={"field": "seed"})
 
@@ -142,9 +145,7 @@ class Demos:
 
     @classmethod
     def empty(cls, obs_dim: int, action_dim: int, source: str) -> Demos:
-        return cls(
-            obs=np.zeros((0, obs_dim), np.float32), action=np.zeros((0, action_dim), np.float32), source=source
-        )
+        return cls(obs=np.zeros((0, obs_dim), np.float32), action=np.zeros((0, action_dim), np.float32), source=source)
 
     def merged(self, other: Demos) -> Demos:
         """Both sets of rows (this one first)."""
@@ -234,7 +235,7 @@ def task_trace_files(paths: Sequence[str | os.PathLike[str]], task: str) -> list
         path = Path(p)
         files.extend(sorted(path.glob("*.mcap")) if path.is_dir() else [path])
     out = []
-    for f in files:
+    for f in dict.fromkeys(f.resolve() for f in files):
         try:
             if TraceReader(f, allow_incomplete=True).metadata().task == name:
                 out.append(f)
@@ -382,6 +383,28 @@ def collect_demos(
 
 
 # --- cloning -------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def torch_threads(n: int | None) -> Iterator[None]:
+    """Run the block with torch limited to ``n`` CPU threads (None: leave torch alone).
+
+    Small networks train several times faster on one thread when the cores are shared with a
+    simulator and other processes.
+    """
+    if n is None:
+        yield
+        return
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise Invalid(f"torch threads must be a positive integer, got {n!r}", details={"field": "torch_threads"})
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -578,6 +601,7 @@ class BcLearner:
         only_successful: Keep only successful episodes' demonstrations.
         learner_id: Recorded in provenance; default a unique id.
         progress: Called after each epoch as ``progress(epoch, epochs, loss)``.
+        torch_threads: CPU threads for torch while learning (None: leave as is).
 
     Raises:
         Invalid: bad settings.
@@ -596,8 +620,10 @@ class BcLearner:
         only_successful: bool = True,
         learner_id: str | None = None,
         progress: Callable[[int, int, float], Any] | None = None,
+        torch_threads: int | None = None,
     ) -> None:
         self.config = config or BcConfig()
+        self.torch_threads = torch_threads
         self.env_config = env_config or EcmEnvConfig()
         self.registry = registry
         self.traces = tuple(str(t) for t in traces)
@@ -681,6 +707,10 @@ class BcLearner:
         Raises:
             Invalid: too few demonstrations, or a result that does not load.
         """
+        with torch_threads(self.torch_threads):
+            return self._learn(request, parent_artifact=parent_artifact, demos=demos)
+
+    def _learn(self, request: LearnRequest, *, parent_artifact: bytes | None, demos: Demos | None) -> Candidate:
         from capevo.learner.neural_seed import model_bytes, offline_sac
         from capevo.learner.rl import sac_policy_kwargs, warm_start
 

@@ -102,7 +102,9 @@ class EcmEnvConfig:
             raise Invalid("perturbations must be a Perturbations", details={"field": "perturbations"})
         t = self.prefix_timeout_s
         if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t <= 0:
-            raise Invalid(f"prefix_timeout_s must be a positive number, got {t!r}", details={"field": "prefix_timeout_s"})
+            raise Invalid(
+                f"prefix_timeout_s must be a positive number, got {t!r}", details={"field": "prefix_timeout_s"}
+            )
 
     def to_dict(self) -> dict[str, Any]:
         p = self.perturbations
@@ -425,10 +427,7 @@ class EcmEnv(gym.Env[np.ndarray, np.ndarray]):
         task_success_now = bool(info.get("is_success", False)) and not self._task_success
         self._task_success = self._task_success or bool(info.get("is_success", False))
         descriptor = self.target.descriptor
-        if descriptor.termination.all:
-            done = self._holds(descriptor.termination)
-        else:
-            done = task_success_now
+        done = self._holds(descriptor.termination) if descriptor.termination.all else task_success_now
         if descriptor.applicability.all:
             applicable = self._holds(descriptor.applicability)
             if self._applicable and not applicable:

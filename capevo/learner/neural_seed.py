@@ -118,8 +118,14 @@ def model_bytes(model: Any) -> bytes:
     return buf.getvalue()
 
 
-def offline_sac(interface: Interface, action_dim: int, *, net_arch: Sequence[int] = DEFAULT_NET_ARCH, seed: int = 0,
-                policy_kwargs: dict[str, Any] | None = None) -> Any:
+def offline_sac(
+    interface: Interface,
+    action_dim: int,
+    *,
+    net_arch: Sequence[int] = DEFAULT_NET_ARCH,
+    seed: int = 0,
+    policy_kwargs: dict[str, Any] | None = None,
+) -> Any:
     """A fresh SAC model for ``interface`` without a simulator (for seeding and cloning)."""
     obs, act = ecm_spaces(interface, action_dim)
     return new_sac(SpacesEnv(obs, act), net_arch=net_arch, seed=seed, policy_kwargs=policy_kwargs)

@@ -52,6 +52,7 @@ from capevo.learner.bc import (
     neural_candidate_spec,
     parent_artifact_of,
     task_trace_files,
+    torch_threads,
 )
 from capevo.learner.ecm_env import EcmEnv, EcmEnvConfig, EcmTarget, make_ecm_env, target_for
 from capevo.learner.reward import RewardShaping, ShapedReward
@@ -136,11 +137,15 @@ class SacConfig:
         _check_unit("tau", self.tau)
         if isinstance(self.ent_coef, str):
             if not (self.ent_coef == "auto" or self.ent_coef.startswith("auto_")):
-                raise Invalid(f"ent_coef must be 'auto' or a number, got {self.ent_coef!r}", details={"field": "ent_coef"})
+                raise Invalid(
+                    f"ent_coef must be 'auto' or a number, got {self.ent_coef!r}", details={"field": "ent_coef"}
+                )
         elif isinstance(self.ent_coef, bool) or not isinstance(self.ent_coef, (int, float)) or not self.ent_coef > 0:
             raise Invalid(f"ent_coef must be 'auto' or a positive number, got {self.ent_coef!r}")
         if not self.net_arch or any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in self.net_arch):
-            raise Invalid(f"net_arch must be positive layer sizes, got {self.net_arch!r}", details={"field": "net_arch"})
+            raise Invalid(
+                f"net_arch must be positive layer sizes, got {self.net_arch!r}", details={"field": "net_arch"}
+            )
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -300,7 +305,9 @@ def prefill_replay(
     first_success = rows.is_success & ~np.concatenate([[False], rows.is_success[:-1]])
     added = 0
     for i in np.flatnonzero(ok):
-        reward = float(rows.reward[i]) + shaping.step_bonus(newly_succeeded=bool(first_success[i]), dt=dt, new_retries=0)
+        reward = float(rows.reward[i]) + shaping.step_bonus(
+            newly_succeeded=bool(first_success[i]), dt=dt, new_retries=0
+        )
         model.replay_buffer.add(
             obs[i : i + 1],
             next_obs[i : i + 1],
@@ -345,7 +352,7 @@ class TrainReport:
         }
 
 
-def _episode_callback(stats: dict[str, Any]) -> Any:
+def _episode_callback(stats: dict[str, Any], should_stop: Callable[[], bool] | None) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback
 
     class _Episodes(BaseCallback):
@@ -366,33 +373,39 @@ def _episode_callback(stats: dict[str, Any]) -> Any:
                 stats["successes"] += int(bool(info.get("is_success", False)))
                 stats["returns"].append(self._ret)
                 self._ret = 0.0
-            return True
+            stats["steps"] = self.num_timesteps
+            return not (should_stop is not None and should_stop())
 
     return _Episodes()
 
 
-def train_sac(model: Any, total_steps: int, *, progress_bar: bool = False) -> TrainReport:
-    """Run ``model.learn`` for ``total_steps`` environment steps.
+def train_sac(
+    model: Any, total_steps: int, *, progress_bar: bool = False, should_stop: Callable[[], bool] | None = None
+) -> TrainReport:
+    """Run ``model.learn`` for ``total_steps`` environment steps (fewer if ``should_stop`` says so).
 
     Args:
         model: A SAC model with its environment.
         total_steps: Steps to take.
         progress_bar: Show SB3's (tqdm + rich) progress bar on stderr.
+        should_stop: Polled after every step; True ends training.
 
     Returns:
-        Steps, wall time, finished episodes, successes and their mean return.
+        Steps taken, wall time, finished episodes, successes and their mean return.
     """
     import warnings
 
-    stats: dict[str, Any] = {"episodes": 0, "successes": 0, "returns": []}
+    stats: dict[str, Any] = {"episodes": 0, "successes": 0, "returns": [], "steps": 0}
     started = time.perf_counter()
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*rich is experimental.*")
-        model.learn(total_timesteps=total_steps, callback=_episode_callback(stats), progress_bar=progress_bar)
+        model.learn(
+            total_timesteps=total_steps, callback=_episode_callback(stats, should_stop), progress_bar=progress_bar
+        )
     seconds = time.perf_counter() - started
     returns = stats["returns"]
     return TrainReport(
-        steps=total_steps,
+        steps=int(stats["steps"]),
         seconds=seconds,
         episodes=stats["episodes"],
         successes=stats["successes"],
@@ -419,6 +432,9 @@ class SacLearner:
         learner_id: Recorded in provenance; default a unique id.
         progress_bar: Show SB3's progress bar while training.
         make_env: Builds the training environment (default :func:`make_ecm_env`).
+        should_stop: Polled every step; True ends training early (the caller should then not
+            publish the result).
+        torch_threads: CPU threads for torch while learning (None: leave as is).
 
     Raises:
         Invalid: bad settings.
@@ -439,7 +455,11 @@ class SacLearner:
         learner_id: str | None = None,
         progress_bar: bool = False,
         make_env: Callable[[str, EcmTarget], EcmEnv] | None = None,
+        should_stop: Callable[[], bool] | None = None,
+        torch_threads: int | None = None,
     ) -> None:
+        self.should_stop = should_stop
+        self.torch_threads = torch_threads
         self.config = config or SacConfig()
         self.env_config = env_config or EcmEnvConfig()
         self.shaping = shaping or RewardShaping()
@@ -512,6 +532,10 @@ class SacLearner:
                 result that does not load.
             NotFound: a predecessor of the ECM has no active version.
         """
+        with torch_threads(self.torch_threads):
+            return self._learn(request, parent_artifact)
+
+    def _learn(self, request: LearnRequest, parent_artifact: bytes | None) -> Candidate:
         from capevo.learner.experience import trace_paths
         from capevo.learner.neural_seed import model_bytes
 
@@ -533,7 +557,9 @@ class SacLearner:
                 if paths
                 else 0
             )
-            report = train_sac(model, self.config.total_steps, progress_bar=self.progress_bar)
+            report = train_sac(
+                model, self.config.total_steps, progress_bar=self.progress_bar, should_stop=self.should_stop
+            )
             report = TrainReport(
                 steps=report.steps,
                 seconds=report.seconds,

@@ -49,11 +49,13 @@ from capevo.runtime.ecm.code import read_params, with_params
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "CEM_PRESETS",
     "CemConfig",
     "CemEvent",
     "CemResult",
     "CemSearch",
     "ParamSpace",
+    "cem_preset",
     "param_space",
     "pick_ecm_to_update",
 ]
@@ -154,6 +156,31 @@ class CemConfig:
             "min_iterations": self.min_iterations,
             "smoothing": self.smoothing,
         }
+
+
+CEM_PRESETS: Mapping[str, CemConfig] = {
+    # tests: a couple of rollouts
+    "tiny": CemConfig(population=3, elite_frac=0.34, iterations=1, episodes_per_candidate=1),
+    # 2 CPU cores: 8 x 3 episodes per iteration, at most 3 iterations, stop once the ECM passes
+    "cpu-small": CemConfig(population=8, elite_frac=0.25, iterations=3, episodes_per_candidate=3),
+    # a workstation: wider population, more episodes per estimate
+    "paper": CemConfig(population=16, elite_frac=0.25, iterations=6, episodes_per_candidate=8, min_iterations=2),
+}
+"""Search budgets by name (the task horizon and per-ECM step budget are the evaluator's)."""
+
+
+def cem_preset(name: str) -> CemConfig:
+    """The :data:`CEM_PRESETS` entry ``name``.
+
+    Raises:
+        Invalid: unknown name, listing the valid ones.
+    """
+    try:
+        return CEM_PRESETS[name]
+    except KeyError:
+        raise Invalid(
+            f"unknown CEM preset {name!r}; valid: {', '.join(CEM_PRESETS)}", details={"field": "preset"}
+        ) from None
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -329,6 +356,38 @@ class CemSearch:
         self.origin = Origin(origin)
         self.learner_id = learner_id
         self.progress = progress
+
+    @classmethod
+    def from_config(
+        cls,
+        evaluator: CandidateEvaluator,
+        config: CemConfig,
+        *,
+        origin: Origin = Origin.CLONE,
+        learner_id: str = "cem",
+        progress: Callable[[CemEvent], Any] | None = None,
+    ) -> CemSearch:
+        """A search with ``config`` (e.g. ``cem_preset("cpu-small")``)."""
+        return cls(
+            evaluator,
+            population=config.population,
+            elite_frac=config.elite_frac,
+            iterations=config.iterations,
+            episodes_per_candidate=config.episodes_per_candidate,
+            seed=config.seed,
+            sigma_init=config.sigma_init,
+            sigma_min=config.sigma_min,
+            spread=config.spread,
+            floor=config.floor,
+            keys=config.keys,
+            bounds={name: (lo, hi) for name, lo, hi in config.bounds},
+            stop_when_passed=config.stop_when_passed,
+            min_iterations=config.min_iterations,
+            smoothing=config.smoothing,
+            origin=origin,
+            learner_id=learner_id,
+            progress=progress,
+        )
 
     # --- the search ------------------------------------------------------------------
 

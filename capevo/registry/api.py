@@ -24,8 +24,10 @@ class Registry(Protocol):
     """Versioned ECM registry.
 
     ``version=None`` in reads means the active version. Mutations return the record as it
-    is after the change. Every method raises only :class:`capevo.errors.CapevoError`
-    subclasses.
+    is after the change; ``actor`` names who made it in the audit history (the
+    implementation's default actor when None). Over Zenoh the actor is self-declared:
+    authorisation is by Zenoh user, which access control enforces. Every method raises only
+    :class:`capevo.errors.CapevoError` subclasses.
     """
 
     def list_ecms(self) -> list[EcmSummary]: ...
@@ -40,22 +42,34 @@ class Registry(Protocol):
 
     def capability_set(self, revision: int | None = None) -> CapabilitySet: ...
 
-    def publish(self, name: str, artifact: bytes, spec: PublishSpec) -> EcmVersion: ...
+    def publish(self, name: str, artifact: bytes, spec: PublishSpec, *, actor: str | None = None) -> EcmVersion: ...
 
     def promote(
-        self, name: str, version: int, *, expected_active: int | None = None, reason: str = ""
+        self,
+        name: str,
+        version: int,
+        *,
+        expected_active: int | None = None,
+        reason: str = "",
+        actor: str | None = None,
     ) -> EcmVersion: ...
 
     def rollback(
-        self, name: str, to: int | None = None, *, expected_active: int | None = None, reason: str = ""
+        self,
+        name: str,
+        to: int | None = None,
+        *,
+        expected_active: int | None = None,
+        reason: str = "",
+        actor: str | None = None,
     ) -> EcmVersion: ...
 
-    def deprecate(self, name: str, version: int, *, reason: str = "") -> EcmVersion: ...
+    def deprecate(self, name: str, version: int, *, reason: str = "", actor: str | None = None) -> EcmVersion: ...
 
-    def reject(self, name: str, version: int, *, reason: str = "") -> EcmVersion: ...
+    def reject(self, name: str, version: int, *, reason: str = "", actor: str | None = None) -> EcmVersion: ...
 
     def record_gate(
-        self, name: str, version: int, evidence: Mapping[str, Any], *, reason: str = ""
+        self, name: str, version: int, evidence: Mapping[str, Any], *, reason: str = "", actor: str | None = None
     ) -> EcmVersion: ...
 
     def verify(self) -> VerifyReport: ...

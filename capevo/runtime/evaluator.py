@@ -28,7 +28,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from capevo.errors import Invalid
+from capevo.errors import Invalid, Unavailable
 from capevo.registry.api import Registry
 from capevo.registry.records import CapabilitySet
 from capevo.runtime.artifact_cache import ArtifactStore, MemoryArtifactCache
@@ -126,6 +126,8 @@ class LocalEvaluator:
         worker_id: Recorded in traces.
         env: A prebuilt environment to reuse for its task (the runtime worker shares its own).
         env_kwargs: Extra robosuite arguments for the environments built here.
+        should_stop: Polled between episodes; True abandons the call with :class:`Unavailable`
+            (a worker shutting down).
 
     Raises:
         Invalid: bad ``trace_dir`` or settings.
@@ -151,8 +153,10 @@ class LocalEvaluator:
         worker_id: str = "",
         env: TaskEnv | None = None,
         env_kwargs: Mapping[str, Any] | None = None,
+        should_stop: Callable[[], bool] | None = None,
     ) -> None:
         self.registry = registry
+        self.should_stop = should_stop
         self.policy = policy
         self.phi = phi if phi is not None else Phi.default()
         self.trace_dir = Path(trace_dir) if trace_dir is not None else None
@@ -196,7 +200,7 @@ class LocalEvaluator:
         Raises:
             Invalid: unknown task, bad seeds or versions, versions that do not compose.
             NotFound: an ECM has no active version and none was given.
-            Unavailable, Timeout: the registry cannot be reached while loading.
+            Unavailable, Timeout: the registry cannot be reached while loading (or ``should_stop``).
         """
         seed_list = check_seeds(seeds)
         pinned = check_versions(versions)
@@ -229,6 +233,11 @@ class LocalEvaluator:
             sink_cm = TraceWriter(path, metadata) if path is not None else contextlib.nullcontext(None)
             with sink_cm as sink:
                 for i, seed in enumerate(seed_list):
+                    if self.should_stop is not None and self.should_stop():
+                        raise Unavailable(
+                            f"evaluation of {spec.name} abandoned after {i} of {len(seed_list)} episodes: "
+                            "the runtime is shutting down"
+                        )
                     outcome = run_episode(
                         env,
                         caps,

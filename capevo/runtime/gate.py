@@ -51,9 +51,11 @@ Invariants:
    seed and does not depend on the seeds' order.
 2. Evidence is recorded before the pointer moves: every promotion or rejection made by the
    gate is preceded in the audit history by a ``gate`` event carrying its evidence.
-3. Promotion passes ``expected_active`` = the version the candidate was compared with (None
-   only in absolute mode), so a concurrent promotion makes :meth:`Gate.run` raise
-   :class:`Conflict` instead of silently replacing a version nobody gated against.
+3. Promotion passes ``expected_active`` = the version the candidate was compared with, so a
+   concurrent promotion makes :meth:`Gate.run` raise :class:`Conflict` instead of silently
+   replacing a version nobody gated against. In absolute mode the registry has no way to
+   say "expect none active"; the gate re-reads the pointer just before promoting (a
+   narrower race, not none).
 4. If the versions the two evaluations actually ran differ in anything but the gated ECM,
    nothing is recorded and :class:`Conflict` is raised (the pairing would be broken).
 5. A candidate whose outcomes equal the active version's, seed for seed, is never promoted
@@ -64,6 +66,7 @@ Invariants:
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -562,12 +565,17 @@ def _compact(outcomes: Sequence[EpisodeOutcome], seeds: Sequence[int]) -> dict[s
     by = {o.seed: o for o in outcomes}
     return {
         "success": [int(by[s].success) for s in seeds],
-        "reward": [round(by[s].reward, 6) for s in seeds],
+        "reward": [round(_finite(by[s].reward), 6) for s in seeds],
         "steps": [by[s].steps for s in seeds],
-        "duration_s": [round(by[s].duration_s, 4) for s in seeds],
+        "duration_s": [round(_finite(by[s].duration_s), 4) for s in seeds],
         "unsafe_steps": [by[s].unsafe_steps for s in seeds],
         "ecm_failures": [by[s].ecm_failures for s in seeds],
     }
+
+
+def _finite(x: float) -> float:
+    # The registry refuses NaN/inf in evidence; a remote evaluator's outcome might carry one.
+    return float(x) if math.isfinite(float(x)) else 0.0
 
 
 def _traces(outcomes: Sequence[EpisodeOutcome]) -> list[str]:
@@ -642,6 +650,18 @@ class Gate:
         if self.reuse_evaluations:
             self._memo.setdefault(key, []).append(({**ran, name: version}, outcomes))
         return outcomes
+
+    def _check_still_none_active(self, name: str) -> None:
+        # promote(expected_active=None) checks nothing, and the registry cannot express
+        # "expect no active version"; re-reading narrows (does not close) the race window.
+        try:
+            now = self.registry.get_version(name).version
+        except NotFound:
+            return
+        raise Conflict(
+            f"cannot promote {name}: gated as its first version, but v{now} became active meanwhile",
+            details={"name": name, "expected_active": None, "active": now},
+        )
 
     def run(self, name: str, candidate_version: int, *, task: str, seeds: Sequence[int]) -> GateDecision:
         """Gate ``candidate_version`` of ``name`` on ``task`` with the held-out ``seeds``.
@@ -731,6 +751,8 @@ class Gate:
         self.registry.record_gate(name, candidate_version, evidence, reason=reason, actor=self.actor)
         self._say("recorded", f"gate evidence on {name} v{candidate_version}")
         if promote:
+            if active_version is None:
+                self._check_still_none_active(name)
             after = self.registry.promote(
                 name, candidate_version, expected_active=active_version, reason=reason, actor=self.actor
             )

@@ -532,6 +532,7 @@ class RuntimeWorker:
                 recovery=self.config.recovery,
                 worker_id=self.worker_id,
                 env=env,
+                should_stop=stop.is_set,
             )
             session = self._open_session(stack)
             subscription = client.subscribe_events("*", self._on_registry_event)

@@ -70,7 +70,7 @@ def test_seed_specs_cover_the_decomposition_with_its_descriptors(task: str) -> N
     spec = task_spec(task)
     seeds = seed_specs(task)
     assert [name for name, _, _ in seeds] == list(spec.ecm_names)
-    for (name, _, publish), step in zip(seeds, spec.decomposition, strict=True):
+    for (_, _, publish), step in zip(seeds, spec.decomposition, strict=True):
         assert publish.kind is Kind.CODE
         assert publish.origin is Origin.MANUAL
         assert publish.parent is None

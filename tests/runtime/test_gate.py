@@ -416,3 +416,20 @@ def test_gate_run_gives_the_same_decision_and_evidence_for_shuffled_seeds(tmp_pa
         results.append((d.promoted, d.reason, ev))
         reg.close()
     assert results[0] == results[1] == results[2]
+
+
+def test_a_first_version_loses_to_one_promoted_meanwhile(registry: LocalRegistry) -> None:
+    mine = publish(registry)
+    theirs = publish(registry, text="# promoted by hand meanwhile")
+
+    def behaviour(seed: int) -> tuple[bool, float, int]:
+        if seed == SEEDS[-1]:
+            registry.promote(NAME, theirs, reason="operator")
+        return True, 1.0, 50
+
+    fake = FakeEvaluator({(NAME, mine): behaviour})
+    with pytest.raises(Conflict) as e:
+        Gate(registry, fake, CFG).run(NAME, mine, task="T1", seeds=SEEDS)
+    assert e.value.message == "cannot promote pick.reach: gated as its first version, but v1 became active meanwhile"
+    assert registry.get_version(NAME).version == theirs
+    assert registry.get_version(NAME, mine).state is State.CANDIDATE

@@ -9,6 +9,8 @@ without the registry (4), one capability set per trace file (5).
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -148,6 +150,37 @@ def test_worker_runs_adopts_swaps_and_evaluates(running: Running) -> None:
             assert dict(next(iter(sets))) == dict(reader.metadata().capability_set.active)
 
 
+def cli(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "capevo.cli.runtime", *args], capture_output=True, text=True, timeout=timeout
+    )
+
+
+def test_cli_lists_workers_and_evaluates_through_them(running: Running) -> None:
+    listed = cli("list", "--connect", running.endpoint, "--json")
+    assert listed.returncode == 0, listed.stderr
+    (mine,) = [w for w in json.loads(listed.stdout) if w["worker_id"] == WORKER_ID]
+    assert mine["task"] == "pick" and set(mine["versions"]) == {"pick.reach", "pick.grasp", "pick.lift"}
+    evaluated = cli(
+        "evaluate",
+        "--connect",
+        running.endpoint,
+        "--task",
+        "pick",
+        "--seeds",
+        "7",
+        "--version",
+        "pick.lift=0",
+        "--json",
+    )
+    assert evaluated.returncode == 0, evaluated.stderr
+    (outcome,) = json.loads(evaluated.stdout)
+    assert outcome["seed"] == 7 and outcome["capability_set"]["pick.lift"] == 0
+    refused = cli("evaluate", "--connect", running.endpoint, "--task", "pick", "--version", "pick.lift=99")
+    assert refused.returncode == 4, refused.stderr  # not_found, raised by the worker's registry lookup
+    assert refused.stderr.startswith("error [not_found]: ")
+
+
 def test_no_worker_for_a_task_is_unavailable(running: Running) -> None:
     with RemoteEvaluator(running.endpoint, timeout=5) as evaluator, pytest.raises(Unavailable) as err:
         evaluator.evaluate("T2", {}, [0])
@@ -161,7 +194,7 @@ payloads = st.one_of(
         st.sampled_from(["task", "versions", "seeds", "extra"]),
         st.one_of(st.integers(), st.text(max_size=10), st.lists(st.integers(min_value=-3, max_value=3), max_size=3)),
     )
-    .filter(lambda d: d.get("task") not in VALID_TASKS)
+    .filter(lambda d: not (isinstance(d.get("task"), str) and d["task"] in VALID_TASKS))
     .map(lambda d: json.dumps(d).encode()),
 )
 

@@ -1,0 +1,309 @@
+"""Budgets of one ``capevo evolve`` run, by preset name: ``tiny`` (tests), ``cpu-small`` (the demo),
+``paper``.
+
+=================================  =============  ==============  ================
+setting                            tiny           cpu-small       paper
+=================================  =============  ==============  ================
+iterations (default)               2              3               20
+live episodes per iteration        3              6               20
+episode horizon                    40             task default    task default
+gate: paired held-out seeds N      4              8               30
+gate thresholds                    min_n 4,       GateConfig.     GateConfig.
+                                   δ 0.3          cpu_small()     standard()
+monitor (window / min episodes)    6 / 3          20 / 8          50 / 20
+CEM population / iterations        2 / 1          6 / 2           8 / 3
+CEM episodes per candidate         1              2               4
+neural learner budget              learner        learner         learner
+                                   preset tiny    preset          preset paper
+                                                  cpu-small
+final evaluation (v0 seeds again)  yes            yes             yes
+=================================  =============  ==============  ================
+
+The neural budgets (SAC steps, BC epochs, ...) are :mod:`capevo.learner.presets`' presets of
+the same name; the CEM defaults follow :class:`capevo.learner.search.CemConfig`, shrunk for
+the small presets so a cpu-small T1 iteration costs about 45 episodes.
+
+Invariants:
+1. :func:`make_config` returns the registered preset of that name, or raises :class:`Invalid`
+   listing the valid names.
+2. Every preset's config is valid (its checks pass when it is built).
+3. ``EvolveConfig.from_dict(c.to_dict()) == c``.
+4. :meth:`EvolveConfig.resume_mismatches` ignores ``iterations`` only: a resumed run may be
+   extended or shortened, nothing else may change under it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from capevo.errors import Invalid
+from capevo.runtime.gate import GateConfig
+from capevo.runtime.monitor import MonitorConfig
+
+MODALITIES: tuple[str, ...] = ("code", "rl", "il", "hybrid")
+"""How candidates are learned: CEM over a code skill's parameters, SAC, behaviour cloning, or an
+LLM edit followed by CEM."""
+NEURAL_MODALITIES: frozenset[str] = frozenset({"rl", "il"})
+
+
+def _int(name: str, value: object, *, low: int, high: int = 10**9) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise Invalid(f"{name} must be an integer from {low} to {high}, got {value!r}", details={"field": name})
+    return value
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CemSettings:
+    """The CEM search a ``code`` (or ``hybrid``) update runs (see :class:`capevo.learner.search.CemSearch`).
+
+    Args:
+        population: Candidates per CEM iteration (the first is the parent's θ).
+        elite_frac: Fraction the Gaussian is refitted to.
+        iterations: CEM iterations at most.
+        episodes_per_candidate: Training episodes per candidate.
+        sigma_init: Initial standard deviation, in units of each parameter's scale.
+
+    Raises:
+        Invalid: a value out of range.
+    """
+
+    population: int = 8
+    elite_frac: float = 0.25
+    iterations: int = 3
+    episodes_per_candidate: int = 4
+    sigma_init: float = 1.0
+
+    def __post_init__(self) -> None:
+        _int("cem.population", self.population, low=2, high=10_000)
+        _int("cem.iterations", self.iterations, low=1, high=10_000)
+        _int("cem.episodes_per_candidate", self.episodes_per_candidate, low=1, high=10_000)
+        for name in ("elite_frac", "sigma_init"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= (1.0 if name == "elite_frac" else 100):
+                raise Invalid(f"cem.{name} out of range: {v!r}", details={"field": f"cem.{name}"})
+
+    @property
+    def train_seeds_per_update(self) -> int:
+        """Training seeds one search uses (each CEM iteration takes a fresh slice)."""
+        return self.iterations * self.episodes_per_candidate
+
+    @property
+    def episodes_per_update(self) -> int:
+        """Training episodes one search runs at most."""
+        return self.population * self.train_seeds_per_update
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "population": self.population,
+            "elite_frac": self.elite_frac,
+            "iterations": self.iterations,
+            "episodes_per_candidate": self.episodes_per_candidate,
+            "sigma_init": self.sigma_init,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> CemSettings:
+        return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class EvolveConfig:
+    """Everything fixed about one evolution run.
+
+    Args:
+        preset: The preset this config came from (recorded in the report).
+        iterations: Closed-loop iterations to run.
+        live_episodes: Live (deployment) episodes per iteration: the experience and the metrics.
+        gate_episodes: Paired held-out seeds N per gate decision.
+        horizon: Episode length; None for each task's default.
+        step_budget_per_ecm: Steps one ECM activation may take.
+        gate: The gate's decision thresholds.
+        monitor: The degradation monitor's window and threshold.
+        cem: The CEM search of code/hybrid updates.
+        learner_preset: Name of the neural learners' budget (:mod:`capevo.learner.presets`).
+        final_evaluation: After the last iteration, run the final capability set on the first
+            iteration's live seeds (a paired start-vs-final comparison).
+
+    Raises:
+        Invalid: a value out of range.
+    """
+
+    preset: str
+    iterations: int
+    live_episodes: int
+    gate_episodes: int
+    horizon: int | None = None
+    step_budget_per_ecm: int = 200
+    gate: GateConfig = field(default_factory=GateConfig)
+    monitor: MonitorConfig = field(default_factory=MonitorConfig)
+    cem: CemSettings = field(default_factory=CemSettings)
+    learner_preset: str = "paper"
+    final_evaluation: bool = True
+
+    def __post_init__(self) -> None:
+        _int("iterations", self.iterations, low=0, high=100_000)
+        _int("live_episodes", self.live_episodes, low=1, high=10_000)
+        _int("gate_episodes", self.gate_episodes, low=1, high=10_000)
+        if self.horizon is not None:
+            _int("horizon", self.horizon, low=1, high=1_000_000)
+        _int("step_budget_per_ecm", self.step_budget_per_ecm, low=1, high=1_000_000)
+        if not isinstance(self.gate, GateConfig):
+            raise Invalid("gate must be a GateConfig", details={"field": "gate"})
+        if not isinstance(self.monitor, MonitorConfig):
+            raise Invalid("monitor must be a MonitorConfig", details={"field": "monitor"})
+        if not isinstance(self.cem, CemSettings):
+            raise Invalid("cem must be a CemSettings", details={"field": "cem"})
+        if self.gate_episodes < self.gate.min_n:
+            raise Invalid(
+                f"gate_episodes ({self.gate_episodes}) is below the gate's min_n ({self.gate.min_n}): "
+                "no candidate could ever be promoted",
+                details={"field": "gate_episodes"},
+            )
+        from capevo.learner.presets import preset_names
+
+        if self.learner_preset not in preset_names():
+            raise Invalid(
+                f"unknown learner preset {self.learner_preset!r}; valid: {', '.join(preset_names())}",
+                details={"field": "learner_preset"},
+            )
+
+    def replace(self, **changes: Any) -> EvolveConfig:
+        """A copy with ``changes`` applied (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "preset": self.preset,
+            "iterations": self.iterations,
+            "live_episodes": self.live_episodes,
+            "gate_episodes": self.gate_episodes,
+            "horizon": self.horizon,
+            "step_budget_per_ecm": self.step_budget_per_ecm,
+            "gate": self.gate.to_dict(),
+            "monitor": self.monitor.to_dict(),
+            "cem": self.cem.to_dict(),
+            "learner_preset": self.learner_preset,
+            "final_evaluation": self.final_evaluation,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> EvolveConfig:
+        """Inverse of :meth:`to_dict`.
+
+        Raises:
+            Invalid: a missing or bad field.
+        """
+        try:
+            return cls(
+                preset=str(d["preset"]),
+                iterations=d["iterations"],
+                live_episodes=d["live_episodes"],
+                gate_episodes=d["gate_episodes"],
+                horizon=d.get("horizon"),
+                step_budget_per_ecm=d.get("step_budget_per_ecm", 200),
+                gate=GateConfig.from_dict(d.get("gate") or {}),
+                monitor=MonitorConfig(**dict(d.get("monitor") or {})),
+                cem=CemSettings.from_dict(d.get("cem") or {}),
+                learner_preset=d.get("learner_preset", "paper"),
+                final_evaluation=bool(d.get("final_evaluation", True)),
+            )
+        except (KeyError, TypeError) as exc:
+            raise Invalid(f"bad evolve config: {exc}", details={"field": "config"}) from None
+
+    def resume_mismatches(self, other: EvolveConfig) -> list[str]:
+        """Fields (other than ``iterations``) where ``other`` differs from this config."""
+        mine, theirs = self.to_dict(), other.to_dict()
+        return sorted(k for k in mine if k != "iterations" and mine[k] != theirs.get(k))
+
+
+_PRESETS: dict[str, Callable[[], EvolveConfig]] = {}
+
+
+def register_config(name: str) -> Callable[[Callable[[], EvolveConfig]], Callable[[], EvolveConfig]]:
+    """Decorator: register an :class:`EvolveConfig` factory as preset ``name``."""
+
+    def deco(fn: Callable[[], EvolveConfig]) -> Callable[[], EvolveConfig]:
+        _PRESETS[name] = fn
+        return fn
+
+    return deco
+
+
+def config_names() -> tuple[str, ...]:
+    """Registered preset names."""
+    return tuple(_PRESETS)
+
+
+def make_config(name: str, **overrides: Any) -> EvolveConfig:
+    """The preset called ``name``, with ``overrides`` (``None`` values are ignored).
+
+    Raises:
+        Invalid: unknown name (the message lists the valid ones) or a bad override.
+    """
+    factory = _PRESETS.get(name)
+    if factory is None:
+        raise Invalid(f"unknown preset {name!r}; valid: {', '.join(_PRESETS)}", details={"field": "preset"})
+    config = factory()
+    changes = {k: v for k, v in overrides.items() if v is not None}
+    unknown = sorted(set(changes) - set(EvolveConfig.__dataclass_fields__))
+    if unknown:
+        raise Invalid(f"unknown config field(s) {unknown}", details={"field": unknown[0]})
+    return config.replace(**changes) if changes else config
+
+
+@register_config("tiny")
+def _tiny() -> EvolveConfig:
+    return EvolveConfig(
+        preset="tiny",
+        iterations=2,
+        live_episodes=3,
+        gate_episodes=4,
+        horizon=40,
+        step_budget_per_ecm=40,
+        gate=GateConfig(min_n=4, alpha=0.05, delta=0.3, max_slowdown=None, first_min_success=0.5),
+        monitor=MonitorConfig(window=6, min_episodes=3, margin=0.1),
+        cem=CemSettings(population=2, elite_frac=0.5, iterations=1, episodes_per_candidate=1),
+        learner_preset="tiny",
+    )
+
+
+@register_config("cpu-small")
+def _cpu_small() -> EvolveConfig:
+    return EvolveConfig(
+        preset="cpu-small",
+        iterations=3,
+        live_episodes=6,
+        gate_episodes=8,
+        gate=GateConfig.cpu_small(),
+        monitor=MonitorConfig.cpu_small(),
+        cem=CemSettings(population=6, elite_frac=0.34, iterations=2, episodes_per_candidate=2),
+        learner_preset="cpu-small",
+    )
+
+
+@register_config("paper")
+def _paper() -> EvolveConfig:
+    return EvolveConfig(
+        preset="paper",
+        iterations=20,
+        live_episodes=20,
+        gate_episodes=30,
+        gate=GateConfig.standard(),
+        monitor=MonitorConfig(),
+        cem=CemSettings(),
+        learner_preset="paper",
+    )
+
+
+__all__ = [
+    "MODALITIES",
+    "NEURAL_MODALITIES",
+    "CemSettings",
+    "EvolveConfig",
+    "config_names",
+    "make_config",
+    "register_config",
+]

@@ -1,0 +1,414 @@
+"""Where each iteration's candidate comes from: a learner in this process (one per modality), or
+learner workers that publish candidates to the registry themselves.
+
+Modalities (registered with :func:`register_modality`, built with :func:`make_updater`):
+
+* ``code``: CEM over the chosen code ECM's ``PARAMS`` (:class:`~capevo.learner.search.CemSearch`),
+  candidates run unpublished in a private scratch registry; origin ``clone``.
+* ``hybrid``: an LLM edit (``CAPEVO_LLM_BASE_URL``) then CEM (:class:`~capevo.learner.hybrid.HybridLearner`);
+  without an endpoint it is CEM alone (the note says so).
+* ``rl``: SAC warm-started from the active version (:class:`~capevo.learner.rl.SacLearner`); origin ``rl``.
+* ``il``: behaviour cloning (:class:`~capevo.learner.bc.BcLearner`) from successful traces and,
+  when those are too few, the task's scripted reference; origin ``il``.
+
+:class:`RemoteCandidates` instead waits for a candidate that a learner worker
+(``capevo learner serve``) publishes, and hands it to the gate.
+
+Every learner trains on the run's training seeds only (:meth:`SeedPlan.train`), never on
+gate or live seeds.
+
+Invariants:
+1. :func:`make_updater` raises :class:`Invalid` listing the valid modalities for an unknown one.
+2. A :class:`Proposal` carries either an unpublished ``candidate`` or an already published
+   ``record`` (remote learners), never both.
+3. Neural learners' training episodes use task seeds inside the run's training range.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+from capevo.errors import Invalid
+from capevo.evolve.config import EvolveConfig
+from capevo.evolve.progress import ProgressSink
+from capevo.learner.base import Candidate, LearnRequest
+from capevo.registry.api import Registry
+from capevo.registry.records import EcmVersion, Kind, State
+from capevo.runtime.evaluation import EpisodeOutcome
+from capevo.runtime.gate import SeedPlan
+from capevo.runtime.tasks import Perturbations, task_spec
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class UpdateRequest:
+    """One iteration's update: which ECM, the experience, the seeds the learner may use."""
+
+    task: str
+    ecm: str
+    iteration: int
+    outcomes: tuple[EpisodeOutcome, ...]
+    plan: SeedPlan
+    seed: int
+    """The run's seed; learners seed their samplers with ``seed + iteration``."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Proposal:
+    """What an updater produced."""
+
+    learner: str
+    candidate: Candidate | None = None
+    record: EcmVersion | None = None
+    episodes: int = 0
+    """Training episodes the learner ran."""
+    steps: int = 0
+    """Learner steps: environment steps (SAC), epochs (BC) or candidates evaluated (CEM)."""
+    notes: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if (self.candidate is None) == (self.record is None):
+            raise Invalid("a proposal holds exactly one of candidate and record", details={"field": "candidate"})
+
+
+class Updater(Protocol):
+    """Produces the candidate of one iteration."""
+
+    name: str
+
+    def propose(self, request: UpdateRequest, progress: ProgressSink) -> Proposal | None:
+        """A candidate for ``request.ecm`` (None: nothing to propose this iteration).
+
+        Raises:
+            CapevoError: the learner failed.
+        """
+        ...
+
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class UpdaterContext:
+    """What a local updater is built with."""
+
+    registry: Registry
+    task: str
+    config: EvolveConfig
+    policy: Any
+    """π_A (the persistent agent) for the learner's own evaluation episodes."""
+    agent_identity_hash: str
+    perturbations: Perturbations
+    trace_dir: Path
+    """Where the learner's training episodes write their traces."""
+
+
+UpdaterFactory = Callable[[UpdaterContext], Updater]
+_MODALITIES: dict[str, UpdaterFactory] = {}
+
+
+def register_modality(name: str) -> Callable[[UpdaterFactory], UpdaterFactory]:
+    """Decorator: build the in-process updater of modality ``name`` with ``fn``."""
+
+    def deco(fn: UpdaterFactory) -> UpdaterFactory:
+        _MODALITIES[name] = fn
+        return fn
+
+    return deco
+
+
+def modality_names() -> tuple[str, ...]:
+    return tuple(_MODALITIES)
+
+
+def make_updater(modality: str, context: UpdaterContext) -> Updater:
+    """The in-process updater for ``modality``.
+
+    Raises:
+        Invalid: unknown modality; the message lists the valid ones.
+    """
+    factory = _MODALITIES.get(modality)
+    if factory is None:
+        raise Invalid(
+            f"unknown modality {modality!r}; valid: {', '.join(_MODALITIES)}", details={"field": "modality"}
+        )
+    return factory(context)
+
+
+# --- code: CEM over PARAMS ----------------------------------------------------------------
+
+
+class CemUpdater:
+    """``code`` (and, with an LLM endpoint, ``hybrid``) updates through CEM in a scratch registry."""
+
+    def __init__(self, context: UpdaterContext, *, hybrid: bool = False) -> None:
+        from capevo.learner.scratch import ScratchRegistryEvaluator
+        from capevo.runtime.evaluator import LocalEvaluator
+
+        self.context = context
+        self.hybrid = hybrid
+        self.name = "hybrid" if hybrid else "cem"
+        cfg = context.config
+        context.trace_dir.mkdir(parents=True, exist_ok=True)
+
+        def inner(scratch: Registry) -> Any:
+            return LocalEvaluator(
+                scratch,
+                policy=context.policy,
+                trace_dir=context.trace_dir,
+                perturbations=context.perturbations,
+                horizon=cfg.horizon,
+                step_budget_per_ecm=cfg.step_budget_per_ecm,
+                agent_identity_hash=context.agent_identity_hash,
+                worker_id="evolve-learner",
+            )
+
+        self.scratch = ScratchRegistryEvaluator(context.registry, inner)
+
+    def propose(self, request: UpdateRequest, progress: ProgressSink) -> Proposal | None:
+        from capevo.learner.base import request_for
+        from capevo.learner.search import CemSearch
+
+        cem = self.context.config.cem
+        train = request.plan.train(cem.train_seeds_per_update, offset=request.iteration * cem.train_seeds_per_update)
+        learn_request = request_for(
+            self.context.registry, request.task, request.ecm, train_seeds=train, outcomes=request.outcomes
+        )
+        progress.learner_started(total=cem.episodes_per_update, unit="CEM episodes")
+        episodes = 0
+
+        def on_event(event: Any) -> None:
+            nonlocal episodes
+            episodes += len(event.seeds)
+            progress.learner_advance(len(event.seeds))
+
+        search = CemSearch(
+            self.scratch,
+            population=cem.population,
+            elite_frac=cem.elite_frac,
+            iterations=cem.iterations,
+            episodes_per_candidate=cem.episodes_per_candidate,
+            sigma_init=cem.sigma_init,
+            seed=request.seed + request.iteration,
+            progress=on_event,
+        )
+        learner: Any = search
+        if self.hybrid:
+            learner = _hybrid(search, self.scratch)
+        candidate: Candidate = learner.learn(learn_request)
+        notes = dict(candidate.notes)
+        return Proposal(
+            learner=str(notes.get("learner") or getattr(learner, "learner_id", self.name)),
+            candidate=candidate,
+            episodes=int(notes.get("episodes_run") or episodes),
+            steps=int(notes.get("episodes_run") or episodes),
+            notes={
+                "params": notes.get("params"),
+                "train_score": candidate.score.to_dict() if candidate.score else None,
+                "train_baseline": candidate.baseline.to_dict() if candidate.baseline else None,
+                **({"fallback": notes["fallback"]} if "fallback" in notes else {}),
+            },
+        )
+
+    def close(self) -> None:
+        self.scratch.close()
+
+
+def _hybrid(search: Any, evaluator: Any) -> Any:
+    from capevo.learner.chat import Chat, ChatConfig
+    from capevo.learner.hybrid import HybridLearner
+    from capevo.learner.synthesis import LlmSynthesis
+
+    config = ChatConfig.from_env()
+    chat = Chat(config) if config is not None else None
+    return HybridLearner(LlmSynthesis(chat, evaluator=evaluator), search)
+
+
+@register_modality("code")
+def _code(context: UpdaterContext) -> Updater:
+    return CemUpdater(context)
+
+
+@register_modality("hybrid")
+def _hybrid_modality(context: UpdaterContext) -> Updater:
+    return CemUpdater(context, hybrid=True)
+
+
+# --- neural: SAC and BC -------------------------------------------------------------------
+
+
+class NeuralUpdater:
+    """``rl`` (SAC warm start) and ``il`` (behaviour cloning) updates of neural ECMs."""
+
+    def __init__(self, context: UpdaterContext, *, modality: str) -> None:
+        from capevo.learner.presets import make_preset
+
+        self.context = context
+        self.modality = modality
+        self.name = "sac" if modality == "rl" else "bc"
+        self.preset = make_preset(context.config.learner_preset)
+
+    def _request(self, request: UpdateRequest) -> LearnRequest:
+        registry = self.context.registry
+        parent = registry.get_version(request.ecm)
+        source = registry.get_artifact(request.ecm, parent.version).decode() if parent.kind is Kind.CODE else ""
+        return LearnRequest(
+            task=task_spec(request.task).name,
+            ecm=request.ecm,
+            parent=parent,
+            source=source,
+            train_seeds=tuple(request.plan.train(1, offset=request.iteration)),
+            outcomes=request.outcomes,
+        )
+
+    def propose(self, request: UpdateRequest, progress: ProgressSink) -> Proposal | None:
+        from capevo.learner.bc import BcLearner
+        from capevo.learner.rl import SacLearner
+
+        seed = request.seed + request.iteration
+        preset = self.preset.with_seed(seed).with_perturbations(self.context.perturbations)
+        train = request.plan.range("train")
+        # Training episodes draw task seeds seed_base + seed + k: keep them in the run's training
+        # range, one disjoint stretch per iteration (SeedPlan blocks are 100 000 seeds).
+        stretch = max(1, len(train) // 1000)
+        env = dataclasses.replace(preset.env, seed_base=train.start, seed=(request.iteration % 1000) * stretch)
+        learn_request = self._request(request)
+        if self.modality == "rl":
+            progress.learner_started(total=preset.sac.total_steps, unit="SAC steps")
+            sac = SacLearner(
+                config=preset.sac,
+                env_config=env,
+                shaping=preset.shaping,
+                registry=self.context.registry,
+                distill=dataclasses.replace(preset.bc, net_arch=preset.sac.net_arch),
+                distill_episodes=preset.distill_episodes,
+            )
+            candidate = sac.learn(learn_request)
+            progress.learner_advance(preset.sac.total_steps)
+            train_report = dict(candidate.notes.get("train") or {})
+            return Proposal(
+                learner=sac.learner_id,
+                candidate=candidate,
+                episodes=int(train_report.get("episodes") or 0),
+                steps=int(train_report.get("steps") or preset.sac.total_steps),
+                notes={"warm_start": candidate.notes.get("warm_start"), "train": train_report},
+            )
+        progress.learner_started(total=preset.bc.epochs, unit="BC epochs")
+        bc = BcLearner(
+            config=preset.bc,
+            env_config=env,
+            registry=self.context.registry,
+            scripted_episodes=preset.scripted_episodes,
+            progress=lambda epoch, epochs, loss: progress.learner_advance(1),
+        )
+        candidate = bc.learn(learn_request)
+        demos = dict(candidate.notes.get("demos") or {})
+        return Proposal(
+            learner=bc.learner_id,
+            candidate=candidate,
+            episodes=int(demos.get("episodes_seen") or 0),
+            steps=preset.bc.epochs,
+            notes={"demos": demos, "bc": candidate.notes.get("bc")},
+        )
+
+    def close(self) -> None:
+        return None
+
+
+@register_modality("rl")
+def _rl(context: UpdaterContext) -> Updater:
+    return NeuralUpdater(context, modality="rl")
+
+
+@register_modality("il")
+def _il(context: UpdaterContext) -> Updater:
+    return NeuralUpdater(context, modality="il")
+
+
+# --- remote learners ----------------------------------------------------------------------
+
+
+def waiting_candidates(registry: Registry, names: Sequence[str]) -> list[EcmVersion]:
+    """Versions in state ``candidate`` among the ECMs ``names`` (absent ECMs skipped), oldest first."""
+    from capevo.errors import NotFound
+
+    out: list[EcmVersion] = []
+    for name in names:
+        try:
+            detail = registry.get_ecm(name)
+        except NotFound:
+            continue
+        out.extend(v for v in detail.versions if v.state is State.CANDIDATE)
+    return sorted(out, key=lambda v: (v.created_at, v.name, v.version))
+
+
+class RemoteCandidates:
+    """Waits for a candidate that a learner worker publishes (``capevo learner serve``).
+
+    Args:
+        registry: Polled for versions in state ``candidate`` of the task's ECMs.
+        timeout_s: How long one iteration waits; None waits forever.
+        poll_s: Pause between polls.
+        should_stop: Polled while waiting; True gives up.
+    """
+
+    name = "remote"
+
+    def __init__(
+        self,
+        registry: Registry,
+        *,
+        timeout_s: float | None = 600.0,
+        poll_s: float = 1.0,
+        should_stop: Callable[[], bool] | None = None,
+    ) -> None:
+        self.registry = registry
+        self.timeout_s = timeout_s
+        self.poll_s = poll_s
+        self.should_stop = should_stop
+
+    def propose(self, request: UpdateRequest, progress: ProgressSink) -> Proposal | None:
+        names = task_spec(request.task).ecm_names
+        progress.message(
+            f"waiting for a learner worker to publish a candidate of {', '.join(names)} "
+            f"(e.g. capevo learner serve --ecm {request.ecm} --once)"
+        )
+        deadline = None if self.timeout_s is None else time.monotonic() + self.timeout_s
+        while True:
+            found = waiting_candidates(self.registry, names)
+            if found:
+                record = found[0]
+                return Proposal(
+                    learner=record.provenance.learner_id or f"remote:{record.created_by}",
+                    record=record,
+                    notes={"published_by": record.created_by, "origin": record.origin.value},
+                )
+            if deadline is not None and time.monotonic() >= deadline:
+                return None
+            if self.should_stop is not None and self.should_stop():
+                return None
+            time.sleep(self.poll_s)
+
+    def close(self) -> None:
+        return None
+
+
+__all__ = [
+    "CemUpdater",
+    "NeuralUpdater",
+    "Proposal",
+    "RemoteCandidates",
+    "UpdateRequest",
+    "Updater",
+    "UpdaterContext",
+    "make_updater",
+    "modality_names",
+    "register_modality",
+    "waiting_candidates",
+]

@@ -1,0 +1,356 @@
+"""CEM parameter search, the trace analysis that picks which ECM to update, and the scratch
+evaluator that runs unpublished candidates."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+import pytest
+from learner_support import TARGET, SyntheticEvaluator
+
+from capevo.agent.identity import IdentityMemory
+from capevo.agent.policy import DecompositionPolicy
+from capevo.errors import ErrorCode, Invalid
+from capevo.learner.base import CandidateEvaluator, Score, config_hash, request_for, score_outcomes
+from capevo.learner.experience import (
+    EpisodeEnd,
+    episode_ends,
+    failure_summary,
+    pick_ecm_to_update,
+    progress,
+    read_episode_ends,
+)
+from capevo.learner.scratch import ScratchRegistryEvaluator
+from capevo.learner.search import CemConfig, CemSearch, cem_preset, param_space
+from capevo.learner.skills import seed_registry, seed_source
+from capevo.registry.local import LocalRegistry
+from capevo.registry.records import CapabilitySet, Origin
+from capevo.runtime.ecm.code import read_params
+from capevo.runtime.evaluation import EpisodeOutcome
+from capevo.runtime.evaluator import LocalEvaluator
+from capevo.runtime.tasks import task_spec
+from capevo.runtime.traces import EcmInvocation, EpisodeSummary, PlanStep, TraceMetadata, TraceWriter
+from capevo.runtime.traces import Outcome as CallOutcome
+
+PICK = task_spec("pick").ecm_names
+STACK = task_spec("stack").ecm_names
+
+
+@pytest.fixture
+def registry(tmp_path):
+    reg = LocalRegistry(tmp_path / "reg", actor="test")
+    seed_registry(reg, "pick")
+    yield reg
+    reg.close()
+
+
+def _request(registry, ecm: str = "pick.reach", seeds: int = 30):
+    return request_for(registry, "pick", ecm, train_seeds=list(range(seeds)))
+
+
+def test_synthetic_evaluator_is_a_candidate_evaluator() -> None:
+    assert isinstance(SyntheticEvaluator("x", {}, {}), CandidateEvaluator)
+
+
+def test_cem_improves_a_synthetic_objective(registry) -> None:
+    request = _request(registry)
+    base = read_params(request.source)
+    fake = SyntheticEvaluator("pick.reach", base, TARGET)
+    search = CemSearch(fake, population=12, iterations=8, episodes_per_candidate=3, seed=3, stop_when_passed=False)
+    cand = search.learn(request)
+    found = read_params(cand.source)
+    assert fake.distance(found) < 0.5 * fake.distance(base)
+    assert cand.score is not None and cand.baseline is not None
+    assert cand.score.key() > cand.baseline.key()
+    assert cand.improved
+    # the candidate record: clone of v0, provenance with learner, config hash, no traces
+    assert cand.ecm == "pick.reach"
+    assert cand.spec.origin is Origin.CLONE and cand.spec.parent == 0
+    assert cand.spec.descriptor == request.parent.descriptor
+    assert cand.spec.interface == request.parent.interface
+    assert cand.spec.provenance.learner_id == "cem"
+    assert re.fullmatch(r"[0-9a-f]{64}", cand.spec.provenance.config_hash or "")
+    assert cand.notes["params"] == found
+    # only the PARAMS literal changed
+    head = request.source.split("PARAMS = {")[0]
+    tail = request.source.split("\n}\n", 1)[1]
+    assert cand.source.startswith(head) and cand.source.endswith(tail)
+
+
+def test_first_candidate_is_the_parent_and_iterations_share_seeds(registry) -> None:
+    request = _request(registry, seeds=6)
+    base = read_params(request.source)
+    fake = SyntheticEvaluator("pick.reach", base, TARGET)
+    pop, eps = 4, 3
+    CemSearch(fake, population=pop, iterations=3, episodes_per_candidate=eps, seed=1, stop_when_passed=False).search(
+        request
+    )
+    assert fake.calls[0]["params"] == base
+    assert len(fake.calls) == 3 * pop
+    for it in range(3):
+        seeds = {c["seeds"] for c in fake.calls[it * pop : (it + 1) * pop]}
+        assert len(seeds) == 1
+    assert fake.calls[0]["seeds"] == (0, 1, 2) and fake.calls[pop]["seeds"] == (3, 4, 5)
+    assert fake.calls[2 * pop]["seeds"] == (0, 1, 2)  # cycles through the training seeds
+    assert all(c["origin"] is Origin.CLONE for c in fake.calls)
+
+
+def test_every_sample_lies_within_the_bounds(registry) -> None:
+    request = _request(registry)
+    base = read_params(request.source)
+    fake = SyntheticEvaluator("pick.reach", base, TARGET)
+    CemSearch(fake, population=12, iterations=3, seed=5, sigma_init=5.0, stop_when_passed=False).search(request)
+    space = param_space(base)
+    for call in fake.calls:
+        for name, lo, hi in zip(space.names, space.low, space.high, strict=True):
+            assert lo <= call["params"][name] <= hi
+
+
+def test_search_is_deterministic(registry) -> None:
+    request = _request(registry)
+    base = read_params(request.source)
+    results = []
+    for _ in range(2):
+        fake = SyntheticEvaluator("pick.reach", base, TARGET)
+        results.append(CemSearch(fake, population=5, iterations=2, seed=9).search(request))
+    assert results[0].params == results[1].params
+    assert results[0].score == results[1].score
+
+
+def test_stops_once_the_best_candidate_passes(registry) -> None:
+    request = _request(registry)
+    base = read_params(request.source)
+    fake = SyntheticEvaluator("pick.reach", base, base)  # the parent already succeeds
+    result = CemSearch(fake, population=4, iterations=5, seed=0).search(request)
+    assert result.iterations_run == 1
+    assert result.episodes_run == 4 * 4
+    assert result.score.success_rate == 1.0
+
+
+def test_keys_and_bounds_restrict_the_search(registry) -> None:
+    request = _request(registry)
+    base = read_params(request.source)
+    fake = SyntheticEvaluator("pick.reach", base, TARGET)
+    CemSearch(
+        fake, population=6, iterations=2, seed=2, keys=["gain", "grasp_dz"], bounds={"grasp_dz": (0.0, 0.01)}
+    ).search(request)
+    for call in fake.calls:
+        assert {k: v for k, v in call["params"].items() if k not in ("gain", "grasp_dz")} == {
+            k: v for k, v in base.items() if k not in ("gain", "grasp_dz")
+        }
+    assert all(0.0 <= c["params"]["grasp_dz"] <= 0.01 for c in fake.calls[1:])
+
+
+def test_param_space_keeps_signs_and_uses_the_floor() -> None:
+    space = param_space({"gain": 3.0, "dz": -0.02, "zero": 0.0}, spread=3.0, floor=0.01)
+    assert space.names == ("gain", "dz", "zero")
+    assert space.low == (0.0, -0.08, -0.03) and space.high == (12.0, 0.0, 0.03)
+    assert space.scale == (3.0, 0.02, 0.01)
+    assert space.params([0.0, 0.0, 0.0]) == {"gain": 3.0, "dz": -0.02, "zero": 0.0}
+    assert space.params([100.0, 100.0, -100.0]) == {"gain": 12.0, "dz": 0.0, "zero": -0.03}
+
+
+def test_param_space_refuses_unknown_keys() -> None:
+    with pytest.raises(Invalid) as e:
+        param_space({"gain": 1.0}, keys=["gian"])
+    assert e.value.code is ErrorCode.INVALID and "unknown parameter(s) ['gian']" in e.value.message
+    with pytest.raises(Invalid) as e:
+        param_space({})
+    assert "nothing to search" in e.value.message
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"population": 1}, "population"),
+        ({"iterations": 0}, "iterations"),
+        ({"elite_frac": 0.0}, "elite_frac"),
+        ({"sigma_init": -1.0}, "sigma_init"),
+        ({"smoothing": 1.5}, "smoothing"),
+        ({"seed": -1}, "seed"),
+        ({"bounds": (("gain", 2.0, 1.0),)}, "bounds"),
+    ],
+)
+def test_cem_config_refuses_bad_values(kwargs, field) -> None:
+    with pytest.raises(Invalid) as e:
+        CemConfig(**kwargs)
+    assert e.value.code is ErrorCode.INVALID
+    assert e.value.message.startswith(f"{field}: ")
+    assert e.value.details["field"] == field
+
+
+def test_a_request_without_training_seeds_is_refused(registry) -> None:
+    request = request_for(registry, "pick", "pick.reach", train_seeds=[])
+    with pytest.raises(Invalid) as e:
+        CemSearch(SyntheticEvaluator("pick.reach", {}, {})).search(request)
+    assert "no training seeds" in e.value.message
+
+
+def test_config_hash_ignores_key_order() -> None:
+    assert config_hash({"a": 1, "b": [1, 2]}) == config_hash({"b": [1, 2], "a": 1})
+    assert config_hash({"a": 1}) != config_hash({"a": 2})
+
+
+# --- which ECM to update ---------------------------------------------------------------
+
+
+def _end(plan: Sequence[str], success: bool = False, seed: int = 0) -> EpisodeEnd:
+    return EpisodeEnd(
+        seed=seed,
+        success=success,
+        plan=tuple(plan),
+        last_ecm=plan[-1] if plan else None,
+        end_reason="success" if success else "horizon",
+        reward=0.0,
+        steps=10,
+    )
+
+
+def test_pick_ecm_to_update_names_where_failures_end() -> None:
+    ends = [
+        _end(["stack.reach", "stack.grasp", "stack.lift", "stack.align", "stack.lower"]),
+        _end(["stack.reach", "stack.grasp", "stack.lift", "stack.align", "stack.lower"]),
+        _end(["stack.reach", "stack.reach", "stack.reach"]),
+        _end(list(STACK), success=True),
+    ]
+    assert pick_ecm_to_update(ends, STACK) == "stack.lower"
+
+
+def test_pick_ecm_to_update_ties_go_upstream_and_none_without_failures() -> None:
+    ends = [_end(["stack.reach", "stack.grasp"]), _end(["stack.reach"])]
+    assert pick_ecm_to_update(ends, STACK) == "stack.reach"
+    assert pick_ecm_to_update([_end(list(STACK), success=True)], STACK) is None
+    assert pick_ecm_to_update([], STACK) is None
+    # a last ECM outside the plan counts for the furthest plan step started
+    assert pick_ecm_to_update([_end(["stack.reach", "stack.grasp", "recover.x"])], STACK) == "stack.grasp"
+
+
+def test_progress_measures_how_far_episodes_got() -> None:
+    assert progress(_end(list(STACK), success=True), STACK) == 1.0
+    assert progress(_end(["stack.reach"]), STACK) == 0.0
+    assert progress(_end(["stack.reach", "stack.grasp", "stack.reach", "stack.grasp", "stack.lift"]), STACK) == 2 / 6
+
+
+def _write_trace(path: Path, episodes: Sequence[tuple[int, bool, Sequence[str], str]]) -> None:
+    meta = TraceMetadata.collect(
+        run_id="r1",
+        task="stack",
+        capability_set=CapabilitySet(revision=1, active=dict.fromkeys(STACK, 0)),
+        phi_hash="phi",
+        agent_identity_hash="agent",
+    )
+    with TraceWriter(path, meta) as w:
+        for i, (seed, success, plan, reason) in enumerate(episodes):
+            for j, ecm in enumerate(plan):
+                w.write_plan_step(PlanStep(episode=i, step=j, ecm=ecm, version=0, reason="next"))
+                outcome = CallOutcome.BUDGET_EXHAUSTED if ecm == "stack.lower" else CallOutcome.OK
+                w.write_invocation(
+                    EcmInvocation(
+                        episode=i,
+                        step=j,
+                        ecm=ecm,
+                        version=0,
+                        input_state=(0.1, 0.2),
+                        output=None,
+                        duration_s=0.001,
+                        outcome=outcome,
+                        error="step budget of 200 used up" if outcome is CallOutcome.BUDGET_EXHAUSTED else None,
+                    )
+                )
+            if not success:
+                w.write_plan_step(PlanStep(episode=i, step=len(plan), ecm="", version=0, reason=reason))
+            w.write_episode_summary(
+                EpisodeSummary(
+                    episode=i,
+                    seed=seed,
+                    success=success,
+                    total_reward=1.0,
+                    steps=100,
+                    interventions=0,
+                    unsafe_steps=0,
+                    capability_set=dict.fromkeys(STACK, 0),
+                    duration_s=1.0,
+                )
+            )
+
+
+def test_experience_is_read_from_real_trace_files(tmp_path) -> None:
+    path = tmp_path / "t.mcap"
+    lower = ["stack.reach", "stack.grasp", "stack.lift", "stack.align", "stack.lower"]
+    _write_trace(
+        path,
+        [
+            (5, False, lower, "policy: stack.lower reached its attempt limit"),
+            (6, True, list(STACK), ""),
+            (7, False, lower, "policy: stack.lower reached its attempt limit"),
+            (8, False, ["stack.reach"], "policy: stack.reach reached its attempt limit"),
+        ],
+    )
+    ends = read_episode_ends(path)
+    assert [e.seed for e in ends] == [5, 6, 7, 8]
+    assert ends[0].last_ecm == "stack.lower" and ends[0].budget_exhausted == ("stack.lower",)
+    assert ends[0].end_reason.startswith("policy: stack.lower") and ends[1].end_reason == "success"
+    assert ends[0].last_inputs["stack.reach"] == (pytest.approx(0.1), pytest.approx(0.2))
+    outcomes = [
+        EpisodeOutcome(
+            seed=s,
+            success=ok,
+            reward=1.0,
+            steps=100,
+            duration_s=1.0,
+            interventions=0,
+            unsafe_steps=0,
+            ecm_failures=0,
+            capability_set={},
+            trace_path=str(path),
+        )
+        for s, ok in [(7, False), (5, False), (6, True), (8, False)]
+    ]
+    assert [e.seed for e in episode_ends(outcomes)] == [7, 5, 6, 8]
+    assert pick_ecm_to_update(outcomes, STACK) == "stack.lower"
+    score = score_outcomes(outcomes, STACK)
+    assert score == Score(success_rate=0.25, progress=(4 / 6 + 4 / 6 + 1.0 + 0.0) / 4, reward_per_step=0.01, episodes=4)
+    text = failure_summary(outcomes, STACK, "stack.lower")
+    assert "1 of 4 recent episodes succeeded" in text
+    assert "stack.lower (2)" in text and "started 3 times and ran out of its step budget 3 times" in text
+
+
+# --- real robosuite -------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_tiny_cem_on_robosuite_leaves_the_real_registry_alone(tmp_path, registry) -> None:
+    policy = DecompositionPolicy(identity=IdentityMemory.default())
+    before = [(s.name, s.latest_version) for s in registry.list_ecms()]
+    history = len(registry.history())
+    (tmp_path / "traces").mkdir()
+    scratch = ScratchRegistryEvaluator(
+        registry,
+        lambda reg: LocalEvaluator(reg, policy=policy, trace_dir=tmp_path / "traces", horizon=40),
+        root=tmp_path / "scratch",
+    )
+    try:
+        request = _request(registry, seeds=3)
+        cand = CemSearch(scratch, population=2, iterations=1, episodes_per_candidate=1, seed=0).learn(request)
+        assert cand.spec.origin is Origin.CLONE and cand.spec.parent == 0
+        assert read_params(cand.source).keys() == read_params(seed_source("pick", "pick.reach")).keys()
+        assert cand.notes["episodes_run"] == 2
+        # the candidates ran from the scratch registry, as clones (sandboxed), with traces
+        scratch_reach = scratch.scratch.get_ecm("pick.reach")
+        assert len(scratch_reach.versions) >= 2
+        assert all(v.origin in (Origin.MANUAL, Origin.CLONE) for v in scratch_reach.versions)
+    finally:
+        scratch.close()
+    assert [(s.name, s.latest_version) for s in registry.list_ecms()] == before
+    assert len(registry.history()) == history
+
+
+def test_presets_build_searches_with_their_config() -> None:
+    for name in ("tiny", "cpu-small", "paper"):
+        config = cem_preset(name)
+        assert CemSearch.from_config(SyntheticEvaluator("x", {}, {}), config).config == config
+    with pytest.raises(Invalid) as e:
+        cem_preset("huge")
+    assert e.value.code is ErrorCode.INVALID and "tiny, cpu-small, paper" in e.value.message
