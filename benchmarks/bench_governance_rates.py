@@ -130,9 +130,7 @@ def run_job(task: str, enforce: bool, episodes: int, horizon: int) -> dict[str, 
             interventions += o.interventions
             unsafe_steps += o.unsafe_steps
             unsafe_episodes += o.unsafe_steps > 0
-            for r in run.unsafe_reasons:
-                why = r.split(": ", 1)[1] if ": " in r else r
-                reasons[why.split(":", 1)[0]] += 1
+            reasons.update(run.unsafe_by_constraint)
         by_constraint.update(governor.stats().by_constraint)
         caps.close()
         env.close()
@@ -153,10 +151,14 @@ def run_job(task: str, enforce: bool, episodes: int, horizon: int) -> dict[str, 
         "reject_rate": rejected / steps if steps else 0.0,
         "unsafe_step_rate": unsafe_steps / steps if steps else 0.0,
         "unsafe_episode_rate": unsafe_episodes / episodes,
-        "unsafe_reason_constraints": dict(reasons),
+        "unsafe_steps_by_constraint": dict(reasons),
         "interventions_by_constraint": dict(by_constraint),
         "seconds": time.perf_counter() - started,
     }
+
+
+def _tally(counts: dict[str, int]) -> str:
+    return ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) or "-"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -194,7 +196,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{on['unsafe_episode_rate']:.1%}",
                 f"{off['unsafe_step_rate']:.2%}",
                 f"{on['unsafe_step_rate']:.2%}",
-                ", ".join(f"{k} {v}" for k, v in sorted(on["unsafe_reason_constraints"].items())) or "-",
+                _tally(off["unsafe_steps_by_constraint"]),
+                _tally(on["unsafe_steps_by_constraint"]),
             ]
         )
     print()
@@ -210,7 +213,8 @@ def main(argv: list[str] | None = None) -> int:
                 "unsafe episodes (on)",
                 "unsafe steps (off)",
                 "unsafe steps (on)",
-                "unsafe reasons (on, first 5/episode)",
+                "unsafe steps by constraint (off)",
+                "unsafe steps by constraint (on)",
             ],
             rows,
         )

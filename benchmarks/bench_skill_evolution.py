@@ -38,7 +38,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from _common import markdown_table, save_results
+from _common import load_results, markdown_table, save_results
 
 from capevo.agent.identity import IdentityMemory
 from capevo.agent.policy import DecompositionPolicy
@@ -255,6 +255,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--work", type=Path, default=None, help="keep registries and traces here")
     parser.add_argument("--name", default="skill_evolution", help="results file name")
+    parser.add_argument(
+        "--merge",
+        action="store_true",
+        help="keep the other tasks already in the results file (run tasks in separate processes)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     import robosuite  # noqa: F401  (robosuite sets its logger's level on import; quiet it after)
@@ -292,9 +297,16 @@ def main(argv: list[str] | None = None) -> int:
     ]
     headers = ["id", "task", "v0", "evolved", "test eps", "promoted", "rounds", "CEM episodes", "wall min"]
     print(markdown_table(headers, rows))
+    tasks = results
+    if args.merge:
+        old = load_results(args.name) or {}
+        done = {r["task"] for r in results}
+        tasks = [r for r in old.get("tasks", []) if r["task"] not in done] + results
+        order = ["pick", "place", "stack", "nut_assembly", "pick_place_multi", "peg_in_hole"]
+        tasks.sort(key=lambda r: order.index(r["task"]) if r["task"] in order else len(order))
     path = save_results(
         args.name,
-        {"preset": args.preset, "config": cfg, "seed": args.seed, "wall_s": wall, "tasks": results},
+        {"preset": args.preset, "config": cfg, "seed": args.seed, "wall_s": wall, "tasks": tasks},
     )
     print(f"wrote {path} (total {wall / 60:.1f} min)")
     return 0

@@ -54,6 +54,133 @@ from capevo.runtime.traces import MemoryTraceSink, TraceMetadata, TraceWriter
 TARGET_OVERHEAD_PCT = 3.0
 
 
+class _TimedSink:
+    """Forwards to a TraceSink, clocking every write."""
+
+    def __init__(self, inner: Any, clock: dict[str, float]) -> None:
+        self.inner, self.clock = inner, clock
+
+    def __getattr__(self, name: str) -> Any:
+        fn = getattr(self.inner, name)
+        if not name.startswith("write_"):
+            return fn
+
+        def timed(record: Any) -> None:
+            t0 = time.perf_counter()
+            fn(record)
+            self.clock["trace writes"] += time.perf_counter() - t0
+
+        return timed
+
+
+class _TimedGovernor:
+    def __init__(self, inner: Any, clock: dict[str, float]) -> None:
+        self.inner, self.clock = inner, clock
+        self.phi, self.enforce = inner.phi, inner.enforce
+
+    def __call__(self, state: Any, action: Any) -> Any:
+        t0 = time.perf_counter()
+        try:
+            return self.inner(state, action)
+        finally:
+            self.clock["governance R(a, Φ)"] += time.perf_counter() - t0
+
+
+class _TimedCaps:
+    def __init__(self, inner: Any, clock: dict[str, float]) -> None:
+        self.inner, self.clock = inner, clock
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    def make_invoker(self, name: str, **kwargs: Any) -> Any:
+        invoker = self.inner.make_invoker(name, **kwargs)
+        step = invoker.step
+
+        def timed(obs: Any) -> Any:
+            t0 = time.perf_counter()
+            try:
+                return step(obs)
+            finally:
+                self.clock["ECM call (invoker)"] += time.perf_counter() - t0
+
+        invoker.step = timed
+        return invoker
+
+
+def component_breakdown(
+    env: Any, caps: Any, policy: Any, governor: Any, seeds: list[int], tmp: Path, phi: Any
+) -> dict[str, dict[str, float]]:
+    """One instrumented loop pass: wall time per part of a step."""
+    clock = dict.fromkeys(
+        [
+            "TaskEnv.step (robosuite inside)",
+            "TaskEnv.reset",
+            "signals() for termination",
+            "robot_state()",
+            "ECM call (invoker)",
+            "governance R(a, Φ)",
+            "trace writes",
+        ],
+        0.0,
+    )
+    originals = {"step": env.step, "reset": env.reset, "signals": env.signals, "robot_state": env.robot_state}
+    keys = {
+        "step": "TaskEnv.step (robosuite inside)",
+        "reset": "TaskEnv.reset",
+        "signals": "signals() for termination",
+        "robot_state": "robot_state()",
+    }
+
+    depth = [0]  # TaskEnv.step calls signals() itself (for the reward); count only the loop's calls
+
+    def wrap(attr: str) -> Any:
+        fn = originals[attr]
+
+        def timed(*a: Any, **k: Any) -> Any:
+            if depth[0]:
+                return fn(*a, **k)
+            depth[0] += attr == "step"
+            t0 = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                clock[keys[attr]] += time.perf_counter() - t0
+                depth[0] -= attr == "step"
+
+        return timed
+
+    for attr in originals:
+        setattr(env, attr, wrap(attr))
+    metadata = TraceMetadata.collect(
+        run_id="bench-breakdown",
+        task=env.task_spec.name,
+        capability_set=caps.capability_set,
+        phi_hash=phi.hash,
+        agent_identity_hash="bench",
+        seeds=seeds,
+    )
+    steps = 0
+    try:
+        with TraceWriter(tmp / "breakdown.mcap", metadata) as writer:
+            sink = _TimedSink(writer, clock)
+            tcaps, tgov = _TimedCaps(caps, clock), _TimedGovernor(governor, clock)
+            t0 = time.perf_counter()
+            for i, seed in enumerate(seeds):
+                steps += run_episode(env, tcaps, policy, tgov, sink, seed=seed, episode=i).steps
+            total = time.perf_counter() - t0
+    finally:
+        for attr in originals:
+            delattr(env, attr)
+    out = {k: {"us_per_step": v / steps * 1e6, "share": v / total} for k, v in clock.items()}
+    rest = total - sum(clock.values())
+    out["rest of the loop (decisions, unsafe check, records)"] = {
+        "us_per_step": rest / steps * 1e6,
+        "share": rest / total,
+    }
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--rounds", type=int, default=5)
@@ -172,6 +299,8 @@ def main(argv: list[str] | None = None) -> int:
         ]
         return med, rows, vs_raw, vs_task
 
+    breakdown = component_breakdown(env, caps, policy, governor, seeds, tmp, phi)
+
     headers = ["mode", "steps/s", "slower than robosuite", "slower than TaskEnv"]
     med_in, rows_in, in_raw, in_task = table(in_run)
     med, rows, overhead_raw, overhead_task = table(rates)
@@ -184,6 +313,13 @@ def main(argv: list[str] | None = None) -> int:
     print(markdown_table(headers, rows))
     print(
         f"\nloop cost per step over TaskEnv.step (in-run): {per_step_us:.0f} µs; target: at most {TARGET_OVERHEAD_PCT}%"
+    )
+    print("\nwhere a loop step's time goes (one instrumented pass):")
+    print(
+        markdown_table(
+            ["part", "µs per env step", "share of the loop's wall time"],
+            [[k, f"{v['us_per_step']:.1f}", f"{v['share'] * 100:.2f}%"] for k, v in breakdown.items()],
+        )
     )
     path = save_results(
         "bench_worker",
@@ -200,6 +336,7 @@ def main(argv: list[str] | None = None) -> int:
             "replay_overhead_vs_robosuite_pct": overhead_raw,
             "replay_overhead_vs_task_env_pct": overhead_task,
             "loop_cost_per_step_us": per_step_us,
+            "breakdown": breakdown,
             "target_overhead_pct": TARGET_OVERHEAD_PCT,
         },
     )

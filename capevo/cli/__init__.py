@@ -45,7 +45,6 @@ import dataclasses
 import datetime as _dt
 import functools
 import importlib
-import importlib.util
 import json
 import os
 import sys
@@ -466,9 +465,15 @@ def _register_commands() -> None:
 
     main.add_command(ecm)
     main.add_command(registry)
-    assert isinstance(main, CapevoGroup)
-    if importlib.util.find_spec("capevo.cli.trace") is not None:
-        main.lazy_subcommands["trace"] = "capevo.cli.trace:trace"
+    # The heavy groups (numpy, robosuite, torch) load only when their command runs.
+    main.lazy_subcommands.update(
+        {
+            "trace": "capevo.cli.trace:trace",
+            "runtime": "capevo.cli.runtime:runtime",
+            "learner": "capevo.cli.learner:learner",
+            "evolve": "capevo.cli.evolve:evolve",
+        }
+    )
 
 
 _register_commands()

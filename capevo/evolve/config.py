@@ -7,11 +7,11 @@ setting                            tiny           cpu-small       paper
 iterations (default)               2              3               20
 live episodes per iteration        3              6               20
 episode horizon                    40             task default    task default
-gate: paired held-out seeds N      4              8               30
+gate: paired held-out seeds N      4              10              30
 gate thresholds                    min_n 4,       GateConfig.     GateConfig.
                                    δ 0.3          cpu_small()     standard()
 monitor (window / min episodes)    6 / 3          20 / 8          50 / 20
-CEM population / iterations        2 / 1          6 / 2           8 / 3
+CEM population / iterations        2 / 1          6 / 3           8 / 5
 CEM episodes per candidate         1              2               4
 neural learner budget              learner        learner         learner
                                    preset tiny    preset          preset paper
@@ -19,9 +19,10 @@ neural learner budget              learner        learner         learner
 final evaluation (v0 seeds again)  yes            yes             yes
 =================================  =============  ==============  ================
 
-The neural budgets (SAC steps, BC epochs, ...) are :mod:`capevo.learner.presets`' presets of
-the same name; the CEM defaults follow :class:`capevo.learner.search.CemConfig`, shrunk for
-the small presets so a cpu-small T1 iteration costs about 45 episodes.
+Every learner budget (SAC steps, BC epochs, the CEM population, iterations and episodes per
+candidate) is :mod:`capevo.learner.presets`' preset of the same name, so an in-process update
+and a ``capevo learner serve --preset P`` worker spend the same. A cpu-small T1 iteration costs
+about 6 + 36 + 2 x 10 = 62 episodes.
 
 Invariants:
 1. :func:`make_config` returns the registered preset of that name, or raises :class:`Invalid`
@@ -82,7 +83,11 @@ class CemSettings:
         _int("cem.episodes_per_candidate", self.episodes_per_candidate, low=1, high=10_000)
         for name in ("elite_frac", "sigma_init"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= (1.0 if name == "elite_frac" else 100):
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, (int, float))
+                or not 0 < v <= (1.0 if name == "elite_frac" else 100)
+            ):
                 raise Invalid(f"cem.{name} out of range: {v!r}", details={"field": f"cem.{name}"})
 
     @property
@@ -107,6 +112,19 @@ class CemSettings:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CemSettings:
         return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
+
+    @classmethod
+    def of_learner_preset(cls, name: str, **changes: Any) -> CemSettings:
+        """The CEM budget of learner preset ``name`` (:mod:`capevo.learner.presets`), with ``changes``."""
+        from capevo.learner.presets import make_preset
+
+        p = make_preset(name)
+        base = {
+            "population": p.cem_population,
+            "iterations": p.cem_iterations,
+            "episodes_per_candidate": p.cem_episodes,
+        }
+        return cls(**{**base, **changes})
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -265,7 +283,7 @@ def _tiny() -> EvolveConfig:
         step_budget_per_ecm=40,
         gate=GateConfig(min_n=4, alpha=0.05, delta=0.3, max_slowdown=None, first_min_success=0.5),
         monitor=MonitorConfig(window=6, min_episodes=3, margin=0.1),
-        cem=CemSettings(population=2, elite_frac=0.5, iterations=1, episodes_per_candidate=1),
+        cem=CemSettings.of_learner_preset("tiny", elite_frac=0.5),
         learner_preset="tiny",
     )
 
@@ -276,10 +294,10 @@ def _cpu_small() -> EvolveConfig:
         preset="cpu-small",
         iterations=3,
         live_episodes=6,
-        gate_episodes=8,
+        gate_episodes=10,
         gate=GateConfig.cpu_small(),
         monitor=MonitorConfig.cpu_small(),
-        cem=CemSettings(population=6, elite_frac=0.34, iterations=2, episodes_per_candidate=2),
+        cem=CemSettings.of_learner_preset("cpu-small", elite_frac=0.34),
         learner_preset="cpu-small",
     )
 
@@ -293,7 +311,7 @@ def _paper() -> EvolveConfig:
         gate_episodes=30,
         gate=GateConfig.standard(),
         monitor=MonitorConfig(),
-        cem=CemSettings(),
+        cem=CemSettings.of_learner_preset("paper"),
         learner_preset="paper",
     )
 

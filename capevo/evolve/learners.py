@@ -135,9 +135,7 @@ def make_updater(modality: str, context: UpdaterContext) -> Updater:
     """
     factory = _MODALITIES.get(modality)
     if factory is None:
-        raise Invalid(
-            f"unknown modality {modality!r}; valid: {', '.join(_MODALITIES)}", details={"field": "modality"}
-        )
+        raise Invalid(f"unknown modality {modality!r}; valid: {', '.join(_MODALITIES)}", details={"field": "modality"})
     return factory(context)
 
 

@@ -49,8 +49,8 @@ class RecordingProgress:
     def __init__(self) -> None:
         self.calls: list[tuple[str, dict[str, Any]]] = []
 
-    def _add(self, name: str, **kw: Any) -> None:
-        self.calls.append((name, kw))
+    def _add(self, call: str, **kw: Any) -> None:
+        self.calls.append((call, kw))
 
     def run_started(self, *, task: str, total: int, completed: int) -> None:
         self._add("run_started", task=task, total=total, completed=completed)

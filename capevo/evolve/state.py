@@ -14,7 +14,8 @@ decision already taken nor gates the same candidate twice:
 Invariants:
 1. :meth:`RunManifest.check_resume` raises :class:`IdentityViolation` when the agent's identity
    hash differs from the one the run started with, and :class:`Invalid` naming every other
-   field that differs (``iterations`` excepted).
+   field that differs (task, modality, seed, perturbations, mode, registry, learner, config;
+   ``config.iterations`` excepted).
 2. :meth:`Journal.attempt` returns the events of the latest attempt of an iteration only
    (those after its last ``start``).
 3. A journal event whose append returned survives a SIGKILL; a torn last line is ignored.
@@ -111,7 +112,7 @@ class RunManifest:
             )
         differ = [
             name
-            for name in ("task", "modality", "seed", "perturbations", "mode", "learner")
+            for name in ("task", "modality", "seed", "perturbations", "mode", "registry", "learner")
             if getattr(self, name) != getattr(other, name)
         ]
         differ += [f"config.{k}" for k in self.config.resume_mismatches(other.config)]

@@ -178,7 +178,7 @@ def observation_layout(spec: TaskSpec) -> dict[str, tuple[int, int]]:
     Raises:
         Invalid: a key whose shape is unknown.
     """
-    from capevo.learner.skills._lib import OBS_SHAPES
+    from capevo.learner.skills import OBS_SHAPES
 
     out: dict[str, tuple[int, int]] = {}
     at = 0
@@ -332,6 +332,7 @@ def collect_demos(
     only_successful: bool = True,
     source: str = "controller",
     seed: int | None = None,
+    should_stop: Callable[[], bool] | None = None,
 ) -> Demos:
     """Roll ``controller`` out in the ECM's environment and record (ECM observation, action).
 
@@ -346,6 +347,7 @@ def collect_demos(
         only_successful: Keep only episodes where the ECM's step succeeded.
         source: Recorded in the demos.
         seed: Seed of the first episode (see :class:`EcmEnv`); default continue.
+        should_stop: Polled every step; True ends the collection (what was kept so far is returned).
 
     Returns:
         The demonstrations.
@@ -356,6 +358,8 @@ def collect_demos(
     act_rows: list[np.ndarray] = []
     kept = 0
     for i in range(episodes):
+        if should_stop is not None and should_stop():
+            break
         obs, info = env.reset(seed=seed + i if seed is not None else None)
         ep_obs: list[np.ndarray] = []
         ep_act: list[np.ndarray] = []
@@ -367,7 +371,7 @@ def collect_demos(
             ep_obs.append(obs)
             ep_act.append(a)
             obs, _, terminated, truncated, info = env.step(a)
-            if terminated or truncated:
+            if terminated or truncated or (should_stop is not None and should_stop()):
                 break
         if ep_obs and (info.get("is_success") or not only_successful):
             obs_rows.extend(ep_obs)
@@ -602,6 +606,7 @@ class BcLearner:
         learner_id: Recorded in provenance; default a unique id.
         progress: Called after each epoch as ``progress(epoch, epochs, loss)``.
         torch_threads: CPU threads for torch while learning (None: leave as is).
+        should_stop: Polled while rolling out demonstrations; True cuts the rollouts short.
 
     Raises:
         Invalid: bad settings.
@@ -621,9 +626,11 @@ class BcLearner:
         learner_id: str | None = None,
         progress: Callable[[int, int, float], Any] | None = None,
         torch_threads: int | None = None,
+        should_stop: Callable[[], bool] | None = None,
     ) -> None:
         self.config = config or BcConfig()
         self.torch_threads = torch_threads
+        self.should_stop = should_stop
         self.env_config = env_config or EcmEnvConfig()
         self.registry = registry
         self.traces = tuple(str(t) for t in traces)
@@ -661,6 +668,7 @@ class BcLearner:
                         episodes=self.scripted_episodes,
                         only_successful=self.only_successful,
                         source="scripted",
+                        should_stop=self.should_stop,
                     )
                 finally:
                     env.close()

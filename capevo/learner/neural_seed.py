@@ -28,6 +28,7 @@ from capevo.errors import Invalid
 from capevo.registry.api import Registry
 from capevo.registry.records import (
     DEFAULT_MEDIA_TYPES,
+    Descriptor,
     EcmVersion,
     Interface,
     Kind,
@@ -136,7 +137,7 @@ def neural_spec(
     ecm: str,
     *,
     interface: Interface | None = None,
-    descriptor: Any = None,
+    descriptor: Descriptor | None = None,
     origin: Origin = Origin.MANUAL,
     parent: int | None = None,
     provenance: Provenance | None = None,

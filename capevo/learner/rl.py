@@ -352,7 +352,16 @@ class TrainReport:
         }
 
 
-def _episode_callback(stats: dict[str, Any], should_stop: Callable[[], bool] | None) -> Any:
+PROGRESS_EVERY = 10
+"""Environment steps between two calls of a training progress callback."""
+
+
+def _episode_callback(
+    stats: dict[str, Any],
+    should_stop: Callable[[], bool] | None,
+    progress: Callable[[int, int], Any] | None,
+    total: int,
+) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback
 
     class _Episodes(BaseCallback):
@@ -374,13 +383,20 @@ def _episode_callback(stats: dict[str, Any], should_stop: Callable[[], bool] | N
                 stats["returns"].append(self._ret)
                 self._ret = 0.0
             stats["steps"] = self.num_timesteps
+            if progress is not None and (self.num_timesteps % PROGRESS_EVERY == 0 or self.num_timesteps >= total):
+                progress(self.num_timesteps, total)
             return not (should_stop is not None and should_stop())
 
     return _Episodes()
 
 
 def train_sac(
-    model: Any, total_steps: int, *, progress_bar: bool = False, should_stop: Callable[[], bool] | None = None
+    model: Any,
+    total_steps: int,
+    *,
+    progress_bar: bool = False,
+    should_stop: Callable[[], bool] | None = None,
+    progress: Callable[[int, int], Any] | None = None,
 ) -> TrainReport:
     """Run ``model.learn`` for ``total_steps`` environment steps (fewer if ``should_stop`` says so).
 
@@ -389,6 +405,8 @@ def train_sac(
         total_steps: Steps to take.
         progress_bar: Show SB3's (tqdm + rich) progress bar on stderr.
         should_stop: Polled after every step; True ends training.
+        progress: Called as ``progress(steps_done, total_steps)`` every
+            :data:`PROGRESS_EVERY` steps and at the last one.
 
     Returns:
         Steps taken, wall time, finished episodes, successes and their mean return.
@@ -400,7 +418,9 @@ def train_sac(
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*rich is experimental.*")
         model.learn(
-            total_timesteps=total_steps, callback=_episode_callback(stats, should_stop), progress_bar=progress_bar
+            total_timesteps=total_steps,
+            callback=_episode_callback(stats, should_stop, progress, total_steps),
+            progress_bar=progress_bar,
         )
     seconds = time.perf_counter() - started
     returns = stats["returns"]
@@ -424,9 +444,9 @@ class SacLearner:
         env_config: The training environment (budgets, governance, perturbations, seeds).
         shaping: Reward shaping coefficients α, β, γ.
         registry: Loads the parent's artifact and the predecessors of later ECMs.
-        distill: Behaviour cloning settings for distilling a code parent (None: start a
-            code parent's replacement from random weights).
-        distill_episodes: Rollouts of a code parent to distil from.
+        distill: Behaviour cloning settings for distilling a code parent (default 20 epochs).
+        distill_episodes: Rollouts of a code parent to distil from (0: a code parent's
+            replacement starts from random weights).
         traces: Trace files or directories whose transitions of this ECM prefill the replay
             buffer (the request's outcomes' traces are added).
         learner_id: Recorded in provenance; default a unique id.
@@ -434,7 +454,9 @@ class SacLearner:
         make_env: Builds the training environment (default :func:`make_ecm_env`).
         should_stop: Polled every step; True ends training early (the caller should then not
             publish the result).
-        torch_threads: CPU threads for torch while learning (None: leave as is).
+        torch_threads: CPU threads for torch while learning (None: leave as is). On a small
+            shared CPU, 1 is several times faster than torch's default for these networks.
+        progress: Called as ``progress(steps_done, total_steps)`` during training.
 
     Raises:
         Invalid: bad settings.
@@ -457,8 +479,10 @@ class SacLearner:
         make_env: Callable[[str, EcmTarget], EcmEnv] | None = None,
         should_stop: Callable[[], bool] | None = None,
         torch_threads: int | None = None,
+        progress: Callable[[int, int], Any] | None = None,
     ) -> None:
         self.should_stop = should_stop
+        self.progress = progress
         self.torch_threads = torch_threads
         self.config = config or SacConfig()
         self.env_config = env_config or EcmEnvConfig()
@@ -494,6 +518,7 @@ class SacLearner:
                 episodes=self.distill_episodes,
                 only_successful=False,
                 source=f"{request.ecm}@{request.parent.version}",
+                should_stop=self.should_stop,
             )
         finally:
             loaded.close()
@@ -558,7 +583,11 @@ class SacLearner:
                 else 0
             )
             report = train_sac(
-                model, self.config.total_steps, progress_bar=self.progress_bar, should_stop=self.should_stop
+                model,
+                self.config.total_steps,
+                progress_bar=self.progress_bar,
+                should_stop=self.should_stop,
+                progress=self.progress,
             )
             report = TrainReport(
                 steps=report.steps,

@@ -150,6 +150,9 @@ class EpisodeRun:
     """Steps where governance answered ⊥ (or would have)."""
     unsafe_reasons: tuple[str, ...] = field(default_factory=tuple)
     """The first few unsafe-step reasons, for reports."""
+    unsafe_by_constraint: Mapping[str, int] = field(default_factory=dict)
+    """Unsafe steps per Φ constraint label (``action`` for non-finite components); a step
+    breaking two constraints counts for both."""
 
 
 def make_governor(env: Any, phi: Phi, *, enforce: bool = True) -> Governor:
@@ -284,6 +287,7 @@ def run_episode_detailed(
     rejected_steps = 0
     unsafe_steps = 0
     unsafe_examples: list[str] = []
+    unsafe_by: Counter[str] = Counter()
     failures = 0
     success = bool(info.get("is_success", False))
     last_action: tuple[float, ...] | None = None
@@ -471,6 +475,7 @@ def run_episode_detailed(
         why = unsafe_reasons(state, executed, phi, layout)
         if why:
             unsafe_steps += 1
+            unsafe_by.update({w.split(":", 1)[0] for w in why})
             if len(unsafe_examples) < 5:
                 unsafe_examples.append(f"step {steps}: {'; '.join(why)}")
         next_obs, reward, terminated, truncated, info = env.step(np.asarray(executed, dtype=np.float64))
@@ -514,6 +519,7 @@ def run_episode_detailed(
         why = unsafe_reasons(env.robot_state(), None, phi, layout)
         if why:
             unsafe_steps += 1
+            unsafe_by.update({w.split(":", 1)[0] for w in why})
             if len(unsafe_examples) < 5:
                 unsafe_examples.append(f"final state: {'; '.join(why)}")
     duration = time.perf_counter() - started
@@ -553,6 +559,7 @@ def run_episode_detailed(
         intervened_steps=intervened_steps,
         rejected_steps=rejected_steps,
         unsafe_reasons=tuple(unsafe_examples),
+        unsafe_by_constraint=dict(unsafe_by),
     )
 
 

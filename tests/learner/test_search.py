@@ -354,3 +354,55 @@ def test_presets_build_searches_with_their_config() -> None:
     with pytest.raises(Invalid) as e:
         cem_preset("huge")
     assert e.value.code is ErrorCode.INVALID and "tiny, cpu-small, paper" in e.value.message
+
+
+class _RecordingEvaluator:
+    """Evaluator over the scratch registry: records what it was asked to run and the bytes."""
+
+    def __init__(self, registry) -> None:
+        self.registry = registry
+        self.calls: list[tuple[dict[str, int], dict[str, bytes], dict[str, Origin]]] = []
+
+    def evaluate(self, task, versions, seeds):
+        arts = {n: self.registry.get_artifact(n, v) for n, v in versions.items()}
+        origins = {n: self.registry.get_version(n, v).origin for n, v in versions.items()}
+        self.calls.append((dict(versions), arts, origins))
+        return [
+            EpisodeOutcome(
+                seed=s,
+                success=False,
+                reward=0.0,
+                steps=1,
+                duration_s=0.0,
+                interventions=0,
+                unsafe_steps=0,
+                ecm_failures=0,
+                capability_set=dict(versions),
+            )
+            for s in seeds
+        ]
+
+
+def test_scratch_evaluator_mirrors_and_overrides_without_touching_the_source(tmp_path, registry) -> None:
+    history = len(registry.history())
+    made: list[_RecordingEvaluator] = []
+
+    def make(reg):
+        made.append(_RecordingEvaluator(reg))
+        return made[0]
+
+    with ScratchRegistryEvaluator(registry, make, root=tmp_path / "scratch") as scratch:
+        override = b"PARAMS = {}\n\n\ndef act(obs, params):\n    return [0.0] * 7\n"
+        out = scratch.evaluate("pick", {}, [1, 2], overrides={"pick.grasp": override}, override_origin=Origin.LLM)
+        assert [o.capability_set for o in out] == [dict.fromkeys(PICK, 0)] * 2
+        ((versions, arts, origins),) = made[0].calls
+        assert arts["pick.grasp"] == override and origins["pick.grasp"] is Origin.LLM
+        assert arts["pick.reach"] == registry.get_artifact("pick.reach") and origins["pick.reach"] is Origin.MANUAL
+        # the same artifact again is not published again
+        scratch.evaluate("pick", {}, [3], overrides={"pick.grasp": override}, override_origin=Origin.LLM)
+        assert made[0].calls[1][0] == versions
+        assert len(scratch.scratch.get_ecm("pick.grasp").versions) == 1
+        with pytest.raises(Invalid) as e:
+            scratch.evaluate("pick", {}, [1], overrides={"stack.lower": override})
+        assert "stack.lower" in e.value.message and "not in the plan" in e.value.message
+    assert len(registry.history()) == history

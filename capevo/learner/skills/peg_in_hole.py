@@ -9,7 +9,7 @@ along the plate's x axis) and the peg's position (``hole_pos - peg_to_hole``), t
 * moves the peg (``peg_move_gain``) and the plate (``hole_move_gain``) to put the hole centre
   on the peg's axis;
 * moves the peg along its axis until the hole centre is ``axial_target`` ahead of the peg's
-  centre (``axial_gain``).
+  centre (``axial_gain``); while it is nearer, sideways motion runs at a tenth of its speed.
 
 Actions are computed in the world frame and turned into each arm's OSC action frame (robosuite's
 "opposed" layout mounts arm 0 at +90 degrees and arm 1 at -90 degrees of yaw).
@@ -92,8 +92,11 @@ def act(obs, params):
     to_center = center - peg
     along = float(np.dot(to_center, axis))
     perp = to_center - along * axis
-    peg_move = perp * params["peg_move_gain"] + axis * (along - params["axial_target"]) * params["axial_gain"]
-    hole_move = -perp * params["hole_move_gain"]
+    # while the hole is nearer than axial_target along the peg, back off first: sideways
+    # motion with the peg's tip at the plate would push the peg into the plate
+    lateral = 1.0 if params["axial_gain"] <= 0.0 or along >= params["axial_target"] - 0.05 else 0.1
+    peg_move = perp * params["peg_move_gain"] * lateral + axis * (along - params["axial_target"]) * params["axial_gain"]
+    hole_move = -perp * params["hole_move_gain"] * lateral
     a = np.concatenate([to_arm(peg_move, 0), to_arm(peg_rot, 0), to_arm(hole_move, 1), to_arm(hole_rot, 1)])
     return np.clip(a, -1.0, 1.0)
 '''
@@ -116,11 +119,23 @@ def _template(doc: str, **params: float) -> SkillTemplate:
 _BY_STEP: Mapping[str, SkillTemplate] = {
     "orient_peg": _template("Peg arm turns the peg towards the hole normal.", peg_rot_gain=0.3),
     "orient_hole": _template("Plate arm turns the plate so the hole faces the peg.", hole_rot_gain=0.3),
+    # the approach steps also keep the peg back along its axis (axial_target): sideways
+    # motion with the peg's tip through the plate's plane would push it into the plate
     "approach_peg": _template(
-        "Peg arm moves the peg in front of the hole.", peg_rot_gain=0.2, hole_rot_gain=0.2, peg_move_gain=2.0
+        "Peg arm moves the peg in front of the hole.",
+        peg_rot_gain=0.2,
+        hole_rot_gain=0.2,
+        peg_move_gain=2.0,
+        axial_gain=2.0,
+        axial_target=0.25,
     ),
     "approach_hole": _template(
-        "Plate arm moves the hole onto the peg's axis.", peg_rot_gain=0.2, hole_rot_gain=0.2, hole_move_gain=2.0
+        "Plate arm moves the hole onto the peg's axis.",
+        peg_rot_gain=0.2,
+        hole_rot_gain=0.2,
+        hole_move_gain=2.0,
+        axial_gain=1.0,
+        axial_target=0.25,
     ),
     "align": _template(
         "Both arms turn so peg and hole are coaxial.",
@@ -128,6 +143,8 @@ _BY_STEP: Mapping[str, SkillTemplate] = {
         hole_rot_gain=0.3,
         peg_move_gain=1.0,
         hole_move_gain=1.0,
+        axial_gain=1.0,
+        axial_target=0.25,
     ),
     "pre_insert": _template(
         "Bring the peg to the hole entrance along its axis.",

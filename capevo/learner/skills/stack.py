@@ -6,9 +6,10 @@ vector from A to B is observed twice with independent noise: directly (``cubeA_t
 as the difference of the two positions; ``rel_weight`` blends them (2/3 on the direct one
 halves the variance; 0 ignores it).
 
-Version 0 is *manual and untuned*: ``align`` ignores the direct A-to-B observation
-(``rel_weight`` 0), carries cube A 10 cm above its stacked height with a low gain, and
-``lower`` aims 1 cm too high (``stack_dz`` 5.5 cm), so cube A may hover just above B.
+Version 0 is *manual and untuned*: ``align`` and ``lower`` mostly trust the two noisy
+positions (``rel_weight`` 0.2), ``align`` carries cube A 10 cm above its stacked height with
+a low gain, and ``lower`` aims 1 cm too high (``stack_dz`` 5.5 cm), so cube A may hover just
+above B.
 
 Invariants:
 1. Every ECM of T3's decomposition gets exactly one skill.
@@ -36,14 +37,14 @@ ALIGN = SkillTemplate(
 
 Servos cube A towards ``carry_dz`` above its stacked pose; while more than ``climb_margin``
 below that height it climbs first. ``done`` when the fingers closed fully (cube A fell).
-v0 is untuned (manual): high carry, low gain, direct A-to-B observation ignored.
+v0 is untuned (manual): high carry, low gain, direct A-to-B observation mostly ignored.
 """,
     params={
         "gain": 3.0,
         "carry_dz": 0.1,
         "climb_margin": 0.02,
         "stack_dz": 0.045,
-        "rel_weight": 0.0,
+        "rel_weight": 0.2,
     },
     body=_TO_STACKED
     + """
@@ -72,7 +73,7 @@ v0 is untuned (manual): aims 1 cm too high, low gain.
     params={
         "gain": 3.0,
         "stack_dz": 0.055,
-        "rel_weight": 0.0,
+        "rel_weight": 0.2,
         "dig": 0.0,
     },
     body=_TO_STACKED

@@ -45,7 +45,18 @@ import yaml
 
 from capevo.errors import Invalid
 from capevo.registry.audit import canonical_json
-from capevo.runtime.governance import box, cap, force, zone  # noqa: F401 - registers the built-in kinds
+from capevo.runtime.governance import (  # noqa: F401 - registers the built-in kinds
+    box,
+    cap,
+    force,
+    guard,
+    obstacle,
+    ramp,
+    reach,
+    separation,
+    surface,
+    zone,
+)
 from capevo.runtime.governance.base import CONSTRAINTS, Constraint, build, constraint_kinds, prefixed
 from capevo.runtime.state import ActionLayout
 
@@ -94,6 +105,21 @@ class Phi:
     def default(cls) -> Phi:
         """The paper's envelope, from the packaged ``default_phi.yaml``."""
         return _default()
+
+    @classmethod
+    def for_task(cls, task: Any, base: Phi | None = None) -> Phi:
+        """The paper's envelope (or ``base``) plus the task's scene: see :mod:`capevo.runtime.governance.task_phi`.
+
+        Args:
+            task: A task name or id (``"T1"``, ``"pick"``), a ``TaskSpec`` or a ``TaskEnv``.
+            base: The envelope to extend; default :meth:`default`.
+
+        Raises:
+            Invalid: for an unknown task.
+        """
+        from capevo.runtime.governance.task_phi import phi_for_task
+
+        return phi_for_task(task, base)
 
     @property
     def labels(self) -> tuple[str, ...]:

@@ -20,16 +20,62 @@ Invariants:
    after a hard reset replaces the simulation.
 3. :func:`robot_state` and :func:`action_frames` list arms robot by robot, each robot's arms
    in ``robot.arms`` order: the order of robosuite's flat action vector.
-4. :func:`action_frames` entries within 1e-9 of -1, 0 or 1 are snapped to them, so the
+4. :func:`sensor_contact_force` with a :class:`ForceSensor` resolved once gives exactly what
+   :func:`eef_contact_force` gives (which resolves it on every call).
+5. :func:`action_frames` entries within 1e-9 of -1, 0 or 1 are snapped to them, so the
    right-angle mountings robosuite uses rotate actions exactly (no 1e-17 residues).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
-from capevo.runtime.state import ArmState, RobotState
+from capevo.runtime.governance.pose import ArmPose
+from capevo.runtime.state import RobotState
+
+
+@dataclass(frozen=True, slots=True)
+class ForceSensor:
+    """Where one hand's ``force_ee`` sensor lives in a compiled model: resolve once, read every step."""
+
+    adr: int
+    """Index of the sensor's first value in ``data.sensordata``."""
+    site: int
+    """The sensor's site (its frame)."""
+    mass: float
+    """Subtree mass hanging from the sensor's body, kg."""
+
+
+def force_sensor(robot: Any, arm: str) -> ForceSensor:
+    """Resolve ``robot``'s ``force_ee`` sensor of ``arm`` (valid until a hard reset rebuilds the model)."""
+    model = robot.sim.model
+    sensor = model.sensor_name2id(robot.gripper[arm].important_sensors["force_ee"])
+    site = int(model.sensor_objid[sensor])
+    return ForceSensor(
+        adr=int(model.sensor_adr[sensor]), site=site, mass=float(model.body_subtreemass[int(model.site_bodyid[site])])
+    )
+
+
+def sensor_contact_force(data: Any, sensor: ForceSensor, gravity: Sequence[float]) -> tuple[float, float, float]:
+    """The contact force on the hand from ``sensor``'s reading in MuJoCo ``data``, newtons, world frame.
+
+    Args:
+        data: ``MjData`` (or robosuite's wrapper of it).
+        sensor: From :func:`force_sensor`.
+        gravity: The model's gravity vector.
+    """
+    a = sensor.adr
+    sx, sy, sz = data.sensordata[a : a + 3].tolist()
+    r = data.site_xmat[sensor.site].tolist()  # row-major 3x3, site frame to world frame
+    gx, gy, gz = gravity
+    m = sensor.mass
+    return (
+        -(r[0] * sx + r[1] * sy + r[2] * sz) - m * gx,
+        -(r[3] * sx + r[4] * sy + r[5] * sz) - m * gy,
+        -(r[6] * sx + r[7] * sy + r[8] * sz) - m * gz,
+    )
 
 
 def eef_contact_force(robot: Any, arm: str) -> tuple[float, float, float]:
@@ -43,19 +89,12 @@ def eef_contact_force(robot: Any, arm: str) -> tuple[float, float, float]:
         ``(fx, fy, fz)`` as plain floats.
     """
     sim = robot.sim
-    model, data = sim.model, sim.data
-    sensor = model.sensor_name2id(robot.gripper[arm].important_sensors["force_ee"])
-    adr = int(model.sensor_adr[sensor])
-    site = int(model.sensor_objid[sensor])
-    mass = float(model.body_subtreemass[int(model.site_bodyid[site])])
-    sx, sy, sz = data.sensordata[adr : adr + 3].tolist()
-    r = data.site_xmat[site].tolist()  # row-major 3x3, site frame to world frame
-    gx, gy, gz = model.opt.gravity.tolist()
-    return (
-        -(r[0] * sx + r[1] * sy + r[2] * sz) - mass * gx,
-        -(r[3] * sx + r[4] * sy + r[5] * sz) - mass * gy,
-        -(r[6] * sx + r[7] * sy + r[8] * sz) - mass * gz,
-    )
+    return sensor_contact_force(sim.data, force_sensor(robot, arm), sim.model.opt.gravity.tolist())
+
+
+def eef_rotation(robot: Any, arm: str) -> tuple[float, ...]:
+    """Rotation of the end-effector site to the world frame, row-major 9 floats."""
+    return tuple(robot.sim.data.site_xmat[robot.eef_site_id[arm]].tolist())
 
 
 def eef_position(robot: Any, arm: str) -> tuple[float, float, float]:
@@ -65,10 +104,17 @@ def eef_position(robot: Any, arm: str) -> tuple[float, float, float]:
 
 
 def robot_state(robots: Sequence[Any]) -> RobotState:
-    """Governance's view of every arm of ``robots`` (``env.robots``), in action-vector order."""
+    """Governance's view of every arm of ``robots`` (``env.robots``), in action-vector order.
+
+    Each arm is an :class:`~capevo.runtime.governance.pose.ArmPose` (position, force, orientation).
+    """
     return RobotState(
         arms=tuple(
-            ArmState(eef_pos=eef_position(robot, arm), eef_force=eef_contact_force(robot, arm))
+            ArmPose(
+                eef_pos=eef_position(robot, arm),
+                eef_force=eef_contact_force(robot, arm),
+                eef_rot=eef_rotation(robot, arm),  # type: ignore[arg-type]
+            )
             for robot in robots
             for arm in robot.arms
         )

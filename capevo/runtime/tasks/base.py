@@ -37,7 +37,9 @@ import gymnasium as gym
 import numpy as np
 
 from capevo.errors import Invalid
-from capevo.runtime.state import ArmState, RobotState
+from capevo.runtime.governance.pose import ArmPose
+from capevo.runtime.governance.robosuite_state import force_sensor, sensor_contact_force
+from capevo.runtime.state import RobotState
 from capevo.runtime.tasks.perturbations import EpisodeRngs, Perturbations
 from capevo.runtime.tasks.spec import TaskSpec
 
@@ -92,13 +94,6 @@ class Movable:
     x_bounds: tuple[float, float]
     y_bounds: tuple[float, float]
     """World-frame bounds the jittered centre is clipped into (bin or reachable table area)."""
-
-
-@dataclass(frozen=True, slots=True)
-class _ForceSensor:
-    adr: int
-    site: int
-    subtree_mass: float
 
 
 class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -177,7 +172,7 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         self._data = self._sim.data._data
         self._bind()
         self._eef_sites = tuple(int(r.eef_site_id["right"]) for r in self._env.robots)
-        self._force_sensors = tuple(self._force_sensor(r) for r in self._env.robots)
+        self._force_sensors = tuple(force_sensor(r, "right") for r in self._env.robots)
         self._gravity = tuple(float(g) for g in self._model.opt.gravity)
 
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(spec.action_layout.dim,), dtype=np.float32)
@@ -361,43 +356,29 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         )
 
     def robot_state(self) -> RobotState:
-        """Each arm's end-effector position and external force, world frame, plain floats.
+        """Each arm's end-effector position, external force and orientation, world frame, plain floats.
 
         The force is the robot's wrist force sensor (MuJoCo ``force`` sensor at the gripper's
         ``ft_frame``) rotated to the world frame with the static weight of everything below the
-        sensor removed: the force the environment exerts on the end effector, about 0 in free
-        motion, plus inertial terms while accelerating and the weight of a held object.
+        sensor removed (:func:`capevo.runtime.governance.robosuite_state.sensor_contact_force`):
+        the force the environment exerts on the end effector, about 0 in free motion, plus
+        inertial terms while accelerating and the weight of a held object. Arms are
+        :class:`~capevo.runtime.governance.pose.ArmPose`: an ``ArmState`` plus the end-effector
+        site's rotation, which governance uses for the hand's extent.
         """
         d = self._data
         arms = []
         for i, site in enumerate(self._eef_sites):
-            p = d.site_xpos[site]
-            arms.append(ArmState(eef_pos=(float(p[0]), float(p[1]), float(p[2])), eef_force=self._arm_force(i)))
+            x, y, z = d.site_xpos[site].tolist()
+            arms.append(
+                ArmPose(eef_pos=(x, y, z), eef_force=self._arm_force(i), eef_rot=tuple(d.site_xmat[site].tolist()))
+            )
         return RobotState(arms=tuple(arms))
 
     # ------------------------------------------------------------------ helpers
 
     def _arm_force(self, arm: int) -> tuple[float, float, float]:
-        s = self._force_sensors[arm]
-        d = self._data
-        f = d.sensordata[s.adr : s.adr + 3]
-        r = d.site_xmat[s.site]
-        # sensor reads the force the parent exerts on the sensor's subtree, in the site frame
-        fx = r[0] * f[0] + r[1] * f[1] + r[2] * f[2]
-        fy = r[3] * f[0] + r[4] * f[1] + r[5] * f[2]
-        fz = r[6] * f[0] + r[7] * f[1] + r[8] * f[2]
-        m = s.subtree_mass
-        gx, gy, gz = self._gravity
-        return (float(-fx - m * gx), float(-fy - m * gy), float(-fz - m * gz))
-
-    def _force_sensor(self, robot: Any) -> _ForceSensor:
-        name = robot.gripper["right"].important_sensors["force_ee"]
-        sid = self._sim.model.sensor_name2id(name)
-        site = int(self._model.sensor_objid[sid])
-        body = int(self._model.site_bodyid[site])
-        return _ForceSensor(
-            adr=int(self._model.sensor_adr[sid]), site=site, subtree_mass=float(self._model.body_subtreemass[body])
-        )
+        return sensor_contact_force(self._data, self._force_sensors[arm], self._gravity)
 
     def _raw_observations(self) -> dict[str, Any]:
         # Relative-pose observables read other observables from robosuite's cache, which is empty

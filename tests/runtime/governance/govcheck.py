@@ -11,7 +11,20 @@ from collections.abc import Sequence
 
 from hypothesis import strategies as st
 
-from capevo.runtime.governance import ContactForce, ForbiddenZone, Phi, VelocityCap, WorkspaceBox
+from capevo.runtime.governance import (
+    ArmSeparation,
+    ContactForce,
+    ForbiddenZone,
+    ForceRamp,
+    ObstacleApproach,
+    Phi,
+    ReachLimit,
+    SurfaceApproach,
+    VelocityCap,
+    WorkspaceBox,
+    WorkspaceGuard,
+)
+from capevo.runtime.governance.pose import DOWN, ArmPose
 from capevo.runtime.state import ActionLayout, ArmState, RobotState
 
 FINITE = st.floats(allow_nan=False, allow_infinity=False)
@@ -114,7 +127,150 @@ def violations(
                         above = p[k] > centre if inside else p[k] > z.high[k]
                         if (below and a[o + k] > tol) or (above and a[o + k] < -tol):
                             out.append(f"{c.label}: arm {i} moves into a zone along {k}")
+            elif isinstance(c, WorkspaceGuard):
+                near = False
+                for k in range(3):
+                    for d, s in ((c.high[k] - p[k], 1.0), (p[k] - c.low[k], -1.0)):
+                        if d <= c.margin:
+                            near = True
+                        if d < c.margin + c.brake or d <= c.margin:
+                            bound = max(0.0, (d - c.margin) / c.brake) if c.brake > 0 else 0.0
+                            if a[o + k] * s > bound + tol:
+                                out.append(f"{c.label}: arm {i} outward {a[o + k] * s} > {bound} along {k}")
+                if c.freeze_rotation and near and any(a[o + j] != 0.0 for j in (3, 4, 5)):
+                    out.append(f"{c.label}: arm {i} turns within the margin")
+            elif isinstance(c, ForceRamp):
+                n = math.hypot(*f)
+                if c.soft_from < n <= c.max_force:
+                    bound = c.speed * (c.max_force - n) / (c.max_force - c.soft_from)
+                    for k in range(3):
+                        if a[o + k] * f[k] < 0 and abs(a[o + k]) > bound + tol:
+                            out.append(f"{c.label}: arm {i} pushes {a[o + k]} into a {n} N contact along {k}")
+                elif n > c.max_force:
+                    for k in range(3):
+                        if f[k] != 0.0 and a[o + k] * math.copysign(1.0, f[k]) < -tol:
+                            out.append(f"{c.label}: arm {i} pushes into a {n} N contact along {k}")
+            elif isinstance(c, SurfaceApproach):
+                rot = arm_rot(arm)
+                low = min(
+                    (sum(rot[6 + j] * corner[j] for j in range(3)) for box in c.hand for corner in corners(box)),
+                    default=0.0,
+                )
+                gap = p[2] + low - (c.height + c.clearance)
+                if gap < c.brake or gap <= 0:
+                    q = max(0.0, gap) / c.brake if c.brake > 0 else 0.0
+                    if a[o + 2] < -q - tol:
+                        out.append(f"{c.label}: arm {i} descends {a[o + 2]} with bound {q}")
+                    if c.rotation and any(abs(action[o + j]) > q + tol for j in (3, 4, 5)):
+                        out.append(f"{c.label}: arm {i} turns faster than {q} near the surface")
+            elif isinstance(c, ReachLimit):
+                centre = c.centres[i]
+                v = [p[k] - centre[k] for k in range(3)]
+                r = math.sqrt(sum(x * x for x in v))
+                rho = math.hypot(v[0], v[1])
+                column = c.min_radius > 0 and rho < c.min_radius + c.margin + c.brake
+                d = c.max_radius - r
+                if r > 0 and not column and (d < c.margin + c.brake or d <= c.margin):
+                    q = max(0.0, (d - c.margin) / c.brake) if c.brake > 0 else 0.0
+                    bound = q * r / sum(abs(x) for x in v)
+                    for k in range(3):
+                        if a[o + k] * v[k] > 0 and abs(a[o + k]) > bound + tol:
+                            out.append(f"{c.label}: arm {i} moves out {a[o + k]} > {bound} along {k} at r={r}")
+                d = rho - c.min_radius
+                if c.min_radius > 0 and rho > 0 and (d < c.margin + c.brake or d <= c.margin):
+                    q = max(0.0, (d - c.margin) / c.brake) if c.brake > 0 else 0.0
+                    bound = q * rho / (abs(v[0]) + abs(v[1]))
+                    for k in range(2):
+                        if a[o + k] * v[k] < 0 and abs(a[o + k]) > bound + tol:
+                            out.append(f"{c.label}: arm {i} moves towards its column {a[o + k]} > {bound}")
+            elif isinstance(c, ObstacleApproach):
+                if c.arm is not None and c.arm != i:
+                    continue
+                hl, hh = hand_box(c.hand, arm)
+                q_rot = math.inf
+                for box in c.boxes:
+                    s_, side = separation((hl, hh), (box.low, box.high))
+                    dist = math.sqrt(sum(x * x for x in s_))
+                    if not (dist < c.clearance + c.brake or dist <= c.clearance):
+                        continue
+                    q = max(0.0, dist - c.clearance) / c.brake if c.brake > 0 else 0.0
+                    q_rot = min(q_rot, q)
+                    if dist > 0:
+                        bound = q * dist / sum(s_)
+                        for k in range(3):
+                            if side[k] and a[o + k] * side[k] > 0 and abs(a[o + k]) > bound + tol:
+                                out.append(f"{c.label}: arm {i} approaches an obstacle {a[o + k]} > {bound}")
+                    else:
+                        for k in range(3):
+                            mid, centre = (hl[k] + hh[k]) / 2, (box.low[k] + box.high[k]) / 2
+                            if (a[o + k] > tol and mid < centre) or (a[o + k] < -tol and mid > centre):
+                                out.append(f"{c.label}: arm {i} moves into an obstacle along {k}")
+                if c.rotation and any(abs(action[o + j]) > q_rot + tol for j in (3, 4, 5)):
+                    out.append(f"{c.label}: arm {i} turns faster than {q_rot} near an obstacle")
+        if isinstance(c, ArmSeparation):
+            out.extend(_separation_violations(c, layout, state, a, action, tol))
     return out
+
+
+def _separation_violations(
+    c: ArmSeparation, layout: ActionLayout, state: RobotState, a: list[float], action: Sequence[float], tol: float
+) -> list[str]:
+    out: list[str] = []
+    boxes = [hand_box(c.hands[i], arm) for i, arm in enumerate(state.arms)]
+    n = len(state.arms)
+    for i in range(n):
+        for j in range(i + 1, n):
+            s_, side = separation(boxes[i], boxes[j])
+            dist = math.sqrt(sum(x * x for x in s_))
+            if not (dist < c.clearance + c.brake or dist <= c.clearance):
+                continue
+            q = max(0.0, dist - c.clearance) / c.brake if c.brake > 0 else 0.0
+            if dist > 0:
+                bound, rb = max(c.floor, q * dist / sum(s_)), max(c.floor, q)
+            else:
+                bound = rb = c.floor
+                ci = [(lo + hi) / 2 for lo, hi in zip(*boxes[i], strict=True)]
+                cj = [(lo + hi) / 2 for lo, hi in zip(*boxes[j], strict=True)]
+                side = [1 if cj[k] > ci[k] else -1 if cj[k] < ci[k] else 0 for k in range(3)]
+            for arm_index, sign in ((i, 1), (j, -1)):
+                o = layout.arms[arm_index].offset
+                for k in range(3):
+                    if side[k] and a[o + k] * side[k] * sign > 0 and abs(a[o + k]) > bound + tol:
+                        out.append(f"{c.label}: arm {arm_index} approaches arm {j if arm_index == i else i}")
+                if c.rotation and any(abs(action[o + m]) > rb + tol for m in (3, 4, 5)):
+                    out.append(f"{c.label}: arm {arm_index} turns faster than {rb} near the other hand")
+    return out
+
+
+def arm_rot(arm: ArmState) -> tuple[float, ...]:
+    return arm.eef_rot if isinstance(arm, ArmPose) else DOWN
+
+
+def corners(box) -> list[tuple[float, float, float]]:
+    return [(x, y, z) for x in (box.low[0], box.high[0]) for y in (box.low[1], box.high[1]) for z in (box.low[2], box.high[2])]
+
+
+def hand_box(hand, arm: ArmState) -> tuple[list[float], list[float]]:
+    """World box of every turned corner of ``hand`` around ``arm``'s end effector (brute force over corners)."""
+    rot, p = arm_rot(arm), arm.eef_pos
+    pts = [
+        [p[k] + sum(rot[3 * k + j] * corner[j] for j in range(3)) for k in range(3)]
+        for box in hand
+        for corner in corners(box)
+    ] or [list(p)]
+    return [min(q[k] for q in pts) for k in range(3)], [max(q[k] for q in pts) for k in range(3)]
+
+
+def separation(first, second) -> tuple[list[float], list[int]]:
+    """Per-axis gap between two boxes and the side (+1: ``first`` is below ``second`` on that axis)."""
+    (l1, h1), (l2, h2) = first, second
+    s, side = [0.0, 0.0, 0.0], [0, 0, 0]
+    for k in range(3):
+        if h1[k] < l2[k]:
+            s[k], side[k] = l2[k] - h1[k], 1
+        elif h2[k] < l1[k]:
+            s[k], side[k] = l1[k] - h2[k], -1
+    return s, side
 
 
 def finite_state(state: RobotState) -> bool:

@@ -1,0 +1,258 @@
+"""``capevo learner ...``: run a learner worker that improves one ECM and pushes candidates.
+
+Usage::
+
+    capevo learner serve --connect tcp/127.0.0.1:7447 --ecm pick.reach --modality rl \\
+        [--task T1] [--preset tiny|cpu-small|paper] [--traces DIR]... [--once] [--json]
+
+Invariants:
+1. ``serve --once`` exits 0 after publishing one candidate; without ``--once`` it exits 0 after
+   SIGTERM or SIGINT once the registry session is closed.
+2. With ``--json`` every line ``serve`` prints on stdout is one JSON object with an ``event``
+   field (``ready``, ``waiting``, ``trigger``, ``training``, ``published``, ``unchanged``,
+   ``abandoned``, ``error``, ``stopped``); logs and progress bars go to stderr.
+3. Errors follow the ``capevo`` convention: one ``error [code]: message`` line on stderr and the
+   code's exit status; the password is never printed.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+import click
+
+from capevo.cli import _SEEN_PASSWORDS, DEFAULT_NAMESPACE, CapevoGroup
+from capevo.errors import Invalid
+
+
+@click.group(cls=CapevoGroup, context_settings={"help_option_names": ["-h", "--help"]})
+def learner() -> None:
+    """Learner workers: improve an ECM (rl, il, code, hybrid) and publish candidates."""
+
+
+def _remember(password: str | None) -> str | None:
+    if password:
+        _SEEN_PASSWORDS.add(password)
+    return password or None
+
+
+@learner.command("serve")
+@click.option(
+    "--connect",
+    multiple=True,
+    metavar="ENDPOINT",
+    envvar="CAPEVO_CONNECT",
+    help="Zenoh endpoint of the registry, e.g. tcp/127.0.0.1:7447; repeatable (env CAPEVO_CONNECT).",
+)
+@click.option(
+    "--root",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="Use the registry directory ROOT in-process instead of --connect.",
+)
+@click.option(
+    "--namespace",
+    default=DEFAULT_NAMESPACE,
+    envvar="CAPEVO_NAMESPACE",
+    show_default=True,
+    help="Zenoh key prefix of the registry (env CAPEVO_NAMESPACE).",
+)
+@click.option("--user", envvar="CAPEVO_USER", default=None, help="Zenoh user (env CAPEVO_USER).")
+@click.option(
+    "--password",
+    envvar="CAPEVO_PASSWORD",
+    default=None,
+    show_envvar=False,
+    help="Zenoh password (env CAPEVO_PASSWORD; prefer the env var; never echoed).",
+)
+@click.option("--ecm", required=True, help="The ECM to improve, e.g. pick.reach.")
+@click.option(
+    "--modality",
+    type=click.Choice(["rl", "il", "code", "hybrid"]),
+    required=True,
+    help="rl: SAC; il: behaviour cloning; code: CEM over PARAMS; hybrid: LLM edit + CEM.",
+)
+@click.option("--task", default=None, help="Task (T1..T6 or its name). [default: the ECM name's prefix]")
+@click.option(
+    "--preset",
+    type=click.Choice(["tiny", "cpu-small", "paper"]),
+    default="cpu-small",
+    show_default=True,
+    help="Training budget.",
+)
+@click.option(
+    "--traces",
+    "traces",
+    multiple=True,
+    type=click.Path(path_type=Path),
+    help="Trace file or directory of *.mcap to learn from and to watch; repeatable.",
+)
+@click.option(
+    "--work-dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="Scratch directory (code learners' evaluation traces). [default: a temporary one]",
+)
+@click.option("--learner-id", default=None, help="Recorded in provenance. [default: <modality>-<host>-<pid>-<rand>]")
+@click.option("--once", is_flag=True, help="Do one update now, publish it and exit.")
+@click.option(
+    "--min-episodes",
+    type=click.IntRange(min=0),
+    default=20,
+    show_default=True,
+    help="Update after this many new episodes of the active version (0: off).",
+)
+@click.option(
+    "--window", type=click.IntRange(min=1), default=20, show_default=True, help="Episodes per success-rate window."
+)
+@click.option(
+    "--margin",
+    type=click.FloatRange(min=0.0, max=1.0),
+    default=0.2,
+    show_default=True,
+    help="Update when the success rate drops by this much between two windows (0: off).",
+)
+@click.option(
+    "--poll", type=click.FloatRange(min=0.01), default=5.0, show_default=True, help="Seconds between trace scans."
+)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seeds the learner.")
+@click.option("--no-perturbations", is_flag=True, help="Train on the clean task (no jitter, noise or dropped actions).")
+@click.option(
+    "--progress/--no-progress",
+    default=None,
+    help="Show training progress bars on stderr. [default: when stderr is a terminal]",
+)
+@click.option(
+    "--torch-threads", type=click.IntRange(min=1), default=1, show_default=True, help="CPU threads for torch."
+)
+@click.option(
+    "--timeout",
+    type=click.FloatRange(min=0.01),
+    default=10.0,
+    envvar="CAPEVO_TIMEOUT",
+    show_default=True,
+    help="Seconds to wait for each registry reply.",
+)
+@click.option(
+    "--log-level",
+    type=click.Choice(["DEBUG", "INFO", "WARNING", "ERROR"], case_sensitive=False),
+    default="WARNING",
+    show_default=True,
+    help="Log level (logs go to stderr).",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON event per line.")
+def serve_cmd(
+    connect: tuple[str, ...],
+    root: Path | None,
+    namespace: str,
+    user: str | None,
+    password: str | None,
+    ecm: str,
+    modality: str,
+    task: str | None,
+    preset: str,
+    traces: tuple[Path, ...],
+    work_dir: Path | None,
+    learner_id: str | None,
+    once: bool,
+    min_episodes: int,
+    window: int,
+    margin: float,
+    poll: float,
+    seed: int,
+    no_perturbations: bool,
+    progress: bool | None,
+    torch_threads: int,
+    timeout: float,
+    log_level: str,
+    as_json: bool,
+) -> None:
+    """Improve --ecm with --modality and publish candidates to the registry for gating.
+
+    With --once: pull the active version and the experience, train, publish one candidate,
+    exit. Otherwise watch --traces for new episodes of the active version and registry events,
+    and update whenever the trigger fires (--min-episodes new episodes, or a success-rate drop
+    of --margin between two --window windows), until SIGTERM.
+    """
+    from capevo.learner.bc import default_learner_id
+    from capevo.learner.trigger import TriggerConfig
+    from capevo.learner.worker import LearnerConfig, LearnerWorker
+    from capevo.registry.open import open_registry
+    from capevo.registry.zconfig import split_endpoints
+    from capevo.runtime.tasks import Perturbations
+
+    logging.basicConfig(
+        level=log_level.upper(), stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    endpoints = split_endpoints(connect)
+    if (root is None) == (not endpoints):
+        raise Invalid("give exactly one of --connect ENDPOINT or --root DIR", details={"field": "connect"})
+    secret = _remember(password)
+    config = LearnerConfig(
+        ecm=ecm,
+        modality=modality,
+        task=task,
+        preset=preset,
+        learner_id=learner_id or default_learner_id(modality),
+        traces=tuple(traces),
+        work_dir=work_dir,
+        once=once,
+        trigger=TriggerConfig(min_new_episodes=min_episodes or None, window=window, degradation_margin=margin or None),
+        poll_interval_s=poll,
+        perturbations=Perturbations.none() if no_perturbations else Perturbations(),
+        seed=seed,
+        progress_bar=sys.stderr.isatty() if progress is None else progress,
+        torch_threads=torch_threads,
+    )
+
+    def open_it() -> Any:
+        if root is not None:
+            return open_registry(root=root, actor=config.learner_id)
+        return open_registry(
+            connect=endpoints,
+            namespace=namespace,
+            user=user or None,
+            password=secret,
+            timeout=timeout,
+            actor=config.learner_id,
+        )
+
+    def show(event: dict[str, Any]) -> None:
+        click.echo(json.dumps(event, default=str) if as_json else _human(event))
+        sys.stdout.flush()
+
+    worker = LearnerWorker(config, open_it, emit=show)
+    worker.run(handle_signals=True)
+
+
+def _human(event: dict[str, Any]) -> str:
+    kind = event.get("event")
+    lid = event.get("learner_id", "")
+    if kind == "ready":
+        return (
+            f"[{lid}] ready: {event.get('modality')} learner for {event.get('ecm')} ({event.get('task')}), "
+            f"preset {event.get('preset')}{', one update' if event.get('once') else ''}"
+        )
+    if kind == "training":
+        return (
+            f"[{lid}] training {event.get('ecm')} from v{event.get('parent')} ({event.get('parent_kind')}) "
+            f"because {event.get('reason')}"
+        )
+    if kind == "published":
+        prov = event.get("provenance") or {}
+        return (
+            f"[{lid}] published {event.get('ecm')} v{event.get('version')} ({event.get('origin')}, parent "
+            f"v{event.get('parent')}, config {str(prov.get('config_hash', ''))[:12]}) as a candidate"
+        )
+    if kind == "trigger":
+        return f"[{lid}] trigger: {event.get('reason')} after {event.get('new_episodes')} new episodes"
+    rest = {k: v for k, v in event.items() if k not in ("event", "learner_id")}
+    return f"[{lid}] {kind}: {json.dumps(rest, default=str)}"
+
+
+if __name__ == "__main__":
+    learner(prog_name="capevo learner")

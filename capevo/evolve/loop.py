@@ -1,0 +1,716 @@
+"""The closed loop: execute -> collect experience -> learn a new version -> gate -> promote or roll back.
+
+One :class:`EvolutionLoop` evolves the ECMs of one task for a number of iterations while the
+persistent agent A = (π_A, M_id, M_ep) stays fixed. Iteration i:
+
+0. ``agent.begin_iteration(i)``: the identity hash is recomputed and compared with start-up
+   (a change raises :class:`IdentityViolation` and stops the run); Δπ is recorded and must be
+   exactly 0.
+1. **Execute**: ``live_episodes`` episodes on fresh live seeds (:meth:`SeedPlan.live`) with the
+   capability set active when the iteration started, every action through governance, each
+   call's episodes written to one MCAP trace. Each episode is appended to M_ep, and the
+   :class:`~capevo.runtime.monitor.DegradationMonitor` sees it (it rolls back a promoted
+   version whose live success falls below its gate evidence).
+2. **Collect**: the traces of those episodes are the experience.
+3. **Update**: :func:`~capevo.learner.experience.pick_ecm_to_update` names the ECM where
+   failed episodes most often ended; the updater of the modality learns a candidate on
+   training seeds only; it is published (origin, parent and provenance from the learner).
+   A candidate already waiting in the registry (published by a learner worker, or left by an
+   interrupted run) is gated instead of learning another.
+4. **Gate**: :class:`~capevo.runtime.gate.Gate` runs the active and the candidate version on
+   the same fresh held-out gate seeds (:meth:`SeedPlan.gate`, round i), records the evidence
+   in the registry and promotes (guarded by ``expected_active``) or rejects.
+5. **Record**: one :class:`~capevo.evolve.metrics.IterationMetrics` row is appended durably.
+
+After the last iteration the final capability set runs once more on iteration 0's live seeds
+(the start-vs-final comparison of the report), and the report directory is written.
+
+Resuming: finished iterations are the rows of ``metrics.jsonl``; the next run with the same
+report directory and registry skips them and redoes the first unfinished one. The journal
+(:mod:`capevo.evolve.state`) keeps a redone iteration exact: its live episodes run the
+capability set the first attempt started with (same seeds, so the same outcomes), episodes
+already in M_ep are not appended twice, a candidate the first attempt published is gated
+rather than learned again, and a decision already taken is read back from the registry.
+
+Invariants:
+1. The identity hash is checked at the start of every iteration and of every resumed run; Δπ
+   of every recorded iteration is exactly 0.0.
+2. Every candidate the loop publishes is gated within the same iteration (unless the run is
+   interrupted); every gate decision is preceded by a ``gate`` audit event with its evidence.
+3. Learners see training seeds only; gate seeds are held out (the gate refuses others); live
+   seeds of different iterations are disjoint.
+4. ``metrics.jsonl`` has one row per finished iteration, 0..k-1, never a row for an
+   unfinished one; an iteration's row is written after its gate decision is in the registry.
+5. Redoing an interrupted iteration appends no episode to M_ep twice.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from capevo.agent import EpisodeRecord, PersistentAgent
+from capevo.errors import CapevoError, Conflict, IdentityViolation, NotFound, Unavailable
+from capevo.evolve.config import NEURAL_MODALITIES, EvolveConfig
+from capevo.evolve.learners import Proposal, Updater, UpdateRequest, waiting_candidates
+from capevo.evolve.metrics import GateSummary, IterationMetrics, MetricsLog, outcome_stats
+from capevo.evolve.progress import ProgressSink, RecordingProgress
+from capevo.evolve.state import Journal, RunManifest, load_manifest, save_manifest
+from capevo.registry.api import Registry
+from capevo.registry.records import EcmVersion, State
+from capevo.runtime.evaluation import EpisodeOutcome, Evaluator
+from capevo.runtime.gate import Gate, SeedPlan
+from capevo.runtime.monitor import DegradationMonitor
+from capevo.runtime.tasks import task_spec
+
+log = logging.getLogger(__name__)
+
+ACTOR = "evolve"
+"""Audit actor of the loop's own registry mutations (v0 creation, publishing candidates)."""
+GATE_ACTOR = "evolve-gate"
+MONITOR_ACTOR = "evolve-monitor"
+TRACE_PHASES = ("live", "gate", "final")
+
+
+# --- version 0 ----------------------------------------------------------------------------
+
+
+def ensure_v0(
+    registry: Registry, task: str, *, modality: str, net_arch: Sequence[int] = (256, 256), seed: int = 0
+) -> list[EcmVersion]:
+    """Create version 0 of every ECM of ``task`` the registry lacks, and make it active.
+
+    This is the paper's *manual creation*: code ECMs get the built-in parametric skills with
+    their untuned parameters (:func:`capevo.learner.skills.seed_specs`), neural ECMs (``rl``,
+    ``il``) randomly initialised SAC policies (:func:`capevo.learner.neural_seed.seed_policy`).
+    Both are published with origin ``manual`` and promoted without a gate. An ECM that exists
+    but has no active version (seeding interrupted between publish and promote) gets its
+    latest manual candidate promoted.
+
+    Returns:
+        The versions created or promoted now (empty when every ECM already had an active one).
+    """
+    spec = task_spec(task)
+    existing = {s.name: s for s in registry.list_ecms()}
+    missing = [n for n in spec.ecm_names if n not in existing]
+    out: list[EcmVersion] = []
+    if missing:
+        if modality in NEURAL_MODALITIES:
+            from capevo.learner.neural_seed import seed_neural_registry
+
+            out.extend(
+                seed_neural_registry(
+                    registry,
+                    spec.name,
+                    ecms=missing,
+                    net_arch=net_arch,
+                    seed=seed,
+                    reason="v0: manual creation (randomly initialised neural policy)",
+                )
+            )
+        else:
+            from capevo.learner.skills import seed_registry
+
+            out.extend(seed_registry(registry, spec.name, reason="v0: manual creation (built-in untuned skill)"))
+    for name in spec.ecm_names:
+        if name in missing:
+            continue
+        if existing[name].active_version is None:
+            manual = [
+                v for v in registry.get_ecm(name).versions if v.state is State.CANDIDATE and v.origin.value == "manual"
+            ]
+            if manual:
+                out.append(
+                    registry.promote(name, manual[-1].version, reason="v0: manual creation (completing a seeding)")
+                )
+    return out
+
+
+def task_capability_set(registry: Registry, task: str) -> dict[str, int]:
+    """The active version of each ECM of ``task``.
+
+    Raises:
+        NotFound: an ECM of the task has no active version.
+    """
+    active = registry.capability_set().active
+    names = task_spec(task).ecm_names
+    missing = [n for n in names if n not in active]
+    if missing:
+        raise NotFound(f"no active version of {', '.join(missing)}", details={"missing": missing})
+    return {n: int(active[n]) for n in names}
+
+
+# --- evaluation with progress -------------------------------------------------------------
+
+
+class PhaseEvaluator:
+    """The loop's evaluator: routes each phase's traces to its own directory, counts episodes,
+    and (for remote workers) waits for a worker to appear.
+
+    Args:
+        inner: A :class:`~capevo.runtime.evaluator.LocalEvaluator` or a remote one.
+        trace_root: ``<trace_root>/<phase>/`` receives a local evaluator's traces.
+        progress: Told about every finished episode.
+        wait_for_worker_s: How long an ``Unavailable`` (no runtime worker yet) is retried.
+    """
+
+    def __init__(
+        self,
+        inner: Evaluator,
+        *,
+        trace_root: Path | None,
+        progress: ProgressSink,
+        wait_for_worker_s: float = 0.0,
+    ) -> None:
+        self.inner = inner
+        self.trace_root = trace_root
+        self.progress = progress
+        self.wait_for_worker_s = wait_for_worker_s
+        self.phase = "live"
+        self._local = hasattr(inner, "trace_dir") and hasattr(inner, "progress")
+
+    def evaluate(self, task: str, versions: Mapping[str, int], seeds: Sequence[int]) -> list[EpisodeOutcome]:
+        if self._local:
+            if self.trace_root is not None:
+                directory = self.trace_root / self.phase
+                directory.mkdir(parents=True, exist_ok=True)
+                self.inner.trace_dir = directory  # type: ignore[attr-defined]
+            self.inner.progress = lambda done, total, outcome: self.progress.episodes_done(1)  # type: ignore[attr-defined]
+        deadline = time.monotonic() + self.wait_for_worker_s
+        while True:
+            try:
+                out = list(self.inner.evaluate(task, versions, seeds))
+                break
+            except Unavailable as exc:
+                if time.monotonic() >= deadline:
+                    raise
+                log.info("no runtime worker yet (%s); retrying", exc)
+                time.sleep(1.0)
+        if not self._local:
+            self.progress.episodes_done(len(out))
+        return out
+
+
+# --- the loop -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FinalEvaluation:
+    """The final capability set on iteration 0's live seeds, next to iteration 0 itself."""
+
+    seeds: tuple[int, ...]
+    start_versions: Mapping[str, int]
+    final_versions: Mapping[str, int]
+    start: tuple[EpisodeOutcome, ...]
+    final: tuple[EpisodeOutcome, ...]
+    comparison: Mapping[str, Any] | None
+    """Paired statistics (McNemar, Tango, Wilcoxon) final vs start; None when identical sets."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class EvolveResult:
+    """What :meth:`EvolutionLoop.run` did."""
+
+    task: str
+    report_dir: Path
+    rows: tuple[IterationMetrics, ...]
+    final: FinalEvaluation | None
+    identity_hash: str
+    delta_pi: float
+    created: tuple[EcmVersion, ...]
+    """Versions 0 created by this run (empty on a resumed or pre-seeded registry)."""
+    resumed_from: int
+    """Iterations already finished when this run started."""
+    wall_s: float
+    report_files: tuple[Path, ...] = field(default_factory=tuple)
+
+
+class EvolutionLoop:
+    """The closed loop of one task (see the module docstring).
+
+    Args:
+        task: Task id or name.
+        config: Budgets.
+        registry: Where versions live (local or remote); not closed here.
+        evaluator: Runs episodes (live, gate, final): a LocalEvaluator or a RemoteEvaluator.
+        updater: Produces candidates (in-process learner or remote learners).
+        agent: The persistent agent; its episodic memory receives the live episodes.
+        report_dir: Metrics, journal, traces, report.
+        manifest: The run's fixed facts (checked against the one on disk when resuming).
+        plan: Disjoint train/gate/live seeds.
+        modality: Recorded in the report.
+        progress: Display sink.
+        trace_root: Where a local evaluator writes traces (per phase); default ``report_dir/traces``.
+        wait_for_worker_s: With remote workers, how long to wait for one to appear.
+        write_report: Write the Markdown report and plots at the end.
+
+    Raises:
+        IdentityViolation, Invalid: the report directory holds a run that cannot be continued.
+    """
+
+    def __init__(
+        self,
+        *,
+        task: str,
+        config: EvolveConfig,
+        registry: Registry,
+        evaluator: Evaluator,
+        updater: Updater,
+        agent: PersistentAgent,
+        report_dir: Path,
+        manifest: RunManifest,
+        plan: SeedPlan,
+        modality: str,
+        progress: ProgressSink | None = None,
+        trace_root: Path | None = None,
+        wait_for_worker_s: float = 0.0,
+        write_report: bool = True,
+        created: Sequence[EcmVersion] = (),
+    ) -> None:
+        self.spec = task_spec(task)
+        self.task = self.spec.name
+        self.config = config
+        self.registry = registry
+        self.updater = updater
+        self.agent = agent
+        self.report_dir = Path(report_dir)
+        self.report_dir.mkdir(parents=True, exist_ok=True)
+        self.plan = plan
+        self.modality = modality
+        self.progress: ProgressSink = progress if progress is not None else RecordingProgress()
+        self.write_report = write_report
+        self.created = tuple(created)
+        on_disk = load_manifest(self.report_dir)
+        if on_disk is not None:
+            on_disk.check_resume(manifest)
+            self.manifest = on_disk
+        else:
+            save_manifest(self.report_dir, manifest)
+            self.manifest = manifest
+        self.metrics = MetricsLog(self.report_dir)
+        self.journal = Journal(self.report_dir)
+        self.evaluator = PhaseEvaluator(
+            evaluator,
+            trace_root=trace_root if trace_root is not None else self.report_dir / "traces",
+            progress=self.progress,
+            wait_for_worker_s=wait_for_worker_s,
+        )
+        self.monitor_actions: list[dict[str, Any]] = []
+        self.monitor = DegradationMonitor(
+            registry,  # type: ignore[arg-type]
+            config=config.monitor,
+            actor=MONITOR_ACTOR,
+            on_action=lambda a: self.monitor_actions.append(a.to_dict()),
+        )
+        self.gate = Gate(
+            registry,  # type: ignore[arg-type]
+            self.evaluator,
+            config.gate,
+            actor=GATE_ACTOR,
+            seed_plan=plan,
+            progress=self._gate_progress,
+        )
+        self._remembered = self._episodes_in_memory()
+
+    # --- helpers ---------------------------------------------------------------------------
+
+    def _episodes_in_memory(self) -> set[tuple[int, int]]:
+        try:
+            log_ = self.agent.episodic_memory.read()
+        except NotFound:
+            return set()
+        return {(r.iteration, r.seed) for r in log_.records if r.task == self.task}
+
+    def _gate_progress(self, stage: str, message: str) -> None:
+        if stage in ("decided", "promoted", "rejected"):
+            self.progress.message(f"  {message}")
+
+    # --- run -----------------------------------------------------------------------------
+
+    def run(self, *, should_stop: Callable[[], bool] | None = None) -> EvolveResult:
+        """Run (or continue) the loop to ``config.iterations`` and write the report.
+
+        Raises:
+            IdentityViolation: the agent changed (stops the run at once).
+            CapevoError: the registry or the runtime failed in a way the loop cannot absorb.
+        """
+        started = time.perf_counter()
+        resumed_from = self.metrics.completed
+        total = self.config.iterations
+        self.progress.run_started(task=self.task, total=total, completed=min(resumed_from, total))
+        if resumed_from:
+            self.progress.message(
+                f"resuming {self.task}: {resumed_from} iteration(s) already done in {self.report_dir}"
+            )
+        for i in range(resumed_from, total):
+            if should_stop is not None and should_stop():
+                break
+            self.iteration(i)
+        final = None
+        if self.config.final_evaluation and self.metrics.completed >= total and self.metrics.completed > 0:
+            final = self.final_evaluation()
+        rows = self.metrics.rows
+        result = EvolveResult(
+            task=self.task,
+            report_dir=self.report_dir,
+            rows=rows,
+            final=final,
+            identity_hash=self.agent.identity_hash,
+            delta_pi=self.agent.policy_drift(),
+            created=self.created,
+            resumed_from=resumed_from,
+            wall_s=time.perf_counter() - started,
+        )
+        if self.write_report:
+            from capevo.evolve.report import write_report
+
+            files = write_report(self.report_dir, registry=self.registry, manifest=self.manifest, final=final)
+            result = EvolveResult(**{**_fields(result), "report_files": tuple(files)})
+        return result
+
+    # --- one iteration ----------------------------------------------------------------------
+
+    def iteration(self, i: int) -> IterationMetrics:
+        """Run iteration ``i`` (or redo it after an interruption) and append its metrics row.
+
+        Raises:
+            IdentityViolation: the agent's identity changed, or Δπ is not 0.
+        """
+        t0 = time.perf_counter()
+        started_at = time.time()
+        self.progress.iteration_started(i)
+        delta_pi = self.agent.begin_iteration(i)
+        identity = self.agent.check_identity()
+        if delta_pi != 0.0:
+            raise IdentityViolation(
+                f"policy drift Δπ = {delta_pi!r} at iteration {i}: the agent's policy parameters changed",
+                details={"iteration": i, "delta_pi": delta_pi},
+            )
+        start = self.journal.last(i, "start")
+        if start is None:
+            caps = task_capability_set(self.registry, self.task)
+            start = self.journal.write(
+                "start", i, capability_set=caps, revision=self.registry.capability_set().revision
+            )
+        caps = {str(k): int(v) for k, v in start["capability_set"].items()}
+
+        # 1-2. execute and collect
+        seeds = self.plan.live(self.config.live_episodes, offset=i * self.config.live_episodes)
+        self.progress.phase("live", episodes=len(seeds))
+        self.evaluator.phase = "live"
+        t_live = time.perf_counter()
+        outcomes = self.evaluator.evaluate(self.task, caps, seeds)
+        wall_live = time.perf_counter() - t_live
+        for o in outcomes:
+            if (i, o.seed) not in self._remembered:
+                self.agent.remember(EpisodeRecord.from_outcome(iteration=i, task=self.task, outcome=o))
+                self._remembered.add((i, o.seed))
+        self.monitor_actions.clear()
+        self.monitor.observe_many(outcomes)
+        rollbacks = tuple(self.monitor_actions)
+        for r in rollbacks:
+            self.progress.message(f"  {r['reason']}")
+
+        # 3-4. update and gate
+        t_learn = time.perf_counter()
+        update = self._update(i, outcomes)
+        wall_learn = time.perf_counter() - t_learn - update.gate_s
+
+        row = IterationMetrics(
+            iteration=i,
+            started_at=started_at,
+            live=outcome_stats(outcomes),
+            live_seeds=tuple(seeds),
+            episodes=tuple(o.to_dict() for o in outcomes),
+            delta_pi=delta_pi,
+            identity_hash=identity,
+            active_versions=caps,
+            active_after=task_capability_set(self.registry, self.task),
+            ecm_updated=update.ecm,
+            candidate_version=update.version,
+            learner=update.learner,
+            learner_episodes=update.episodes,
+            learner_steps=update.steps,
+            gate=update.gate,
+            update_note=update.note,
+            rollbacks=rollbacks,
+            wall_live_s=wall_live,
+            wall_learn_s=max(wall_learn, 0.0),
+            wall_gate_s=update.gate_s,
+            wall_s=time.perf_counter() - t0,
+            traces=tuple(dict.fromkeys(o.trace_path for o in outcomes if o.trace_path)),
+        )
+        self.metrics.append(row)
+        self.progress.iteration_finished(i, _summary_line(row))
+        return row
+
+    def _update(self, i: int, outcomes: Sequence[EpisodeOutcome]) -> _Update:
+        decided = self.journal.last(i, "decided")
+        if decided is not None:
+            # The interrupted attempt got as far as the decision: read it back, do not redo it.
+            return _Update(
+                ecm=decided.get("ecm"),
+                version=decided.get("version"),
+                learner=decided.get("learner"),
+                episodes=int(decided.get("learner_episodes") or 0),
+                steps=int(decided.get("learner_steps") or 0),
+                gate=GateSummary.from_dict(decided["gate"]) if decided.get("gate") else None,
+                note=str(decided.get("note") or ""),
+            )
+        cand = self.journal.last(i, "candidate")
+        if cand is not None:
+            record = self.registry.get_version(cand["ecm"], int(cand["version"]))
+            return self._decide(
+                i,
+                record,
+                learner=cand.get("learner"),
+                episodes=cand.get("episodes", 0),
+                steps=cand.get("steps", 0),
+                note="resumed: gating the candidate the interrupted attempt published"
+                if record.state is State.CANDIDATE
+                else "resumed",
+            )
+        waiting = waiting_candidates(self.registry, self.spec.ecm_names)
+        if waiting:
+            record = waiting[0]
+            learner = record.provenance.learner_id or f"published by {record.created_by}"
+            self.journal.write("candidate", i, ecm=record.name, version=record.version, learner=learner, adopted=True)
+            return self._decide(
+                i, record, learner=learner, note=f"gated a waiting candidate published by {record.created_by}"
+            )
+        from capevo.learner.experience import pick_ecm_to_update
+
+        ecm = pick_ecm_to_update(list(outcomes), self.spec.ecm_names)
+        pick_note = ""
+        if ecm is None:
+            if all(o.success for o in outcomes):
+                return self._finish(i, _Update(note="no live episode failed: nothing to improve"))
+            # Failures but no readable trace (e.g. a remote worker's files are on another host):
+            # fix upstream first.
+            ecm = self.spec.ecm_names[0]
+            pick_note = f"no readable traces of the failed episodes; updating the first step {ecm}"
+        self.progress.message(f"  learn: {ecm} with {self.updater.name}")
+        request = UpdateRequest(
+            task=self.task, ecm=ecm, iteration=i, outcomes=tuple(outcomes), plan=self.plan, seed=self.manifest.seed
+        )
+        try:
+            proposal = self.updater.propose(request, self.progress)
+        except (IdentityViolation, KeyboardInterrupt):
+            raise
+        except CapevoError as exc:
+            log.warning("learner for %s failed: %s", ecm, exc)
+            return self._finish(i, _Update(ecm=ecm, learner=self.updater.name, note=f"learner failed: {exc}"))
+        if proposal is None:
+            return self._finish(
+                i, _Update(ecm=ecm, learner=self.updater.name, note=f"no candidate from {self.updater.name}")
+            )
+        if proposal.candidate is not None and self._same_as_parent(proposal):
+            return self._finish(
+                i,
+                _Update(
+                    ecm=ecm,
+                    learner=proposal.learner,
+                    episodes=proposal.episodes,
+                    steps=proposal.steps,
+                    note=f"{proposal.learner} found nothing better than the parent on its training seeds: "
+                    "no candidate published",
+                ),
+            )
+        record = self._publish(proposal)
+        self.journal.write(
+            "candidate",
+            i,
+            ecm=record.name,
+            version=record.version,
+            learner=proposal.learner,
+            episodes=proposal.episodes,
+            steps=proposal.steps,
+        )
+        note = pick_note
+        if proposal.notes.get("fallback"):
+            note = (note + "; " if note else "") + f"fallback: {proposal.notes['fallback']}"
+        return self._decide(
+            i, record, learner=proposal.learner, episodes=proposal.episodes, steps=proposal.steps, note=note
+        )
+
+    def _same_as_parent(self, proposal: Proposal) -> bool:
+        cand = proposal.candidate
+        if cand is None or cand.spec.parent is None:
+            return False
+        try:
+            parent = self.registry.get_version(cand.ecm, cand.spec.parent)
+        except NotFound:
+            return False
+        return parent.artifact.sha256 == hashlib.sha256(cand.artifact).hexdigest()
+
+    def _publish(self, proposal: Proposal) -> EcmVersion:
+        if proposal.record is not None:
+            return proposal.record
+        cand = proposal.candidate
+        assert cand is not None  # Proposal invariant 2
+        try:
+            return self.registry.publish(cand.ecm, cand.artifact, cand.spec, actor=ACTOR)  # type: ignore[call-arg]
+        except TypeError:
+            return self.registry.publish(cand.ecm, cand.artifact, cand.spec)
+
+    def _decide(
+        self,
+        i: int,
+        record: EcmVersion,
+        *,
+        learner: str | None,
+        episodes: int = 0,
+        steps: int = 0,
+        note: str = "",
+    ) -> _Update:
+        update = _Update(
+            ecm=record.name,
+            version=record.version,
+            learner=learner,
+            episodes=int(episodes),
+            steps=int(steps),
+            note=note,
+        )
+        if record.state is not State.CANDIDATE:
+            # Decided already (by the interrupted attempt, or by someone else): read the evidence.
+            gate = None
+            if record.gate_evidence:
+                gate = GateSummary.from_evidence(record.gate_evidence, reason="read back from the registry")
+            update.gate = gate
+            if gate is None:
+                update.note = (
+                    update.note + "; " if update.note else ""
+                ) + f"{record.state.value} without gate evidence"
+            return self._finish(i, update)
+        seeds = self.plan.gate(self.config.gate_episodes, round=i)
+        try:
+            self.registry.get_version(record.name)
+            paired = True
+        except NotFound:
+            paired = False
+        self.progress.phase("gate", episodes=len(seeds) * (2 if paired else 1))
+        self.evaluator.phase = "gate"
+        t = time.perf_counter()
+        try:
+            decision = self.gate.run(record.name, record.version, task=self.task, seeds=seeds)
+        except Conflict as exc:
+            update.gate_s = time.perf_counter() - t
+            update.note = (update.note + "; " if update.note else "") + f"gate conflict: {exc.message}"
+            return self._finish(i, update)
+        update.gate_s = time.perf_counter() - t
+        update.gate = GateSummary.from_evidence(decision.evidence, reason=decision.reason)
+        return self._finish(i, update)
+
+    def _finish(self, i: int, update: _Update) -> _Update:
+        self.journal.write(
+            "decided",
+            i,
+            ecm=update.ecm,
+            version=update.version,
+            learner=update.learner,
+            learner_episodes=update.episodes,
+            learner_steps=update.steps,
+            gate=update.gate.to_dict() if update.gate is not None else None,
+            note=update.note,
+        )
+        return update
+
+    # --- final evaluation -------------------------------------------------------------------
+
+    def final_evaluation(self) -> FinalEvaluation | None:
+        """Run the final capability set on iteration 0's live seeds (reused if already run)."""
+        rows = self.metrics.rows
+        if not rows:
+            return None
+        first = rows[0]
+        seeds = list(first.live_seeds)
+        start = tuple(EpisodeOutcome.from_dict(e) for e in first.episodes)
+        final_versions = task_capability_set(self.registry, self.task)
+        done = self.journal.final()
+        if done is not None and done.get("capability_set") == final_versions and list(done.get("seeds") or []) == seeds:
+            final = tuple(EpisodeOutcome.from_dict(o) for o in done["outcomes"])
+        elif final_versions == dict(first.active_versions):
+            final = start
+        else:
+            self.progress.phase("final", episodes=len(seeds))
+            self.evaluator.phase = "final"
+            final = tuple(self.evaluator.evaluate(self.task, final_versions, seeds))
+            self.journal.write(
+                "final",
+                len(rows),
+                capability_set=final_versions,
+                seeds=seeds,
+                outcomes=[o.to_dict() for o in final],
+            )
+        comparison = None
+        if final is not start:
+            from capevo.runtime.gate_stats import paired_stats
+
+            comparison = paired_stats(
+                list(start), list(final), alpha=self.config.gate.alpha, margin=self.config.gate.delta
+            ).to_dict()
+        return FinalEvaluation(
+            seeds=tuple(seeds),
+            start_versions=dict(first.active_versions),
+            final_versions=final_versions,
+            start=start,
+            final=final,
+            comparison=comparison,
+        )
+
+
+@dataclass(slots=True, kw_only=True)
+class _Update:
+    ecm: str | None = None
+    version: int | None = None
+    learner: str | None = None
+    episodes: int = 0
+    steps: int = 0
+    gate: GateSummary | None = None
+    note: str = ""
+    gate_s: float = 0.0
+
+
+def _fields(result: EvolveResult) -> dict[str, Any]:
+    return {name: getattr(result, name) for name in EvolveResult.__dataclass_fields__}
+
+
+def _summary_line(row: IterationMetrics) -> str:
+    s = row.live
+    parts = [
+        f"success {s.successes}/{s.episodes}",
+        f"reward {s.reward_mean:.2f} (σ² {s.reward_var:.2f})",
+        f"interventions {s.interventions}",
+        f"unsafe {s.unsafe_steps}",
+        f"Δπ {row.delta_pi:g}",
+    ]
+    if row.gate is not None:
+        g = row.gate
+        gate = f"{g.decision} {g.ecm} v{g.candidate_version} ({g.candidate_successes}/{g.n}"
+        if g.active_successes is not None:
+            gate += f" vs {g.active_successes}/{g.n}"
+        parts.append(gate + ")")
+    elif row.update_note:
+        parts.append(row.update_note)
+    if row.rollbacks:
+        parts.append("rolled back " + ", ".join(f"{r['name']} v{r['version']}" for r in row.rollbacks))
+    parts.append(f"{row.wall_s:.0f}s")
+    return "; ".join(parts)
+
+
+__all__ = [
+    "ACTOR",
+    "GATE_ACTOR",
+    "MONITOR_ACTOR",
+    "EvolutionLoop",
+    "EvolveResult",
+    "FinalEvaluation",
+    "PhaseEvaluator",
+    "ensure_v0",
+    "task_capability_set",
+]

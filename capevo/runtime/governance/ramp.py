@@ -1,0 +1,167 @@
+"""force_ramp: slow motion into a contact before the force limit, back off once above it.
+
+Complements the paper's ``contact_force`` rule (which zeroes motion into a contact once the
+force is above the limit). That rule alone lets an arm keep pushing at full speed up to the
+limit and, being reactive, overshoot it; holding still above the limit keeps pressing, because
+OSC holds the position it is pressed into. Sign convention as in
+:mod:`capevo.runtime.governance.force`: ``f`` is the force on the end effector, and a
+translational component ``a_k`` moves into the contact when ``a_k`` and ``f_k`` have opposite signs.
+
+Per arm, with ``|f|`` the force magnitude:
+
+* ramp: for ``soft_from < |f| <= max_force``, each component into the contact is limited in
+  magnitude to ``speed · (max_force − |f|) / (max_force − soft_from)``: a slow push that fades
+  to nothing at the limit. With OSC, the steady contact force grows with the commanded push
+  (about 250 N per action unit for a Panda pressing on a table), so bounding the push bounds
+  the force.
+* back off (``backoff > 0``): for ``|f| > max_force``, each component along the force is set to
+  at least ``backoff · |f_k| / |f|`` in the direction of ``f_k`` (away from the contact) and
+  every pose component of the arm is clamped to ``[−backoff, backoff]``.
+
+Invariants (after the check, per arm):
+1. If ``soft_from < |f| <= max_force``: for every axis with ``a_k · f_k < 0``,
+   ``|a_k| <= speed · (max_force − |f|) / (max_force − soft_from)``.
+2. If ``|f| > max_force``: no component moves into the contact; with ``backoff > 0``, every
+   axis has ``a_k · sign(f_k) >= backoff · |f_k| / |f|`` and all six pose components lie in
+   ``[−backoff, backoff]``.
+3. Arms with ``|f| <= soft_from`` are untouched; a component no rule applies to is unchanged;
+   an action no rule touches is allowed (None) and never copied.
+4. A non-finite force reading is ⊥ with a reason.
+5. No hard limit of its own (:meth:`ForceRamp.unsafe` is None): ``contact_force`` judges forces.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.guard import MAX_RESTORE
+from capevo.runtime.state import ActionLayout, ArmState
+
+
+@register("force_ramp")
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ForceRamp:
+    """Into-contact speed ramped down between ``soft_from`` and ``max_force``; back-off above it.
+
+    Args:
+        max_force: The force limit in newtons (use ``contact_force``'s); > ``soft_from``.
+        soft_from: Force in newtons from which motion into the contact is slowed; >= 0.
+        speed: Largest into-contact component, in action units, at ``soft_from``; > 0.
+        backoff: Speed in action units away from a contact above the limit; 0 (off) to 0.6.
+        name: Label for interventions; defaults to the kind.
+
+    Raises:
+        Invalid: naming the field, on a wrong type, a non-finite value, ``soft_from`` not in
+            ``[0, max_force)``, a non-positive speed or ``backoff`` outside [0, 0.6].
+    """
+
+    kind: ClassVar[str]
+    max_force: float = 20.0
+    soft_from: float = 10.0
+    speed: float = 0.05
+    backoff: float = 0.05
+    name: str | None = None
+
+    def __post_init__(self) -> None:
+        normalize(self)
+        if not 0 <= self.soft_from < self.max_force:
+            raise invalid("soft_from", f"must be in [0, max_force = {self.max_force}), got {self.soft_from}")
+        if not self.speed > 0:
+            raise invalid("speed", f"must be > 0, got {self.speed}")
+        if not 0 <= self.backoff <= MAX_RESTORE:
+            raise invalid("backoff", f"must be in [0, {MAX_RESTORE}], got {self.backoff}")
+
+    @property
+    def label(self) -> str:
+        return self.name or self.kind
+
+    def to_config(self) -> dict[str, Any]:
+        return config_of(self)
+
+    def ramp_bound(self, magnitude: float) -> float:
+        """Largest into-contact component allowed at force ``magnitude`` (<= max_force)."""
+        return self.speed * (self.max_force - magnitude) / (self.max_force - self.soft_from)
+
+    def compile(self, layout: ActionLayout) -> Check:
+        soft2 = self.soft_from * self.soft_from
+        lim2 = self.max_force * self.max_force
+        ramp_bound, backoff = self.ramp_bound, self.backoff
+        offsets = tuple(arm.offset for arm in layout.arms)
+        reasons = tuple(
+            (
+                f"arm {i}: contact force above {self.soft_from} N: motion into the contact slowed",
+                f"arm {i}: contact force above {self.max_force} N: backing off",
+            )
+            for i in range(len(offsets))
+        )
+        sqrt = math.sqrt
+
+        def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
+            b: list[float] | None = None
+            notes: list[str] = []
+            for i, o in enumerate(offsets):
+                fx, fy, fz = f = arms[i].eef_force
+                if fx - fx != 0.0 or fy - fy != 0.0 or fz - fz != 0.0:  # NaN or ±inf
+                    return None, f"arm {i}: force reading {f} is not finite"  # rare: format here
+                n2 = fx * fx + fy * fy + fz * fz
+                if n2 <= soft2:
+                    continue
+                n = sqrt(n2)
+                if n2 <= lim2:
+                    bound = ramp_bound(n)
+                    changed = False
+                    for k in (0, 1, 2):
+                        v = (a if b is None else b)[o + k]
+                        if ((v > 0.0 and f[k] < 0.0) or (v < 0.0 and f[k] > 0.0)) and abs(v) > bound:
+                            if b is None:
+                                b = list(a)
+                            b[o + k] = bound if v > 0.0 else -bound
+                            changed = True
+                    if changed:
+                        notes.append(reasons[i][0])
+                    continue
+                # Above the limit (contact_force zeroes motion into it); push away if configured.
+                if backoff <= 0.0:
+                    changed = False
+                    for k in (0, 1, 2):
+                        v = (a if b is None else b)[o + k]
+                        if (v > 0.0 and f[k] < 0.0) or (v < 0.0 and f[k] > 0.0):
+                            if b is None:
+                                b = list(a)
+                            b[o + k] = 0.0
+                            changed = True
+                    if changed:
+                        notes.append(reasons[i][1])
+                    continue
+                src = a if b is None else b
+                arm = [min(max(src[j], -backoff), backoff) for j in range(o, o + 6)]
+                for k in (0, 1, 2):
+                    away = backoff * abs(f[k]) / n
+                    if f[k] > 0.0 and arm[k] < away:
+                        arm[k] = away
+                    elif f[k] < 0.0 and arm[k] > -away:
+                        arm[k] = -away
+                if any(arm[j] != src[o + j] for j in range(6)):
+                    if b is None:
+                        b = list(a)
+                    b[o : o + 6] = arm
+                    notes.append(reasons[i][1])
+            if b is None:
+                return None
+            return b, notes[0] if len(notes) == 1 else "; ".join(notes)
+
+        def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
+            for arm in arms:
+                fx, fy, fz = arm.eef_force
+                if not fx * fx + fy * fy + fz * fz <= soft2:
+                    return slow(arms, a)
+            return None
+
+        return check
+
+    def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
+        return None

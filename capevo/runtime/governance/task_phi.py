@@ -1,0 +1,213 @@
+"""Per-task Φ: the paper's envelope plus what is known about each task's scene.
+
+The paper's default Φ (``Phi.default()``: workspace box, contact-force limit, velocity cap) is
+the base and stays unchanged. :func:`phi_for_task` adds, before the cap:
+
+* ``workspace_guard`` on the same box: a braking band inside the margin, an inward push when
+  an end effector is outside, and no turning within the margin;
+* ``force_ramp`` at the same force limit: into-contact motion slowed from half the limit, a
+  slow back-off above it;
+* ``surface_approach`` at the task's table top (or bin floor), when there is one;
+* ``obstacle_approach`` for fixed obstacles above it (bin walls, pegs), when there are any;
+* ``arm_separation`` between the hands (and what they hold) of a multi-arm task;
+* ``reach_limit`` around each arm's shoulder: the Panda's reach and a column around its base.
+
+The scene numbers are robosuite's defaults for the environments capevo builds (checked against
+the live simulators in the slow tests). The result is an ordinary Φ: fixed for the run, its
+hash differs per task and goes into every trace like any other.
+
+Invariants:
+1. ``phi_for_task(t)`` starts with every constraint of the base in order, the new ones inserted
+   just before the base's first ``velocity_cap`` (appended when it has none), so the cap still
+   acts last.
+2. The result depends only on the task's name and the base: equal inputs, equal hash; the six
+   built-in tasks give six distinct hashes, none equal to the base's.
+3. An unknown task raises :class:`Invalid` listing the known ones.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any
+
+from capevo.errors import Invalid
+from capevo.runtime.governance.base import Constraint
+from capevo.runtime.governance.box import WorkspaceBox
+from capevo.runtime.governance.cap import VelocityCap
+from capevo.runtime.governance.force import ContactForce
+from capevo.runtime.governance.guard import WorkspaceGuard
+from capevo.runtime.governance.obstacle import ObstacleApproach
+from capevo.runtime.governance.ramp import ForceRamp
+from capevo.runtime.governance.reach import ReachLimit
+from capevo.runtime.governance.separation import ArmSeparation
+from capevo.runtime.governance.surface import SurfaceApproach
+from capevo.runtime.governance.zone import Aabb
+
+if TYPE_CHECKING:
+    from capevo.runtime.governance.phi import Phi
+
+Vec3 = tuple[float, float, float]
+
+PANDA_SHOULDER = 0.333
+"""Height of the Panda's shoulder (joint 2 axis) above its base, metres."""
+PANDA_REACH = 0.8
+"""End-effector distance from the shoulder beyond which the Panda nears full extension under OSC, metres."""
+PANDA_COLUMN = 0.25
+"""Radius around the base axis that the hand must stay out of (the Panda's own base and lower links), metres."""
+PANDA_HAND: tuple[Aabb, ...] = (
+    Aabb(low=(-0.102, -0.032, -0.124), high=(0.106, 0.032, -0.026)),
+    Aabb(low=(-0.05, -0.011, -0.049), high=(0.05, 0.011, 0.012)),
+)
+"""The robosuite Panda gripper's collision geometry in its grip-site frame (+z out through the
+fingertips, +x along the fingers' travel): the hand body, and both fingers fully open.
+Measured from the model's geom bounding boxes."""
+SURFACE_CLEARANCE = -0.004
+"""Let the fingertips settle 4 mm "into" the surface: the OSC push that remains there is gentle (about 10 N)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TaskGeometry:
+    """What governance needs to know about a task's scene, world frame, metres."""
+
+    surface_height: float | None
+    """Top of the surface objects rest on (table top, bin floor); None when there is none."""
+    arm_bases: tuple[Vec3, ...]
+    """Each arm's base (robot root body) position, in action-layout order."""
+    obstacles: tuple[Aabb, ...] = ()
+    """Fixed obstacles (bin walls, pegs, robot pedestals) as world-frame boxes."""
+    hands: tuple[tuple[Aabb, ...], ...] = ()
+    """Per arm, boxes covering its hand and anything it holds, in the end-effector site frame;
+    empty means the Panda gripper (:data:`PANDA_HAND`) for every arm."""
+
+    def hand(self, arm: int) -> tuple[Aabb, ...]:
+        return self.hands[arm] if self.hands else PANDA_HAND
+
+    @property
+    def shoulders(self) -> tuple[Vec3, ...]:
+        return tuple((x, y, z + PANDA_SHOULDER) for x, y, z in self.arm_bases)
+
+
+def _box(low: Vec3, high: Vec3) -> Aabb:
+    return Aabb(low=low, high=high)
+
+
+_BIN_WALLS = (
+    # bin1 (source), centred at (0.1, -0.25): four walls 0.1 m high on a floor whose top is at 0.82.
+    _box((-0.11, -0.01, 0.8), (0.31, 0.01, 0.9)),
+    _box((-0.11, -0.51, 0.8), (0.31, -0.49, 0.9)),
+    _box((0.29, -0.5, 0.8), (0.31, 0.0, 0.9)),
+    _box((-0.11, -0.5, 0.8), (-0.09, 0.0, 0.9)),
+    # bin2 (goal), centred at (0.1, 0.28): four walls and two dividers making the quadrants.
+    _box((-0.11, 0.52, 0.8), (0.31, 0.54, 0.9)),
+    _box((-0.11, 0.02, 0.8), (0.31, 0.04, 0.9)),
+    _box((0.29, 0.03, 0.8), (0.31, 0.53, 0.9)),
+    _box((-0.11, 0.03, 0.8), (-0.09, 0.53, 0.9)),
+    _box((-0.1, 0.27, 0.8), (0.3, 0.29, 0.9)),
+    _box((0.09, 0.03, 0.8), (0.11, 0.53, 0.9)),
+)
+_BINS = TaskGeometry(surface_height=0.82, arm_bases=((-0.5, -0.1, 0.912),), obstacles=_BIN_WALLS)
+"""robosuite PickPlace: bin floors 0.02 thick on bodies at z 0.8; Panda mounted at (-0.5, -0.1)."""
+_PEDESTALS = (
+    # Each robot's mount: a cylinder of radius 0.18 up to z 0.942 under the base, and the Panda's
+    # own base and first link (about 0.1 around the base axis, up to the shoulder).
+    _box((-0.18, -0.8, 0.322), (0.18, -0.44, 0.942)),
+    _box((-0.18, 0.44, 0.322), (0.18, 0.8, 0.942)),
+    _box((-0.11, -0.71, 0.9), (0.11, -0.49, 1.3)),
+    _box((-0.11, 0.49, 0.9), (0.11, 0.71, 1.3)),
+)
+_PEG_HAND = (Aabb(low=(-0.023, -0.023, 0.0), high=(0.023, 0.023, 0.26)),)
+"""Robot 0 of TwoArmPegInHole: the peg, 0.26 m long along the site's +z."""
+_PLATE_HAND = (Aabb(low=(-0.01, -0.17, 0.0), high=(0.01, 0.17, 0.34)),)
+"""Robot 1 of TwoArmPegInHole: the plate with the hole, 0.34 x 0.34 m, 2 cm thick."""
+_PEGS = (
+    _box((0.214, 0.084, 0.75), (0.246, 0.116, 0.95)),  # square peg, 0.032 m square
+    _box((0.21, -0.12, 0.75), (0.25, -0.08, 0.95)),  # round peg, radius 0.02
+)
+
+TASK_GEOMETRY: Mapping[str, TaskGeometry] = MappingProxyType(
+    {
+        "pick": _BINS,
+        "place": _BINS,
+        "stack": TaskGeometry(surface_height=0.8, arm_bases=((-0.56, 0.0, 0.912),)),
+        "nut_assembly": TaskGeometry(surface_height=0.82, arm_bases=((-0.56, 0.0, 0.912),), obstacles=_PEGS),
+        "pick_place_multi": _BINS,
+        # TwoArmPegInHole, "opposed": no table; the Pandas face each other across y.
+        "peg_in_hole": TaskGeometry(
+            surface_height=None,
+            arm_bases=((0.0, -0.6, 0.912), (0.0, 0.6, 0.912)),
+            obstacles=_PEDESTALS,
+            hands=(_PEG_HAND, _PLATE_HAND),
+        ),
+    }
+)
+"""Scene geometry of the built-in tasks, by task name."""
+
+
+def task_name_of(task: Any) -> str:
+    """The task name for a name, an id (``"T1"``), a ``TaskSpec`` or anything with a ``task_spec``.
+
+    Raises:
+        Invalid: if the task is unknown.
+    """
+    spec = getattr(task, "task_spec", task)
+    name = getattr(spec, "name", spec)
+    if isinstance(name, str) and name not in TASK_GEOMETRY:
+        from capevo.runtime.tasks.registry import task_ids
+
+        name = task_ids().get(name, name)
+    if not isinstance(name, str) or name not in TASK_GEOMETRY:
+        raise Invalid(
+            f"task: no scene geometry for {name!r}; known tasks: {', '.join(TASK_GEOMETRY)}",
+            details={"field": "task", "valid": list(TASK_GEOMETRY)},
+        )
+    return name
+
+
+def task_constraints(geometry: TaskGeometry, base: Phi) -> list[Constraint]:
+    """The constraints :func:`phi_for_task` adds to ``base`` for a scene."""
+    box = next((c for c in base.constraints if isinstance(c, WorkspaceBox)), WorkspaceBox())
+    force = next((c for c in base.constraints if isinstance(c, ContactForce)), ContactForce())
+    added: list[Constraint] = [
+        WorkspaceGuard(low=box.low, high=box.high, margin=box.margin),
+        ForceRamp(max_force=force.max_force, soft_from=force.max_force / 2),
+    ]
+    if geometry.surface_height is not None:
+        added.append(
+            SurfaceApproach(height=geometry.surface_height, clearance=SURFACE_CLEARANCE, hand=geometry.hand(0))
+        )
+    if geometry.obstacles:
+        n = len(geometry.arm_bases)
+        if all(geometry.hand(i) == geometry.hand(0) for i in range(n)):
+            added.append(ObstacleApproach(boxes=geometry.obstacles, hand=geometry.hand(0)))
+        else:  # arms holding different things: one rule per arm, each with its own hand
+            added.extend(
+                ObstacleApproach(
+                    boxes=geometry.obstacles, hand=geometry.hand(i), arm=i, name=f"obstacle_approach.arm{i}"
+                )
+                for i in range(n)
+            )
+    if len(geometry.arm_bases) > 1:
+        added.append(ArmSeparation(hands=tuple(geometry.hand(i) for i in range(len(geometry.arm_bases)))))
+    added.append(ReachLimit(centres=geometry.shoulders, max_radius=PANDA_REACH, min_radius=PANDA_COLUMN))
+    return added
+
+
+def phi_for_task(task: Any, base: Phi | None = None) -> Phi:
+    """Φ for one task: ``base`` (default: the paper's) plus the task's scene constraints.
+
+    Args:
+        task: A task name or id, a ``TaskSpec``, or a ``TaskEnv``.
+        base: The envelope to extend; default :meth:`Phi.default`.
+
+    Raises:
+        Invalid: for an unknown task, or if an added label collides with one of ``base``.
+    """
+    from capevo.runtime.governance.phi import Phi
+
+    base = Phi.default() if base is None else base
+    added = task_constraints(TASK_GEOMETRY[task_name_of(task)], base)
+    cs = list(base.constraints)
+    at = next((i for i, c in enumerate(cs) if isinstance(c, VelocityCap)), len(cs))
+    return Phi((*cs[:at], *added, *cs[at:]))
