@@ -391,6 +391,7 @@ class RuntimeWorker:
         self.registry_keys = Keys(config.namespace)
         self._emit_cb = emit
         self._requests: queue.Queue[_Request] = queue.Queue(maxsize=MAX_QUEUED_EVALUATIONS)
+        self._requests_lock = threading.Lock()
         self._wake = threading.Event()
         self._resync = threading.Event()
         self._registry_up = True
@@ -437,9 +438,6 @@ class RuntimeWorker:
         _reply(query, json.dumps(self.adoption().to_dict()).encode())
 
     def _on_evaluate(self, query: zenoh.Query) -> None:
-        if self._stopping:
-            _reply(query, Unavailable(f"runtime worker {self.worker_id} is shutting down"))
-            return
         try:
             payload = query.payload.to_bytes() if query.payload is not None else b""
             request = EvaluateRequest.from_json(payload)
@@ -451,10 +449,17 @@ class RuntimeWorker:
         except CapevoError as exc:
             _reply(query, exc)
             return
-        try:
-            self._requests.put_nowait(_Request(query, request))
-        except queue.Full:
-            _reply(query, Unavailable(f"runtime worker {self.worker_id} is busy: {MAX_QUEUED_EVALUATIONS} queued"))
+        refusal: CapevoError | None = None
+        with self._requests_lock:
+            if self._stopping:
+                refusal = Unavailable(f"runtime worker {self.worker_id} is shutting down")
+            else:
+                try:
+                    self._requests.put_nowait(_Request(query, request))
+                except queue.Full:
+                    refusal = Unavailable(f"runtime worker {self.worker_id} is busy: {MAX_QUEUED_EVALUATIONS} queued")
+        if refusal is not None:
+            _reply(query, refusal)
             return
         self._wake.set()
 
@@ -502,7 +507,6 @@ class RuntimeWorker:
         stop = stop if stop is not None else threading.Event()
         with contextlib.ExitStack() as stack:
             stack.enter_context(_signals_set(stop, handle_signals))
-            stack.callback(self._drain, "runtime worker is shutting down")
             client = self._open_client(stop)
             if client is None:
                 return 0
@@ -558,7 +562,6 @@ class RuntimeWorker:
                 },
             )
             self._loop(env, caps, policy, identity_hash, evaluator, stop)
-            self._stopping = True
         self._emit("stopped", episodes=self._episodes)
         return self._episodes
 
@@ -631,6 +634,8 @@ class RuntimeWorker:
         token = session.liveliness().declare_token(self.keys.alive(self.worker_id))
         # Undeclared before the queryables (the stack unwinds in reverse): alive implies served.
         stack.callback(token.undeclare)
+        # Runs first on the way out, while the session can still carry the error replies.
+        stack.callback(self._drain, f"runtime worker {self.worker_id} is shutting down")
         return session
 
     def _loop(
@@ -750,12 +755,16 @@ class RuntimeWorker:
             _reply(item.query, result)
 
     def _drain(self, why: str) -> None:
-        self._stopping = True
-        while True:
-            try:
-                item = self._requests.get_nowait()
-            except queue.Empty:
-                return
+        """Refuse every queued request and every later one (invariant 2)."""
+        with self._requests_lock:
+            self._stopping = True
+            items = []
+            while True:
+                try:
+                    items.append(self._requests.get_nowait())
+                except queue.Empty:
+                    break
+        for item in items:
             _reply(item.query, Unavailable(why))
 
 

@@ -247,7 +247,8 @@ def arm_rot(arm: ArmState) -> tuple[float, ...]:
 
 
 def corners(box) -> list[tuple[float, float, float]]:
-    return [(x, y, z) for x in (box.low[0], box.high[0]) for y in (box.low[1], box.high[1]) for z in (box.low[2], box.high[2])]
+    (x0, y0, z0), (x1, y1, z1) = box.low, box.high
+    return [(x, y, z) for x in (x0, x1) for y in (y0, y1) for z in (z0, z1)]
 
 
 def hand_box(hand, arm: ArmState) -> tuple[list[float], list[float]]:

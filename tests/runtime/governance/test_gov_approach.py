@@ -1,0 +1,323 @@
+"""Property tests for the speed-and-separation kinds: each governed action satisfies its rule.
+
+Kinds: workspace_guard, force_ramp, surface_approach, obstacle_approach, arm_separation,
+reach_limit, and the per-task Φ that combines them with the paper's envelope. The rules are
+restated independently in :mod:`govcheck`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from govcheck import arm_rot, hand_box, violations
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from capevo.errors import Invalid
+from capevo.runtime.governance import (
+    TWO_ARM_NO_GRIPPER,
+    Aabb,
+    ArmPose,
+    ArmSeparation,
+    ForceRamp,
+    ObstacleApproach,
+    Phi,
+    ReachLimit,
+    SurfaceApproach,
+    VelocityCap,
+    WorkspaceGuard,
+)
+from capevo.runtime.governance.hand import hand_extent, hand_reach, lowest_offset
+from capevo.runtime.governance.task_phi import PANDA_HAND
+from capevo.runtime.state import SINGLE_PANDA, ArmState, RobotState
+
+TOL = 1e-9
+COORD = st.floats(-1.0, 2.0)
+COMPONENT = st.one_of(st.floats(-3.0, 3.0), st.sampled_from([0.0, 1.0, -1.0]))
+QUATS = st.tuples(*[st.floats(-1, 1) for _ in range(4)]).filter(lambda q: sum(c * c for c in q) > 0.1)
+
+
+def rotation(q: tuple[float, float, float, float]) -> tuple[float, ...]:
+    w, x, y, z = (v / math.sqrt(sum(c * c for c in q)) for v in q)
+    return (
+        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+    )  # fmt: skip
+
+
+@st.composite
+def arms(draw: st.DrawFn, pos: st.SearchStrategy[float] = COORD, force: float = 40.0) -> ArmState:
+    p = (draw(pos), draw(pos), draw(pos))
+    f = tuple(draw(st.floats(-force, force)) for _ in range(3))
+    if draw(st.booleans()):
+        return ArmPose(eef_pos=p, eef_force=f, eef_rot=rotation(draw(QUATS)))
+    return ArmState(eef_pos=p, eef_force=f)
+
+
+def states(n: int, **kw: object) -> st.SearchStrategy[RobotState]:
+    return st.lists(arms(**kw), min_size=n, max_size=n).map(lambda a: RobotState(arms=tuple(a)))
+
+
+def actions(dim: int) -> st.SearchStrategy[list[float]]:
+    return st.lists(COMPONENT, min_size=dim, max_size=dim)
+
+
+def unchanged_or_clamped(before: list[float], after: tuple[float, ...]) -> None:
+    """Shrinking edits only: no component grows or flips sign."""
+    for x, y in zip(before, after, strict=True):
+        assert abs(y) <= abs(x) + TOL and (y == 0.0 or (x > 0) == (y > 0))
+
+
+GUARD = WorkspaceGuard()
+RAMP = ForceRamp()
+SURFACE = SurfaceApproach(height=0.8, clearance=-0.004, hand=PANDA_HAND)
+OBSTACLES = ObstacleApproach(
+    boxes=(Aabb(low=(-0.11, -0.01, 0.8), high=(0.31, 0.01, 0.9)), Aabb(low=(0.2, 0.1, 0.75), high=(0.25, 0.15, 0.95))),
+    hand=PANDA_HAND,
+)
+REACH = ReachLimit(centres=((-0.56, 0.0, 1.245),), max_radius=0.8, min_radius=0.25)
+PEG = (Aabb(low=(-0.023, -0.023, 0.0), high=(0.023, 0.023, 0.26)),)
+PLATE = (Aabb(low=(-0.01, -0.17, 0.0), high=(0.01, 0.17, 0.34)),)
+SEPARATION = ArmSeparation(hands=(PEG, PLATE))
+
+
+@pytest.mark.parametrize("constraint", [GUARD, RAMP, SURFACE, OBSTACLES, REACH], ids=lambda c: c.kind)
+@settings(max_examples=300, deadline=None)
+@given(state=states(1), action=actions(7))
+def test_each_kind_alone_satisfies_its_rule_and_edits_minimally(constraint, state, action) -> None:
+    phi = Phi((constraint,))
+    out, records = phi.governor(SINGLE_PANDA)(state, action)
+    assert out is not None
+    assert violations(phi, SINGLE_PANDA, state, out, tol=TOL) == []
+    assert out[6] == action[6]  # the gripper is never touched
+    if not records:
+        assert out is action
+    else:
+        assert list(out) != list(action)  # a record means a real change
+
+
+@settings(max_examples=300, deadline=None)
+@given(state=states(2, pos=st.floats(-0.6, 1.6)), action=actions(12))
+def test_arm_separation_slows_every_approach_but_never_below_the_floor(state, action) -> None:
+    phi = Phi((SEPARATION,))
+    out, records = phi.governor(TWO_ARM_NO_GRIPPER)(state, action)
+    assert violations(phi, TWO_ARM_NO_GRIPPER, state, out, tol=TOL) == []
+    unchanged_or_clamped(action, out)
+    for x, y in zip(action, out, strict=True):  # clamped to a bound of at least the floor
+        assert y == x or abs(y) >= SEPARATION.floor - TOL
+    assert (out is action) == (not records)
+
+
+@pytest.mark.parametrize("constraint", [SURFACE, OBSTACLES, REACH, SEPARATION], ids=lambda c: c.kind)
+@settings(max_examples=200, deadline=None)
+@given(data=st.data())
+def test_shrinking_kinds_never_grow_or_flip_a_component(constraint, data) -> None:
+    layout = TWO_ARM_NO_GRIPPER if constraint is SEPARATION else SINGLE_PANDA
+    reach = constraint is REACH
+    state = data.draw(states(len(layout.arms), pos=st.floats(-0.2, 1.2) if reach else COORD))
+    if reach:  # stay clear of the restoring states (beyond the reach, inside the column)
+        v = [state.arms[0].eef_pos[k] - REACH.centres[0][k] for k in range(3)]
+        assume(math.hypot(*v) <= REACH.max_radius and math.hypot(v[0], v[1]) >= REACH.min_radius)
+    action = data.draw(actions(layout.dim))
+    out, _ = Phi((constraint,)).governor(layout)(state, action)
+    unchanged_or_clamped(action, out)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    p=st.tuples(st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(0.3, 1.6)),
+    action=actions(7),
+    restore=st.floats(0.01, 0.6),
+)
+def test_workspace_guard_steers_an_arm_outside_the_box_back_slowly(p, action, restore) -> None:
+    guard = WorkspaceGuard(restore=restore)
+    state = RobotState(arms=(ArmState(eef_pos=p, eef_force=(0.0, 0.0, 0.0)),))
+    out, _ = Phi((guard, VelocityCap())).governor(SINGLE_PANDA)(state, action)
+    outside = [
+        (k, -1.0 if p[k] > guard.high[k] else 1.0) for k in range(3) if not guard.low[k] <= p[k] <= guard.high[k]
+    ]
+    if outside:
+        for k, inward in outside:
+            assert out[k] * inward >= restore - TOL
+        assert all(abs(x) <= restore + TOL for x in out[:6])
+        assert out[3:6] == (0.0, 0.0, 0.0)  # frozen: outside is within the margin
+    else:
+        assert violations(Phi((guard,)), SINGLE_PANDA, state, out, tol=TOL) == []
+
+
+def test_workspace_guard_examples() -> None:
+    gov = Phi((WorkspaceGuard(),)).governor(SINGLE_PANDA)
+    free = RobotState(arms=(ArmState(eef_pos=(0.0, 0.0, 1.0), eef_force=(0.0, 0.0, 0.0)),))
+    a = (1.0, 1.0, 1.0, 0.5, 0.5, 0.5, 1.0)
+    assert gov(free, a) == (a, ())
+    # 13 cm under the ceiling: 5 cm into the 10 cm band above the 8 cm margin: up at most 0.5.
+    band = RobotState(arms=(ArmState(eef_pos=(0.0, 0.0, 1.17), eef_force=(0.0, 0.0, 0.0)),))
+    out, (rec,) = gov(band, a)
+    assert out[:3] == (1.0, 1.0, pytest.approx(0.5)) and out[3:] == a[3:]
+    assert rec.constraint == "workspace_guard" and "braked" in rec.reason
+    # 2 cm above the ceiling: pushed down at 0.2, everything else within +-0.2, no turning.
+    above = RobotState(arms=(ArmState(eef_pos=(0.0, 0.0, 1.32), eef_force=(0.0, 0.0, 0.0)),))
+    out, (rec,) = gov(above, a)
+    assert out == (0.2, 0.2, -0.2, 0.0, 0.0, 0.0, 1.0)
+    assert "steered back inward" in rec.reason
+
+
+def test_workspace_guard_rejects_bad_config() -> None:
+    with pytest.raises(Invalid) as e:
+        WorkspaceGuard(restore=0.7)
+    assert e.value.details["field"] == "restore" and e.value.message == "restore: must be in [0, 0.6], got 0.7"
+    with pytest.raises(Invalid) as e:
+        WorkspaceGuard(low=(0.0, 0.0, 0.0), high=(0.3, 1.0, 1.0))
+    assert e.value.details["field"] == "high" and "must be longer than 2 * (margin + brake)" in e.value.message
+
+
+@settings(max_examples=300, deadline=None)
+@given(f=st.tuples(*[st.floats(-60.0, 60.0)] * 3), action=actions(7))
+def test_force_ramp_backs_off_above_the_limit(f, action) -> None:
+    n = math.hypot(*f)
+    assume(n > RAMP.max_force * 1.001)
+    state = RobotState(arms=(ArmState(eef_pos=(0.0, 0.0, 1.0), eef_force=f),))
+    out, _ = Phi((RAMP,)).governor(SINGLE_PANDA)(state, action)
+    for k in range(3):
+        if f[k] != 0.0:
+            assert out[k] * math.copysign(1.0, f[k]) >= RAMP.backoff * abs(f[k]) / n - TOL
+    assert all(abs(x) <= RAMP.backoff for x in out[:6])
+
+
+def test_force_ramp_examples() -> None:
+    gov = Phi((RAMP,)).governor(SINGLE_PANDA)
+    table = lambda fz: RobotState(arms=(ArmState(eef_pos=(0.0, 0.0, 0.81), eef_force=(0.0, 0.0, fz)),))  # noqa: E731
+    down = (0.3, 0.0, -1.0, 0.2, 0.0, 0.0, 1.0)
+    assert gov(table(9.0), down) == (down, ())  # below half the limit: untouched
+    out, (rec,) = gov(table(15.0), down)  # halfway up the ramp: the push is at most 0.025
+    assert out == (0.3, 0.0, pytest.approx(-0.025), 0.2, 0.0, 0.0, 1.0) and "slowed" in rec.reason
+    out, _ = gov(table(30.0), down)  # above the limit: lift off slowly, everything within +-0.05
+    assert out == (0.05, 0.0, 0.05, 0.05, 0.0, 0.0, 1.0)
+    with pytest.raises(Invalid) as e:
+        ForceRamp(soft_from=25.0)
+    assert e.value.details["field"] == "soft_from"
+
+
+def test_surface_approach_lets_the_hand_touch_softly_and_sees_its_tilt() -> None:
+    gov = Phi((SURFACE,)).governor(SINGLE_PANDA)
+    down = (0.0, 0.0, -1.0, 0.4, 0.0, 0.0, -1.0)
+    pointing_down = (1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0)
+    # Fingertips 1.2 cm below the site: with the site 6 cm above the table they are 4.8 cm up,
+    # 5.2 cm from the stop height (0.796): half speed down, and no faster turning.
+    at = ArmPose(eef_pos=(0.0, 0.0, 0.86), eef_force=(0.0, 0.0, 0.0), eef_rot=pointing_down)
+    out, (rec,) = gov(RobotState(arms=(at,)), down)
+    assert out[2] == pytest.approx(-0.52) and out[3] == pytest.approx(0.4) and "surface" in rec.reason
+    # The same height with the hand tilted 60 degrees about x: a corner of the hand body is below the table.
+    c, s = math.cos(math.radians(60)), math.sin(math.radians(60))
+    tilted = (1.0, 0.0, 0.0, 0.0, -c, s, 0.0, -s, -c)
+    assert lowest_offset(PANDA_HAND, tilted) < -0.06
+    out, _ = gov(RobotState(arms=(ArmPose(eef_pos=(0.0, 0.0, 0.86), eef_force=(0, 0, 0), eef_rot=tilted),)), down)
+    assert out[2] == 0.0 and out[3:6] == (0.0, 0.0, 0.0)
+    # A plain ArmState is taken to point down.
+    plain = ArmState(eef_pos=(0.0, 0.0, 0.86), eef_force=(0.0, 0.0, 0.0))
+    assert gov(RobotState(arms=(plain,)), down)[0] == gov(RobotState(arms=(at,)), down)[0]
+    # High above the band: untouched, the very object returned.
+    high = ArmPose(eef_pos=(0.0, 0.0, 1.2), eef_force=(0.0, 0.0, 0.0), eef_rot=tilted)
+    assert gov(RobotState(arms=(high,)), down) == (down, ())
+
+
+@settings(max_examples=300, deadline=None)
+@given(q=QUATS, corner=st.tuples(st.floats(0, 1), st.floats(0, 1), st.floats(0, 1)))
+def test_hand_geometry_matches_brute_force_over_corners(q, corner) -> None:
+    rot = rotation(q)
+    arm = ArmPose(eef_pos=(0.0, 0.0, 0.0), eef_force=(0.0, 0.0, 0.0), eef_rot=rot)
+    lo, hi = hand_extent(PANDA_HAND, rot)
+    blo, bhi = hand_box(PANDA_HAND, arm)
+    assert lo == pytest.approx(tuple(blo), abs=1e-12) and hi == pytest.approx(tuple(bhi), abs=1e-12)
+    assert lowest_offset(PANDA_HAND, rot) == pytest.approx(blo[2], abs=1e-12)
+    reach = hand_reach(PANDA_HAND)
+    assert all(-reach - 1e-12 <= v <= reach + 1e-12 for v in (*lo, *hi))
+    assert arm_rot(arm) == rot
+
+
+def test_reach_limit_brakes_outward_and_restores_inward() -> None:
+    gov = Phi((REACH,)).governor(SINGLE_PANDA)
+    out_x = (1.0, 0.3, 0.0, 0.0, 0.0, 0.0, 1.0)
+    # 0.78 m from the shoulder straight along +x: within the 3 cm margin: outward x zeroed, y free.
+    edge = RobotState(arms=(ArmState(eef_pos=(0.22, 0.0, 1.245), eef_force=(0.0, 0.0, 0.0)),))
+    out, (rec,) = gov(edge, out_x)
+    assert out[:3] == (0.0, 0.3, 0.0) and "reach" in rec.reason
+    # Beyond it: steered back along -x at 0.1.
+    beyond = RobotState(arms=(ArmState(eef_pos=(0.3, 0.0, 1.245), eef_force=(0.0, 0.0, 0.0)),))
+    out, _ = gov(beyond, out_x)
+    assert out[:6] == (-0.1, 0.1, 0.0, 0.0, 0.0, 0.0)
+    # Inside the column around the base: pushed out along +x.
+    column = RobotState(arms=(ArmState(eef_pos=(-0.4, 0.0, 1.2), eef_force=(0.0, 0.0, 0.0)),))
+    out, _ = gov(column, (-1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+    assert out[0] == pytest.approx(0.1)
+    with pytest.raises(Invalid) as e:
+        ReachLimit(centres=((0, 0, 1),), max_radius=0.8).compile(TWO_ARM_NO_GRIPPER)
+    assert e.value.details["field"] == "centres" and e.value.message == "centres: 1 given; the layout has 2 arm(s)"
+
+
+def test_obstacle_approach_lets_the_hand_pass_over_a_wall_but_not_into_it() -> None:
+    gov = Phi((OBSTACLES,)).governor(SINGLE_PANDA)
+    # Fingers along y, hand 10 cm above the wall top at y = 0: moving along x is barely slowed.
+    over = ArmState(eef_pos=(0.1, -0.08, 1.02), eef_force=(0.0, 0.0, 0.0))
+    out, _ = gov(RobotState(arms=(over,)), (-1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+    assert out[0] < -0.9
+    # Beside the wall at the same height: moving into it is stopped.
+    beside = ArmState(eef_pos=(0.1, -0.12, 0.86), eef_force=(0.0, 0.0, 0.0))
+    out, _ = gov(RobotState(arms=(beside,)), (0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+    assert out[1] <= 0.01
+    with pytest.raises(Invalid) as e:
+        ObstacleApproach(boxes=OBSTACLES.boxes, arm=1).compile(SINGLE_PANDA)
+    assert e.value.details["field"] == "arm"
+
+
+def test_per_arm_obstacle_rules_only_govern_their_arm() -> None:
+    rule = ObstacleApproach(boxes=(Aabb(low=(-1.0, -1.0, 0.0), high=(1.0, 1.0, 0.5)),), arm=1)
+    gov = Phi((rule,)).governor(TWO_ARM_NO_GRIPPER)
+    low = ArmState(eef_pos=(0.0, 0.0, 0.52), eef_force=(0.0, 0.0, 0.0))
+    out, _ = gov(RobotState(arms=(low, low)), (0.0, 0.0, -1.0, 0.0, 0.0, 0.0) * 2)
+    assert out[2] == -1.0 and out[8] == 0.0
+
+
+TASK_PHIS = {t: Phi.for_task(t) for t in ("T1", "T3", "T4")}
+
+
+@pytest.mark.parametrize("task", list(TASK_PHIS))
+@settings(max_examples=300, deadline=None)
+@given(data=st.data())
+def test_per_task_phi_satisfies_every_rule_at_once_where_nothing_restores(task, data) -> None:
+    # Restoring edits fire only in states already past a limit (outside the box or the reach,
+    # inside the column, above the force limit); everywhere else every rule must hold together.
+    phi = TASK_PHIS[task]
+    reach = next(c for c in phi.constraints if isinstance(c, ReachLimit))
+    p = data.draw(st.tuples(st.floats(-0.6, 0.6), st.floats(-0.6, 0.6), st.floats(0.6, 1.3)))
+    v = [p[k] - reach.centres[0][k] for k in range(3)]
+    assume(math.hypot(*v) <= reach.max_radius and math.hypot(v[0], v[1]) >= reach.min_radius)
+    f = data.draw(st.tuples(*[st.floats(-20.0, 20.0)] * 3).filter(lambda f: math.hypot(*f) <= 20.0))
+    arm = ArmPose(eef_pos=p, eef_force=f, eef_rot=rotation(data.draw(QUATS)))
+    state = RobotState(arms=(arm,))
+    action = data.draw(actions(7))
+    out, records = phi.governor(SINGLE_PANDA)(state, action)
+    assert violations(phi, SINGLE_PANDA, state, out, tol=TOL) == []
+    unchanged_or_clamped(action, out)
+    assert (out is action) == (not records)
+
+
+@settings(max_examples=200, deadline=None)
+@given(data=st.data())
+def test_two_arm_task_phi_satisfies_every_rule_at_once_where_nothing_restores(data) -> None:
+    phi = Phi.for_task("T6")
+    reach = next(c for c in phi.constraints if isinstance(c, ReachLimit))
+    arms_ = []
+    for i in range(2):
+        p = data.draw(st.tuples(st.floats(-0.6, 0.6), st.floats(-0.6, 0.6), st.floats(0.6, 1.3)))
+        v = [p[k] - reach.centres[i][k] for k in range(3)]
+        assume(math.hypot(*v) <= reach.max_radius and math.hypot(v[0], v[1]) >= reach.min_radius)
+        f = data.draw(st.tuples(*[st.floats(-11.0, 11.0)] * 3).filter(lambda f: math.hypot(*f) <= 20.0))
+        arms_.append(ArmPose(eef_pos=p, eef_force=f, eef_rot=rotation(data.draw(QUATS))))
+    state = RobotState(arms=tuple(arms_))
+    action = data.draw(actions(12))
+    out, _ = phi.governor(TWO_ARM_NO_GRIPPER)(state, action)
+    assert violations(phi, TWO_ARM_NO_GRIPPER, state, out, tol=TOL) == []
+    unchanged_or_clamped(action, out)
