@@ -5,6 +5,9 @@ Run::
     .venv/bin/python benchmarks/bench_governance.py                 # writes benchmarks/results/governance.json
     .venv/bin/python benchmarks/bench_governance.py --n 200000 --out /tmp/gov.json --env-steps 300
 
+Cases named ``task_phi_*`` time ``Phi.for_task`` (the paper's envelope plus the
+speed-and-separation rules) on orientation-carrying states; the targets apply to the paper's Φ.
+
 Each call is timed on its own with ``time.perf_counter_ns`` (the timer's own cost, reported
 as ``timer_ns``, is included, so figures are slightly pessimistic). The garbage collector
 stays on. The env step is a robosuite step with the BASIC (OSC_POSE) controller, headless;
@@ -30,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from capevo.runtime.governance import TWO_ARM_NO_GRIPPER, Phi
+from capevo.runtime.governance import TWO_ARM_NO_GRIPPER, ArmPose, Phi
 from capevo.runtime.state import SINGLE_PANDA, ArmState, RobotState
 
 TARGET_P50_MS = 0.005
@@ -115,6 +118,23 @@ def governance_cases(phi: Phi) -> dict[str, tuple[Callable[..., Any], Any, Any]]
     nan7[1] = np.nan
     assert g7(inside, calm)[1] == () and g12(inside2, calm2)[1] == ()
     assert len(g7(near_face, out_fast)[1]) == 3 and len(g12(near2, out2)[1]) == 3
+    # The per-task Φ (paper's envelope + speed-and-separation rules), on states with orientation,
+    # as TaskEnv.robot_state() produces them. "far": hand well above the table and clear of
+    # every obstacle (every check's fast path); "work": over the bins at grasp height.
+    down = (-0.012, 0.989, 0.148, 1.0, 0.01, 0.012, 0.011, 0.148, -0.989)
+    t1 = Phi.for_task("T1")
+    gt = t1.governor(SINGLE_PANDA)
+    far = RobotState(arms=(ArmPose(eef_pos=(-0.15, -0.1, 1.15), eef_force=(0.0, 0.0, 0.0), eef_rot=down),))
+    work = RobotState(arms=(ArmPose(eef_pos=(0.1, -0.25, 0.9), eef_force=(0.0, 0.0, 0.0), eef_rot=down),))
+    assert gt(far, calm)[1] == ()
+    t6 = Phi.for_task("T6")
+    g6 = t6.governor(TWO_ARM_NO_GRIPPER)
+    apart = RobotState(
+        arms=(
+            ArmPose(eef_pos=(0.0, -0.3, 1.1), eef_force=(0.0, 0.0, 0.0), eef_rot=down),
+            ArmPose(eef_pos=(0.0, 0.3, 1.1), eef_force=(0.0, 0.0, 0.0), eef_rot=down),
+        )
+    )
     return {
         "single_arm_7d/allow/numpy": (g7, inside, calm),
         "single_arm_7d/allow/tuple": (g7, inside, calm_t),
@@ -124,6 +144,9 @@ def governance_cases(phi: Phi) -> dict[str, tuple[Callable[..., Any], Any, Any]]
         "single_arm_7d/governance_off/modify": (g7_off, near_face, out_fast),
         "two_arm_12d/allow/numpy": (g12, inside2, calm2),
         "two_arm_12d/modify(box+force+cap)": (g12, near2, out2),
+        "task_phi_T1_7d/far/numpy": (gt, far, calm),
+        "task_phi_T1_7d/work/numpy": (gt, work, calm),
+        "task_phi_T6_12d/apart/numpy": (g6, apart, calm2),
         "reference_numpy_box_cap_7d": (_numpy_reference(phi), inside, calm),
     }
 
@@ -187,9 +210,11 @@ def main(argv: list[str] | None = None) -> int:
         step7 = results["env"]["Lift/Panda (7d)"]["env_step"]["p50_ms"]
         step12 = results["env"]["TwoArmPegInHole/2xPanda (12d)"]["env_step"]["p50_ms"]
         for name, r in results["cases"].items():
-            r["pct_of_env_step"] = 100.0 * r["p50_ms"] / (step12 if name.startswith("two_arm") else step7)
+            two = name.startswith(("two_arm", "task_phi_T6"))
+            r["pct_of_env_step"] = 100.0 * r["p50_ms"] / (step12 if two else step7)
 
-    governed = {k: v for k, v in results["cases"].items() if not k.startswith("reference")}
+    # The targets are the paper's Φ's; the per-task Φ's figures are reported beside them.
+    governed = {k: v for k, v in results["cases"].items() if not k.startswith(("reference", "task_phi"))}
     results["meets_p50_target"] = all(r["p50_ms"] <= TARGET_P50_MS for r in governed.values())
     if args.env_steps:
         results["meets_pct_target"] = all(r["pct_of_env_step"] < TARGET_PCT_OF_STEP for r in governed.values())

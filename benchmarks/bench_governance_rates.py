@@ -11,7 +11,10 @@ counting governor: actions pass unchanged, R's would-be interventions are counte
 * reject rate: steps where R answered ⊥ / steps;
 * unsafe-step rate and unsafe-episode rate (``capevo.runtime.governance.unsafe_reasons``:
   state it ran from and executed action, plus each episode's final state), with the reasons'
-  constraints tallied.
+  constraints tallied;
+* "pushing over the force limit": steps whose executed translation moves into a contact
+  (``a_k f_k < 0`` on some axis, world frame) while the contact force is above the limit; the
+  action-side reading of the force constraint, recorded for comparison with the state-side one.
 
 The explorer's noise is a pure function of the observation (seeded from it), so a seed fixes
 an episode; jobs (task x mode) run in 2 spawned processes.
@@ -81,6 +84,20 @@ class Explore:
         return Decision(ecm=self.ecm, reason="explore")
 
 
+def _pushes(action: Any, key_state: Any, offsets: list[int], frames: Any, limit2: float) -> bool:
+    """The executed action moves some arm into its contact while that contact is over the limit."""
+    for i, o in enumerate(offsets):
+        fx, fy, fz = key_state[f"arm{i}_eef_force"]
+        if fx * fx + fy * fy + fz * fz <= limit2:
+            continue
+        r = frames[i]
+        x, y, z = action[o], action[o + 1], action[o + 2]
+        world = (r[0] * x + r[1] * y + r[2] * z, r[3] * x + r[4] * y + r[5] * z, r[6] * x + r[7] * y + r[8] * z)
+        if any(a * f < 0 for a, f in zip(world, (fx, fy, fz), strict=True)):
+            return True
+    return False
+
+
 def run_job(task: str, enforce: bool, episodes: int, horizon: int) -> dict[str, Any]:
     """One task in one governance mode; runs in a worker process."""
     logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
@@ -116,13 +133,25 @@ def run_job(task: str, enforce: bool, episodes: int, horizon: int) -> dict[str, 
         caps = LoadedCapabilitySet(registry, task, observation_shapes=shapes)
         governor = make_governor(env, phi, enforce=enforce)
         policy = Explore(spec.ecm_names[0])
+        from capevo.runtime.governance import ContactForce
+        from capevo.runtime.traces import MemoryTraceSink
+
+        limits = [c.max_force for c in phi.constraints if isinstance(c, ContactForce)]
+        limit2 = min(limits) ** 2 if limits else float("inf")
+        offsets = [arm.offset for arm in layout.arms]
+        frames = governor.frames
         steps = intervened = rejected = unsafe_steps = unsafe_episodes = interventions = 0
+        pushing_steps = pushing_episodes = 0
         reasons: Counter[str] = Counter()
         by_constraint: Counter[str] = Counter()
         for seed in range(episodes):
+            sink = MemoryTraceSink()
             run = run_episode_detailed(
-                env, caps, policy, governor, None, seed=seed, step_budget_per_ecm=None, episode=seed
+                env, caps, policy, governor, sink, seed=seed, step_budget_per_ecm=None, episode=seed
             )
+            pushing = sum(_pushes(s.action, s.key_state, offsets, frames, limit2) for s in sink.env_steps)
+            pushing_steps += pushing
+            pushing_episodes += pushing > 0
             o = run.outcome
             steps += o.steps
             intervened += run.intervened_steps
@@ -152,6 +181,8 @@ def run_job(task: str, enforce: bool, episodes: int, horizon: int) -> dict[str, 
         "unsafe_step_rate": unsafe_steps / steps if steps else 0.0,
         "unsafe_episode_rate": unsafe_episodes / episodes,
         "unsafe_steps_by_constraint": dict(reasons),
+        "pushing_over_force_limit_steps": pushing_steps,
+        "pushing_over_force_limit_episode_rate": pushing_episodes / episodes,
         "interventions_by_constraint": dict(by_constraint),
         "seconds": time.perf_counter() - started,
     }
@@ -198,6 +229,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{on['unsafe_step_rate']:.2%}",
                 _tally(off["unsafe_steps_by_constraint"]),
                 _tally(on["unsafe_steps_by_constraint"]),
+                f"{off['pushing_over_force_limit_episode_rate']:.1%}",
+                f"{on['pushing_over_force_limit_episode_rate']:.1%}",
             ]
         )
     print()
@@ -215,6 +248,8 @@ def main(argv: list[str] | None = None) -> int:
                 "unsafe steps (on)",
                 "unsafe steps by constraint (off)",
                 "unsafe steps by constraint (on)",
+                "episodes pushing over the force limit (off)",
+                "episodes pushing over the force limit (on)",
             ],
             rows,
         )

@@ -26,6 +26,7 @@ Writes ``benchmarks/results/skill_evolution.json`` and prints a markdown table.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import shutil
 import sys
@@ -45,7 +46,7 @@ from capevo.agent.policy import DecompositionPolicy
 from capevo.learner.base import request_for, score_outcomes
 from capevo.learner.experience import episode_ends, failed_step_counts, pick_ecm_to_update
 from capevo.learner.scratch import ScratchRegistryEvaluator
-from capevo.learner.search import CemConfig, CemEvent, CemSearch, cem_preset
+from capevo.learner.search import CemEvent, CemSearch, cem_preset
 from capevo.learner.skills import seed_registry
 from capevo.registry.local import LocalRegistry
 from capevo.runtime.ecm.code import read_params
@@ -57,6 +58,7 @@ log = logging.getLogger("bench_skill_evolution")
 
 PRESETS: dict[str, dict[str, Any]] = {
     "cpu-small": {
+        "cem_preset": "cpu-small",
         **cem_preset("cpu-small").to_dict(),
         "experience_episodes": 8,
         "gate_episodes": 10,
@@ -65,6 +67,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "horizon": None,
     },
     "tiny": {
+        "cem_preset": "tiny",
         **cem_preset("tiny").to_dict(),
         "experience_episodes": 2,
         "gate_episodes": 2,
@@ -148,7 +151,7 @@ def evolve_task(task: str, cfg: dict[str, Any], work: Path, *, seed: int) -> dic
         if ecm is None:
             rounds.append({"round": r, "experience_success": rate(experience), "stopped": "no failures"})
             break
-        train = take(cfg["episodes_per_candidate"] * cfg["iterations"])
+        train = take(cfg["episodes_per_candidate"] * cfg["iterations"] + cfg["validation_episodes"])
         request = request_for(registry, task, ecm, train_seeds=train, outcomes=experience)
 
         def show(ev: CemEvent, ecm: str = ecm) -> None:
@@ -159,13 +162,11 @@ def evolve_task(task: str, cfg: dict[str, Any], work: Path, *, seed: int) -> dic
                 flush=True,
             )
 
-        cem = CemConfig(
+        cem = dataclasses.replace(
+            cem_preset(cfg["cem_preset"]),
             population=cfg["population"],
-            elite_frac=cfg["elite_frac"],
             iterations=cfg["iterations"],
             episodes_per_candidate=cfg["episodes_per_candidate"],
-            sigma_init=cfg["sigma_init"],
-            smoothing=cfg["smoothing"],
             seed=seed + r,
         )
         search = CemSearch.from_config(scratch, cem, progress=show)

@@ -241,6 +241,20 @@ def _hybrid_modality(context: UpdaterContext) -> Updater:
 # --- neural: SAC and BC -------------------------------------------------------------------
 
 
+def training_seed_window(plan: SeedPlan, iteration: int) -> tuple[int, int]:
+    """``(seed_base, seed)`` for a neural learner's :class:`~capevo.learner.ecm_env.EcmEnvConfig` in ``iteration``.
+
+    Training episode k then runs task seed ``seed_base + seed + k`` (plus SB3's reset seed):
+    inside the plan's training range for the first half of the range's length in episodes,
+    each iteration starting its own stretch (SeedPlan blocks are 100 000 seeds), so training
+    never touches a gate or live seed.
+    """
+    train = plan.range("train")
+    half = len(train) // 2
+    stretch = max(1, half // 100)
+    return train.start, (iteration * stretch) % max(1, half - stretch)
+
+
 class NeuralUpdater:
     """``rl`` (SAC warm start) and ``il`` (behaviour cloning) updates of neural ECMs."""
 
@@ -271,11 +285,8 @@ class NeuralUpdater:
 
         seed = request.seed + request.iteration
         preset = self.preset.with_seed(seed).with_perturbations(self.context.perturbations)
-        train = request.plan.range("train")
-        # Training episodes draw task seeds seed_base + seed + k: keep them in the run's training
-        # range, one disjoint stretch per iteration (SeedPlan blocks are 100 000 seeds).
-        stretch = max(1, len(train) // 1000)
-        env = dataclasses.replace(preset.env, seed_base=train.start, seed=(request.iteration % 1000) * stretch)
+        base, offset = training_seed_window(request.plan, request.iteration)
+        env = dataclasses.replace(preset.env, seed_base=base, seed=offset)
         learn_request = self._request(request)
         if self.modality == "rl":
             progress.learner_started(total=preset.sac.total_steps, unit="SAC steps")
@@ -408,5 +419,6 @@ __all__ = [
     "make_updater",
     "modality_names",
     "register_modality",
+    "training_seed_window",
     "waiting_candidates",
 ]

@@ -215,8 +215,11 @@ def plot_timeline(
     stop = end if end is not None else (max(all_times) if all_times else origin + 60.0)
     stop = max(stop, origin + 1.0)
 
+    # Minutes for real runs; seconds when the whole run took under two minutes.
+    unit, scale = ("minutes", 60.0) if stop - origin >= 120.0 else ("seconds", 1.0)
+
     def x(t: float) -> float:
-        return (max(t, origin) - origin) / 60.0
+        return (max(t, origin) - origin) / scale
 
     legend_done: set[str] = set()
     for ax, name in zip(axes[:, 0], names or ["(no ECM)"], strict=False):
@@ -242,15 +245,13 @@ def plot_timeline(
             max_v = max(max_v, int(e.version))
             marker, color, label = _EVENT_STYLE.get(e.action, ("o", "gray", e.action.value))
             y = e.to_version if e.action is Action.ROLLBACK and e.to_version is not None else e.version
-            ax.scatter(
-                [x(e.at)],
-                [y],
-                marker=marker,
-                color=color,
-                s=45,
-                zorder=5,
-                label=None if label in legend_done else label,
+            hollow = e.action is Action.GATE  # drawn under the promote/reject mark of the same moment
+            style: dict[str, Any] = (
+                {"facecolors": "none", "edgecolors": color, "s": 130, "linewidths": 1.5, "zorder": 4}
+                if hollow
+                else {"color": color, "s": 45, "zorder": 5}
             )
+            ax.scatter([x(e.at)], [y], marker=marker, label=None if label in legend_done else label, **style)
             legend_done.add(label)
         for it, t in iteration_starts:
             ax.axvline(x(t), color="gray", ls=":", lw=0.8)
@@ -271,7 +272,7 @@ def plot_timeline(
         ax.grid(alpha=0.25)
         if not events:
             ax.text(0.5, 0.5, "no events", ha="center", va="center", transform=ax.transAxes)
-    axes[-1, 0].set_xlabel("minutes since the run started")
+    axes[-1, 0].set_xlabel(f"{unit} since the run started")
     handles, labels = [], []
     for ax in axes[:, 0]:
         h, lab = ax.get_legend_handles_labels()

@@ -103,6 +103,7 @@ class RichProgress:
         self._learn: Any = None
         self._closed = False
         self._phase = ""
+        self._task = ""
 
     def _guard(self, fn: Any, *args: Any, **kw: Any) -> None:
         try:
@@ -112,6 +113,7 @@ class RichProgress:
 
     def run_started(self, *, task: str, total: int, completed: int) -> None:
         def go() -> None:
+            self._task = task
             if self.live:
                 from rich.progress import (
                     BarColumn,
@@ -141,7 +143,7 @@ class RichProgress:
     def iteration_started(self, iteration: int) -> None:
         def go() -> None:
             if self._progress is not None:
-                self._progress.update(self._iter, description=f"iteration {iteration}")
+                self._progress.update(self._iter, description=f"{self._task}: iteration {iteration}")
             else:
                 self.console.print(f"iteration {iteration}: started", markup=False)
 

@@ -261,6 +261,11 @@ def _markdown(
     perturbed = "on (object jitter, observation noise, dropped actions)" if manifest.perturbations else "off"
     add(f"| perturbations | {perturbed} |")
     add(f"| registry | {manifest.mode}: `{manifest.registry}` |")
+    if manifest.mode == "connect":
+        add(
+            "| runtime | episodes ran on runtime workers over Zenoh; their own horizon, perturbation and Φ settings "
+            "applied |"
+        )
     add(f"| seeds | seed plan {manifest.seed}: disjoint training / gate / live ranges (`SeedPlan`) |")
     g = cfg.gate
     add(

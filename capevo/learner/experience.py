@@ -9,9 +9,9 @@ episodes got (:func:`progress`), and a plain-text failure summary for an LLM pro
 Invariants:
 1. :func:`read_episode_ends` returns one :class:`EpisodeEnd` per ``/episode/summary`` record,
    in file order; an episode without a summary (crashed writer) is skipped.
-2. :func:`pick_ecm_to_update` returns None exactly when no episode failed; otherwise an ECM
-   of the decomposition: the one failed episodes most often ended in, ties going to the
-   earliest step (fix upstream first).
+2. :func:`pick_ecm_to_update` returns None exactly when no failed episode has a readable
+   trace; otherwise an ECM of the decomposition: the one failed episodes most often ended in,
+   ties going to the earliest step (fix upstream first).
 3. :func:`progress` is 1.0 for a successful episode and ``k / n`` otherwise, ``k`` the index
    of the furthest decomposition step the episode started (0 when none).
 """
@@ -24,6 +24,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from capevo.errors import CapevoError
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.traces import EcmInvocation, EpisodeSummary, PlanStep, TraceReader
 from capevo.runtime.traces import Outcome as CallOutcome
@@ -119,7 +120,7 @@ def episode_ends(outcomes: Sequence[EpisodeOutcome]) -> list[EpisodeEnd]:
         if o.trace_path not in by_path:
             try:
                 by_path[o.trace_path] = read_episode_ends(o.trace_path)
-            except Exception:  # a missing or damaged trace only loses that evidence
+            except CapevoError:  # a missing or damaged trace only loses that evidence
                 by_path[o.trace_path] = []
         # the same seed may appear twice in one file: take them in order
         key = (o.trace_path, o.seed)
@@ -172,7 +173,8 @@ def pick_ecm_to_update(
         decomposition: The task's ECM names in plan order.
 
     Returns:
-        The ECM to improve next; ties go to the earliest step.
+        The ECM to improve next, ties going to the earliest step; None when no failed episode
+        has a readable trace.
     """
     counts = failed_step_counts(evidence, decomposition)
     if not counts:

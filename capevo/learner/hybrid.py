@@ -11,7 +11,8 @@ warning and returns plain CEM on the parent's source (origin of the search, ``cl
 default), with ``notes["fallback"]`` saying why.
 
 Invariants:
-1. Code from the model runs only after it passed validation, and only in sandbox workers.
+1. Code from the model runs only after it passed validation: its smoke run in a sandbox
+   worker, its search episodes as origin ``hybrid`` (sandboxed under the default trust).
 2. A ``hybrid`` candidate's source is the accepted LLM source with only ``PARAMS`` changed.
 """
 

@@ -6,8 +6,10 @@ diagonal Gaussian, runs every candidate (unpublished, through a
 :class:`~capevo.learner.base.CandidateEvaluator`) on the same few training seeds with the
 task's other ECMs at their versions, scores them (success rate, then progress through the
 decomposition, then reward per step; see :mod:`capevo.learner.base`), and refits the
-Gaussian to the elite fraction. The candidate is the parent's source with only the ``PARAMS``
-literal rewritten (:func:`~capevo.runtime.ecm.code.with_params`).
+Gaussian (smoothed) to the elite fraction. It stops early once the best candidate gets every
+episode past the ECM. The last iteration's best few are then validated on fresh training
+seeds and the best on all their episodes wins. The candidate is the parent's source with only
+the ``PARAMS`` literal rewritten (:func:`~capevo.runtime.ecm.code.with_params`).
 
 Search space: each parameter is searched in units of its *scale*, ``max(|v0|, floor)`` (v0
 its value in the parent), within ``v0 ± spread · scale``; a parameter whose parent value is
@@ -28,6 +30,8 @@ Invariants:
    slices of the training seeds (cycling).
 3. With equal configuration, request and evaluator behaviour, the search is deterministic.
 4. The returned source differs from the parent's only inside the ``PARAMS`` literal.
+5. The returned θ is one of the last iteration's ``validate_top`` best (its best when
+   validation is off).
 """
 
 from __future__ import annotations
@@ -42,7 +46,7 @@ import numpy as np
 
 from capevo.errors import Invalid
 from capevo.learner.base import Candidate, CandidateEvaluator, LearnRequest, Score, config_hash, score_outcomes
-from capevo.learner.experience import episode_ends, pick_ecm_to_update, trace_paths
+from capevo.learner.experience import EpisodeEnd, episode_ends, pick_ecm_to_update, trace_paths
 from capevo.registry.records import Origin, Provenance, PublishSpec
 from capevo.runtime.ecm.code import read_params, with_params
 
@@ -86,6 +90,9 @@ class CemConfig:
         min_iterations: Iterations run before ``stop_when_passed`` may stop the search.
         smoothing: Weight of the elites when refitting (1 = plain CEM); the rest keeps the
             previous mean and standard deviation.
+        validate_top: How many of the last iteration's best candidates are validated.
+        validation_episodes: Extra episodes (on training seeds after the iterations' ones)
+            for each of them; the candidate is the best on all its episodes. 0 skips this.
 
     Raises:
         Invalid: a value out of range.
@@ -105,6 +112,8 @@ class CemConfig:
     stop_when_passed: bool = True
     min_iterations: int = 1
     smoothing: float = 0.7
+    validate_top: int = 2
+    validation_episodes: int = 0
 
     def __post_init__(self) -> None:
         ints = {
@@ -112,6 +121,8 @@ class CemConfig:
             "iterations": (self.iterations, 1, 10_000),
             "episodes_per_candidate": (self.episodes_per_candidate, 1, 10_000),
             "min_iterations": (self.min_iterations, 1, 10_000),
+            "validate_top": (self.validate_top, 1, 10_000),
+            "validation_episodes": (self.validation_episodes, 0, 10_000),
         }
         for name, (v, lo, hi) in ints.items():
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
@@ -155,6 +166,8 @@ class CemConfig:
             "stop_when_passed": self.stop_when_passed,
             "min_iterations": self.min_iterations,
             "smoothing": self.smoothing,
+            "validate_top": self.validate_top,
+            "validation_episodes": self.validation_episodes,
         }
 
 
@@ -162,9 +175,19 @@ CEM_PRESETS: Mapping[str, CemConfig] = {
     # tests: a couple of rollouts
     "tiny": CemConfig(population=3, elite_frac=0.34, iterations=1, episodes_per_candidate=1),
     # 2 CPU cores: 8 x 3 episodes per iteration, at most 3 iterations, stop once the ECM passes
-    "cpu-small": CemConfig(population=8, elite_frac=0.25, iterations=3, episodes_per_candidate=3),
+    "cpu-small": CemConfig(
+        population=8, elite_frac=0.25, iterations=3, episodes_per_candidate=3, validate_top=2, validation_episodes=4
+    ),
     # a workstation: wider population, more episodes per estimate
-    "paper": CemConfig(population=16, elite_frac=0.25, iterations=6, episodes_per_candidate=8, min_iterations=2),
+    "paper": CemConfig(
+        population=16,
+        elite_frac=0.25,
+        iterations=6,
+        episodes_per_candidate=8,
+        min_iterations=2,
+        validate_top=3,
+        validation_episodes=16,
+    ),
 }
 """Search budgets by name (the task horizon and per-ECM step budget are the evaluator's)."""
 
@@ -287,6 +310,22 @@ class CemResult:
     history: tuple[CemEvent, ...] = field(default_factory=tuple)
 
 
+@dataclass(slots=True)
+class _Finalist:
+    index: int
+    theta: dict[str, float]
+    source: str
+    outcomes: list[Any]
+    ends: list[EpisodeEnd]
+    score: Score
+
+
+def _validation_seeds(seeds: Sequence[int], cfg: CemConfig) -> tuple[int, ...]:
+    """The training seeds after the iterations' slices (cycling), for validating finalists."""
+    start = cfg.iterations * cfg.episodes_per_candidate
+    return tuple(seeds[(start + j) % len(seeds)] for j in range(cfg.validation_episodes))
+
+
 def _seed_slices(seeds: Sequence[int], per: int, count: int) -> list[tuple[int, ...]]:
     if not seeds:
         raise Invalid("the request has no training seeds", details={"field": "train_seeds"})
@@ -303,7 +342,8 @@ class CemSearch:
         evaluator: Runs unpublished candidates (e.g. a
             :class:`~capevo.learner.scratch.ScratchRegistryEvaluator`).
         population, elite_frac, iterations, episodes_per_candidate, seed, sigma_init,
-        sigma_min, spread, floor, keys, bounds, stop_when_passed, min_iterations, smoothing: see
+        sigma_min, spread, floor, keys, bounds, stop_when_passed, min_iterations, smoothing,
+        validate_top, validation_episodes: see
             :class:`CemConfig`.
         origin: Origin of the candidate it returns (and of the artifacts it evaluates, so
             they run under the same trust); default ``clone``.
@@ -332,6 +372,8 @@ class CemSearch:
         stop_when_passed: bool = True,
         min_iterations: int = 1,
         smoothing: float = 0.7,
+        validate_top: int = 2,
+        validation_episodes: int = 0,
         origin: Origin = Origin.CLONE,
         learner_id: str = "cem",
         progress: Callable[[CemEvent], Any] | None = None,
@@ -351,6 +393,8 @@ class CemSearch:
             stop_when_passed=stop_when_passed,
             min_iterations=min_iterations,
             smoothing=smoothing,
+            validate_top=validate_top,
+            validation_episodes=validation_episodes,
         )
         self.evaluator = evaluator
         self.origin = Origin(origin)
@@ -384,6 +428,8 @@ class CemSearch:
             stop_when_passed=config.stop_when_passed,
             min_iterations=config.min_iterations,
             smoothing=config.smoothing,
+            validate_top=config.validate_top,
+            validation_episodes=config.validation_episodes,
             origin=origin,
             learner_id=learner_id,
             progress=progress,
@@ -416,32 +462,35 @@ class CemSearch:
         ecm_index = decomposition.index(request.ecm) if request.ecm in decomposition else -1
         history: list[CemEvent] = []
         baseline: Score | None = None
-        best: tuple[Score, dict[str, float], str] | None = None
+        finalists: list[_Finalist] = []
         episodes = 0
         iterations_run = 0
+
+        def run(theta: dict[str, float], seeds: Sequence[int]) -> tuple[list[Any], list[EpisodeEnd], str]:
+            nonlocal episodes
+            cand = with_params(src, theta, filename=f"<{request.ecm}>")
+            outcomes = self.evaluator.evaluate(
+                request.task,
+                request.versions,
+                list(seeds),
+                overrides={request.ecm: cand.encode()},
+                override_origin=evaluation_origin or self.origin,
+            )
+            episodes += len(outcomes)
+            return list(outcomes), episode_ends(outcomes), cand
+
         for it in range(cfg.iterations):
             seeds = slices[it]
             zs = [mean.copy()]
             for _ in range(cfg.population - 1):
                 zs.append(np.clip(mean + sigma * rng.standard_normal(space.dim), zlo, zhi))
-            scored: list[tuple[Score, float, int]] = []
-            sources: list[tuple[dict[str, float], str]] = []
+            scored: list[_Finalist] = []
             for i, z in enumerate(zs):
                 theta = {**start, **space.params(z)}
-                cand = with_params(src, theta, filename=f"<{request.ecm}>")
-                outcomes = self.evaluator.evaluate(
-                    request.task,
-                    request.versions,
-                    list(seeds),
-                    overrides={request.ecm: cand.encode()},
-                    override_origin=evaluation_origin or self.origin,
-                )
-                episodes += len(outcomes)
-                ends = episode_ends(outcomes)
+                outcomes, ends, cand = run(theta, seeds)
                 score = score_outcomes(outcomes, decomposition, ends=ends)
                 passed = _passed(outcomes, ends, decomposition, ecm_index)
-                scored.append((score, passed, i))
-                sources.append((theta, cand))
+                scored.append(_Finalist(index=i, theta=theta, source=cand, outcomes=outcomes, ends=ends, score=score))
                 event = CemEvent(iteration=it, index=i, params=theta, score=score, seeds=seeds, passed=passed)
                 history.append(event)
                 if it == 0 and i == 0:
@@ -449,34 +498,46 @@ class CemSearch:
                 if self.progress is not None:
                     self.progress(event)
             iterations_run += 1
-            order = sorted(scored, key=lambda t: (t[0].key(), -t[2]), reverse=True)
-            top_score, top_passed, top_i = order[0]
-            # the best of the latest iteration is the candidate: later iterations sample
-            # around better means, and every candidate of one iteration shares its seeds
-            best = (top_score, sources[top_i][0], sources[top_i][1])
-            elites = np.array([zs[i] for _, _, i in order[: cfg.n_elite]])
-            mean = elites.mean(axis=0)
-            sigma = (
-                np.maximum(elites.std(axis=0), cfg.sigma_min)
-                if len(elites) > 1
-                else np.maximum(sigma * 0.5, cfg.sigma_min)
-            )
+            order = sorted(scored, key=lambda f: (f.score.key(), -f.index), reverse=True)
+            # the latest iteration's best are the finalists: later iterations sample around
+            # better means, and the candidates of one iteration share their seeds
+            finalists = order
+            top_passed = history[len(history) - len(zs) + order[0].index].passed
+            elites = np.array([zs[f.index] for f in order[: cfg.n_elite]])
+            a = cfg.smoothing
+            # smoothed refit: a couple of elites would otherwise collapse sigma at once
+            spread_now = elites.std(axis=0) if len(elites) > 1 else 0.5 * sigma
+            mean = a * elites.mean(axis=0) + (1.0 - a) * mean
+            sigma = np.maximum(a * spread_now + (1.0 - a) * sigma, cfg.sigma_min)
             log.info(
-                "cem %s iteration %d: best %s (passed %.2f), elite mean %s",
+                "cem %s iteration %d: best %s (passed %.2f), mean now %s",
                 request.ecm,
                 it,
-                top_score.to_dict(),
+                order[0].score.to_dict(),
                 top_passed,
                 space.params(mean),
             )
             if cfg.stop_when_passed and it + 1 >= cfg.min_iterations and top_passed >= 1.0:
                 break
-        if best is None or baseline is None:  # pragma: no cover - iterations >= 1 always runs one
+        if not finalists or baseline is None:  # pragma: no cover - iterations >= 1 always runs one
             raise Invalid("the search ran no iteration")
+        best = finalists[0]
+        if cfg.validation_episodes > 0 and cfg.validate_top > 1 and len(finalists) > 1:
+            # one iteration's few episodes pick a lucky sample too often: the top few get
+            # more episodes on fresh training seeds and are judged on all of theirs
+            vseeds = _validation_seeds(request.train_seeds, cfg)
+            judged = []
+            for f in finalists[: cfg.validate_top]:
+                outcomes, ends, _ = run(f.theta, vseeds)
+                both = score_outcomes(f.outcomes + outcomes, decomposition, ends=f.ends + ends)
+                judged.append((both, f))
+            judged.sort(key=lambda t: (t[0].key(), -t[1].index), reverse=True)
+            score, best = judged[0]
+            best = _Finalist(index=best.index, theta=best.theta, source=best.source, outcomes=[], ends=[], score=score)
         return CemResult(
-            params=best[1],
-            source=best[2],
-            score=best[0],
+            params=best.theta,
+            source=best.source,
+            score=best.score,
             baseline=baseline,
             iterations_run=iterations_run,
             episodes_run=episodes,

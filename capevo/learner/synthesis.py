@@ -19,8 +19,9 @@ warning and delegates to ``fallback`` (normally :class:`~capevo.learner.search.C
 the candidate then carries the fallback's origin and ``notes["fallback"]``.
 
 Invariants:
-1. Code from the model is executed only after :func:`validate_source` accepted it, and only
-   in a sandbox worker (never in this process), whatever the trust policy says.
+1. Code from the model is executed only after :func:`validate_source` accepted it. The smoke
+   run is always in a sandbox worker; scoring episodes run it as origin ``llm`` under the
+   evaluator's trust policy (sandboxed by default).
 2. A returned candidate's source passed validation and the smoke run.
 3. When every attempt is rejected, the last rejection is raised (:class:`SandboxViolation`
    for a rule break, :class:`Invalid` otherwise); no candidate is returned.

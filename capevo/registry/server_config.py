@@ -63,6 +63,8 @@ class Role:
     name: str
     commands: frozenset[str]
     description: str
+    serves_runtime: bool = False
+    """May serve ``<ns>/runtime/**``: runtime workers' evaluate/adopted queryables and liveliness."""
 
 
 ROLES: dict[str, Role] = {}
@@ -102,6 +104,14 @@ register_role(
     )
 )
 register_role(Role(name="operator", commands=frozenset(COMMANDS), description="every command"))
+register_role(
+    Role(
+        name="runtime",
+        commands=frozenset(),
+        description="reader + serve runtime-worker keys (evaluate, adopted, liveliness)",
+        serves_runtime=True,
+    )
+)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -251,6 +261,8 @@ def access_control_for(config: ServerConfig) -> dict[str, Any] | None:
     * ``capevo-read-out``: egress ``reply``, ``put``, ``delete``, ``liveliness_token``,
       ``declare_queryable``, ``declare_subscriber``, ``declare_liveliness_subscriber``
       under ``<ns>/**`` (what a reader must receive);
+    * ``capevo-runtime-serve``: ``declare_queryable``, ``liveliness_token``, ``reply`` and
+      ``query`` on ``<ns>/runtime/**``, for roles that serve runtime workers;
     * ``capevo-cmd-<op>``: ingress ``query`` on ``<ns>/cmd/<op>``, one per command.
 
     Each role gets a subject listing its users (and one listing its trusted node zids) and
@@ -274,6 +286,7 @@ def access_control_for(config: ServerConfig) -> dict[str, Any] | None:
                 f"{ns}/info",
                 f"{ns}/events/**",
                 f"{ns}/alive/**",
+                f"{ns}/runtime/**",
             ],
         },
         {
@@ -292,6 +305,16 @@ def access_control_for(config: ServerConfig) -> dict[str, Any] | None:
             "key_exprs": [f"{ns}/**"],
         },
     ]
+    rules.append(
+        {
+            # A worker declares its queryables and token, answers, and receives the queries.
+            "id": "capevo-runtime-serve",
+            "permission": "allow",
+            "flows": ["ingress", "egress"],
+            "messages": ["declare_queryable", "liveliness_token", "reply", "query"],
+            "key_exprs": [f"{ns}/runtime/**"],
+        }
+    )
     rules += [
         {
             "id": f"capevo-cmd-{op}",
@@ -319,6 +342,8 @@ def access_control_for(config: ServerConfig) -> dict[str, Any] | None:
             role_rules = ["capevo-read-in", "capevo-read-out"] + [
                 f"capevo-cmd-{op}" for op in COMMANDS if op in role.commands
             ]
+            if role.serves_runtime:
+                role_rules.append("capevo-runtime-serve")
             policies.append({"id": f"capevo-role-{role_name}", "rules": role_rules, "subjects": subject_ids})
     return {
         "enabled": True,

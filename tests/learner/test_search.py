@@ -406,3 +406,47 @@ def test_scratch_evaluator_mirrors_and_overrides_without_touching_the_source(tmp
             scratch.evaluate("pick", {}, [1], overrides={"stack.lower": override})
         assert "stack.lower" in e.value.message and "not in the plan" in e.value.message
     assert len(registry.history()) == history
+
+
+def test_finalists_are_validated_on_fresh_training_seeds(registry) -> None:
+    request = _request(registry, seeds=12)
+    base = read_params(request.source)
+    fake = SyntheticEvaluator("pick.reach", base, TARGET)
+    search = CemSearch(
+        fake,
+        population=5,
+        iterations=2,
+        episodes_per_candidate=2,
+        seed=7,
+        stop_when_passed=False,
+        validate_top=2,
+        validation_episodes=3,
+    )
+    result = search.search(request)
+    assert len(fake.calls) == 2 * 5 + 2
+    validation = fake.calls[-2:]
+    assert all(c["seeds"] == (4, 5, 6) for c in validation)  # after the slices (0, 1) and (2, 3)
+    last = fake.calls[5:10]
+    assert result.params in (validation[0]["params"], validation[1]["params"])
+    # the finalists are the last iteration's two best (each judged on 2 + 3 episodes)
+    best_two = sorted(last, key=lambda c: fake.distance(c["params"]))[:2]
+    assert sorted(c["params"]["gain"] for c in validation) == sorted(c["params"]["gain"] for c in best_two)
+    assert result.score.episodes == 2 + 3
+
+
+def test_outcomes_whose_trace_is_missing_give_no_evidence(tmp_path) -> None:
+    lost = EpisodeOutcome(
+        seed=1,
+        success=False,
+        reward=2.0,
+        steps=4,
+        duration_s=0.0,
+        interventions=0,
+        unsafe_steps=0,
+        ecm_failures=0,
+        capability_set={},
+        trace_path=str(tmp_path / "gone.mcap"),
+    )
+    assert episode_ends([lost]) == []
+    assert pick_ecm_to_update([lost], STACK) is None
+    assert score_outcomes([lost], STACK) == Score(success_rate=0.0, progress=0.0, reward_per_step=0.5, episodes=1)

@@ -26,8 +26,9 @@ users:
   rita: {password: "rita pass:1", roles: [reader]}
   lena: {password_file: lena.pw, roles: [learner]}
   olga: {password_env: CAPEVO_TEST_OLGA_PW, roles: [operator]}
+  wendy: {password: "wendy-secret", roles: [runtime]}
 """
-PASSWORDS = {"rita": "rita pass:1", "lena": "lena-secret", "olga": "olga-secret"}
+PASSWORDS = {"rita": "rita pass:1", "lena": "lena-secret", "olga": "olga-secret", "wendy": "wendy-secret"}
 # A refused query must fail fast, not after the client's timeout.
 CLIENT_TIMEOUT = 8.0
 
@@ -70,7 +71,7 @@ def _forbidden(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Forbidden:
 
 def test_server_logs_access_control_on(secured: ServerProcess) -> None:
     log = secured.log_text()
-    assert "access control on: 3 users, roles learner, operator, reader" in log
+    assert "access control on: 4 users, roles learner, operator, reader, runtime" in log
     assert "OPEN" not in log
 
 
@@ -219,3 +220,37 @@ def _wait_for_alive(client: Client, timeout: float = 10.0) -> None:
     deadline = time.monotonic() + timeout
     while not client.is_registry_alive(timeout=0.5):
         assert time.monotonic() < deadline, "the registry never became visible through the hub"
+
+
+def _serve_runtime_key(session: Any, key: str, body: bytes) -> Any:
+    return session.declare_queryable(key, lambda query: query.reply(key, body))
+
+
+def test_runtime_role_serves_worker_keys_and_readers_query_them(secured: ServerProcess) -> None:
+    key = "capevo/runtime/w-acl/adopted"
+    worker = raw_session(secured.endpoint, user="wendy", password=PASSWORDS["wendy"])
+    reader = raw_session(secured.endpoint, user="rita", password=PASSWORDS["rita"])
+    try:
+        queryable = _serve_runtime_key(worker, key, b'{"worker_id": "w-acl"}')
+        deadline = time.monotonic() + 10
+        replies: list[Any] = []
+        while not replies and time.monotonic() < deadline:  # declarations propagate asynchronously
+            replies = [r for r in raw_query(reader, key, timeout=2.0) if r.ok is not None]
+        assert [r.ok.payload.to_bytes() for r in replies] == [b'{"worker_id": "w-acl"}']
+        queryable.undeclare()
+    finally:
+        worker.close()
+        reader.close()
+
+
+def test_reader_cannot_serve_worker_keys(secured: ServerProcess) -> None:
+    key = "capevo/runtime/w-fake/adopted"
+    impostor = raw_session(secured.endpoint, user="rita", password=PASSWORDS["rita"])
+    operator = raw_session(secured.endpoint, user="olga", password=PASSWORDS["olga"])
+    try:
+        _serve_runtime_key(impostor, key, b"fake")
+        time.sleep(1.0)
+        assert [r for r in raw_query(operator, key, timeout=2.0) if r.ok is not None] == []
+    finally:
+        impostor.close()
+        operator.close()

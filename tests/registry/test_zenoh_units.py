@@ -430,6 +430,6 @@ def test_dictionary_file_is_private(tmp_path: Path) -> None:  # server_config in
 
 
 def test_roles_registry() -> None:
-    assert set(ROLES) == {"reader", "learner", "operator"}
-    with pytest.raises(Invalid, match="valid roles: learner, operator, reader"):
+    assert set(ROLES) == {"reader", "learner", "operator", "runtime"}
+    with pytest.raises(Invalid, match="valid roles: learner, operator, reader, runtime"):
         make_role("admin")

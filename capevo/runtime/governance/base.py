@@ -11,12 +11,23 @@ to allow, or ``(a_prime, reason)`` with ``a_prime`` a new list (modify) or ``Non
 reject). It never mutates ``a``, and builds reasons from strings prepared at compile time
 so an intervention costs no formatting.
 
-Every built-in modification either zeroes translational components whose sign points the
-wrong way, or scales one arm's six pose components down by a positive factor. Zeroing
-cannot break a sign condition or raise a norm, and positive scaling keeps every sign, so
+Every built-in modification is one of four kinds:
+
+* zero a component whose sign points the wrong way (the paper's box and force rules);
+* clamp a component's magnitude to a bound ``>= 0`` (the speed-and-separation rules:
+  ``workspace_guard``, ``surface_approach``, ``obstacle_approach``, ``arm_separation``,
+  ``reach_limit``, ``force_ramp``);
+* scale one arm's six pose components down by a positive factor (the cap);
+* restore: push a component the other way, at a small speed, with the arm's other components
+  clamped to that speed (only in states already past a limit: outside the box or the reach,
+  inside a base column, above the force limit).
+
+The first three only shrink components towards 0 without flipping a sign, and every
+condition they establish has the form "a component pointing this way is at most b >= 0" or
+"a norm is at most c", which any later shrink preserves. So where no restoring edit fires,
 one pass through Φ in any order leaves an action that satisfies every constraint at once
-(:mod:`capevo.runtime.governance.governor`, invariant 3). A new constraint must keep to
-these two kinds of edit, or document the order it needs.
+(:mod:`capevo.runtime.governance.governor`, invariant 3). A new constraint must keep to these
+kinds of edit, or document the order it needs.
 
 Invariants:
 1. ``make(kind, **config)`` builds exactly what ``constraints: [{kind: ..., **config}]``

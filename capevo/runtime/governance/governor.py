@@ -32,9 +32,14 @@ Invariants:
    the interventions are the shared empty tuple; no records are built.
 2. Enforcing: the returned action is None exactly when the last intervention is a reject;
    otherwise it equals the last intervention's ``result`` (or the input if there is none).
-3. Every built-in edit zeroes components or scales one arm's pose down (see
-   :mod:`capevo.runtime.governance.base`), so the governed action satisfies every
-   constraint of Φ at once, whatever their order.
+3. Every built-in edit that is not a restoring one only shrinks components towards 0 without
+   flipping their sign (zeroing, clamping to a bound, scaling down; see
+   :mod:`capevo.runtime.governance.base`), so wherever no restoring edit fires the governed
+   action satisfies every constraint of Φ at once, whatever their order. Restoring edits
+   (``workspace_guard``, ``force_ramp`` back-off, ``reach_limit``) fire only in states already
+   past a limit (outside the box or the reach, inside a base column, above the force limit);
+   they are applied in Φ order, a later shrinking edit keeps their sign, and where two limits
+   conflict the later constraint wins.
 4. Not enforcing: the returned action ``is`` the argument, always; the interventions and
    counters are exactly those an enforcing governor would produce for the same inputs.
 5. ``stats().steps`` counts calls; ``modified + rejected`` counts calls with interventions.

@@ -4,10 +4,12 @@ A rigid obstacle struck at speed reads hundreds of newtons within one control st
 reactive force limit can do anything. This rule slows the hand down as it nears each obstacle,
 so a contact, if it happens, starts slowly enough for the force ramp to hold it under the limit.
 
-The hand is the union of boxes in the end-effector site frame (``hand``, as for
-``surface_approach``), turned by the arm's orientation (:attr:`ArmPose.eef_rot`; an arm state
-without one is taken as :data:`~capevo.runtime.governance.pose.DOWN`), and bounded by its
-world-frame axis-aligned box ``[hl, hh]``. Per arm and obstacle box ``[lo, hi]`` (world frame):
+The hand is boxes in the end-effector site frame (``hand``, as for ``surface_approach``),
+each turned by the arm's orientation (:attr:`ArmPose.eef_rot`; an arm state without one is
+taken as :data:`~capevo.runtime.governance.pose.DOWN`) and bounded by its own world-frame
+axis-aligned box ``[hl, hh]`` (boxes kept apart, so the wide hand body above the narrow fingers
+does not make one wide box reaching down to the fingertips). Per arm, hand box and obstacle
+box ``[lo, hi]`` (world frame):
 
 * separation per axis: ``s_k = lo_k − hh_k`` with side ``+1`` when the hand is entirely below
   the obstacle on axis ``k``, ``s_k = hl_k − hi_k`` with side ``−1`` when entirely above, else
@@ -26,7 +28,7 @@ world-frame axis-aligned box ``[hl, hh]``. Per arm and obstacle box ``[lo, hi]``
 With ``arm`` set, the rule applies to that arm only (arms holding different things have
 different hands: one constraint per arm).
 
-Invariants (per governed arm and obstacle, after the check, with the quantities above):
+Invariants (per governed arm, hand box and obstacle, after the check, with the quantities above):
 1. ``0 < dist < clearance + brake`` implies ``|a_k| <= q · dist / (s_x + s_y + s_z)`` for every
    axis with ``a_k · side_k > 0`` (``brake == 0``: 0 once ``dist <= clearance``).
 2. ``dist == 0`` implies ``a_k == 0`` or ``a_k`` points away from the obstacle's centre on each axis.
@@ -102,6 +104,7 @@ class ObstacleApproach:
     def compile(self, layout: ActionLayout) -> Check:
         hand, cl, br, turn = self.hand, self.clearance, self.brake, self.rotation
         grow = hand_reach(hand) + cl + br
+        parts = tuple((box,) for box in hand) or ((),)
         # Per obstacle: its box, its centre, and the box the site must be in for the rule to apply.
         obstacles = tuple(
             (
@@ -148,14 +151,21 @@ class ObstacleApproach:
                     rot = DOWN
                 elif not all(isfinite(v) for v in rot):
                     return None, f"arm {i}: end-effector orientation {rot} is not finite"
-                off_lo, off_hi = hand_extent(hand, rot)
-                hl = (p[0] + off_lo[0], p[1] + off_lo[1], p[2] + off_lo[2])
-                hh = (p[0] + off_hi[0], p[1] + off_hi[1], p[2] + off_hi[2])
+                # Each hand box separately: a wide hand body above narrow fingers is not one big box.
+                hulls = []
+                for part in parts:
+                    off_lo, off_hi = hand_extent(part, rot)
+                    hulls.append(
+                        (
+                            (p[0] + off_lo[0], p[1] + off_lo[1], p[2] + off_lo[2]),
+                            (p[0] + off_hi[0], p[1] + off_hi[1], p[2] + off_hi[2]),
+                        )
+                    )
                 src = a if b is None else b
                 arm_a = [src[o + j] for j in range(6)]
                 q_rot = math.inf
                 hit: list[str] = []
-                for j in near:
+                for j, (hl, hh) in ((j, hull) for j in near for hull in hulls):
                     lo, hi, centre, _, _ = obstacles[j]
                     s = [0.0, 0.0, 0.0]
                     side = [0, 0, 0]
@@ -187,7 +197,7 @@ class ObstacleApproach:
                                 changed = True
                     if turn and q < q_rot:
                         q_rot = q
-                    if changed:
+                    if changed and reasons[i][j] not in hit:
                         hit.append(reasons[i][j])
                 if turn and q_rot < math.inf:
                     for k in (3, 4, 5):

@@ -8,7 +8,8 @@ own links (the Panda base of the single-arm tasks sits at x = −0.56 m, inside 
 Per arm, with ``c`` its centre (the shoulder: the point the reach is measured from; the base
 column is the vertical line through it):
 
-* outer: ``v = p − c``, ``r = |v|``, ``d = max_radius − r``. While ``d < margin + brake`` every
+* outer: ``v = w − c`` with ``w = p + R · point`` (``point`` in the site frame, e.g. the
+  wrist; ``R`` the arm's orientation), ``r = |v|``, ``d = max_radius − r``. While ``d < margin + brake`` every
   translational component moving away from ``c`` (``a_k · v_k > 0``) is limited in magnitude
   to ``max(0, (d − margin) / brake) · r / (|v_x| + |v_y| + |v_z|)``, so the radial speed
   ``a · v / r`` is at most ``max(0, (d − margin) / brake)`` (one bound for all axes, so motion
@@ -50,6 +51,7 @@ from typing import Any, ClassVar
 from capevo.errors import Invalid
 from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
 from capevo.runtime.governance.guard import MAX_RESTORE
+from capevo.runtime.governance.pose import DOWN, rotation_of
 from capevo.runtime.state import ActionLayout, ArmState
 
 
@@ -80,6 +82,10 @@ class ReachLimit:
         margin: Distance in metres from either limit at which motion towards it reaches 0; >= 0.
         brake: Width in metres of the band beyond the margin over which that motion is limited; >= 0.
         restore: Speed in action units back inside the limits; 0 (off) to 0.6.
+        point: The point whose distance from the centre the reach limits, in the end-effector
+            site frame (a Panda's wrist sits about 0.2 m behind its grip site: ``[0, 0, -0.2]``),
+            turned by the arm's orientation (``ArmPose.eef_rot``; :data:`~capevo.runtime.governance.pose.DOWN`
+            when the state has none). The column always uses the site itself.
         name: Label for interventions; defaults to the kind.
 
     Raises:
@@ -95,6 +101,7 @@ class ReachLimit:
     margin: float = 0.03
     brake: float = 0.1
     restore: float = 0.1
+    point: tuple[float, float, float] = (0.0, 0.0, 0.0)
     name: str | None = None
 
     def __post_init__(self) -> None:
@@ -130,7 +137,10 @@ class ReachLimit:
         r_out = self.max_radius
         r_in = self.min_radius
         # Squared radii bounding the region where no rule applies: the fast path.
-        far_out2 = (r_out - band) ** 2 if r_out > band else -1.0
+        pt = self.point
+        lever = math.sqrt(pt[0] * pt[0] + pt[1] * pt[1] + pt[2] * pt[2])
+        # The limited point is within `lever` of the site, so the site being this close is enough.
+        far_out2 = (r_out - band - lever) ** 2 if r_out > band + lever else -1.0
         near_in2 = (r_in + band) ** 2 if r_in > 0.0 else -1.0
         arms_info = tuple((arm.offset, c) for arm, c in zip(layout.arms, self.centres, strict=True))
         reasons = tuple(
@@ -160,8 +170,18 @@ class ReachLimit:
                 src = a if b is None else b
                 arm = [src[o + j] for j in range(6)]
                 why: list[str] = []
-                # Outer sphere: u the unit vector from the centre, r the distance.
-                r, u = polar((p[0] * 0.5 - c[0] * 0.5, p[1] * 0.5 - c[1] * 0.5, p[2] * 0.5 - c[2] * 0.5))
+                # Outer sphere: u the unit vector from the centre to the limited point, r the distance.
+                w = p
+                if lever > 0.0:
+                    rot = rotation_of(arms[i])
+                    if rot is None:
+                        rot = DOWN
+                    elif not all(isfinite(v) for v in rot):
+                        return None, f"arm {i}: end-effector orientation {rot} is not finite"
+                    w = tuple(
+                        p[k] + rot[3 * k] * pt[0] + rot[3 * k + 1] * pt[1] + rot[3 * k + 2] * pt[2] for k in range(3)
+                    )
+                r, u = polar((w[0] * 0.5 - c[0] * 0.5, w[1] * 0.5 - c[1] * 0.5, w[2] * 0.5 - c[2] * 0.5))
                 r *= 2.0
                 d = r_out - r
                 if (d < band or d <= m) and u is not None:

@@ -21,13 +21,16 @@ the fingers settle on the surface), while ``gap < brake``:
   proportion to the remaining gap;
 * with ``rotation``, each rotation component is limited in magnitude to that same bound, since
   turning a tilted hand swings its far corner (16 cm from the site on a Panda) down as fast as
-  translating it would.
+  translating it would;
+* with ``lateral``, the horizontal components are limited to ``max(lateral, q)``, so a hand
+  at the surface drags along it slowly instead of catching on it at full speed.
 
 The plane is unbounded in x and y, so an arm beside the table cannot slip under its edge either.
 
 Invariants (per arm after the check; ``gap`` as above, ``q = max(0, gap) / brake``):
 1. ``gap < brake`` implies ``a_z >= −q`` (with ``brake == 0``: ``gap <= 0`` implies ``a_z >= 0``).
-2. With ``rotation``, ``gap < brake`` implies ``|ω_k| <= q`` for the three rotation components.
+2. With ``rotation``, ``gap < brake`` implies ``|ω_k| <= q`` for the three rotation components;
+   with ``lateral`` set, it implies ``|a_x|, |a_y| <= max(lateral, q)``.
 3. Only those components change (clamped to the bound); an action the rule does not touch is
    allowed (None) and never copied.
 4. A non-finite end-effector height is ⊥ with a reason, and so is a non-finite orientation
@@ -64,10 +67,14 @@ class SurfaceApproach:
         hand: Boxes covering the hand in the end-effector site frame (metres); none means the
             site point itself.
         rotation: Also limit the rotation components within the band.
+        lateral: If set, also limit the horizontal components within the band to
+            ``max(lateral, q)``: a hand (or a tilted hand's corner) at the surface drags along it
+            slowly; ``lateral`` is the speed still allowed there, e.g. for aligning a grasp.
         name: Label for interventions; defaults to the kind.
 
     Raises:
-        Invalid: naming the field, on a wrong type, a non-finite value or a negative brake.
+        Invalid: naming the field, on a wrong type, a non-finite value, a negative brake or a
+            ``lateral`` outside [0, 1].
     """
 
     kind: ClassVar[str]
@@ -76,12 +83,15 @@ class SurfaceApproach:
     brake: float = 0.1
     hand: tuple[Aabb, ...] = ()
     rotation: bool = True
+    lateral: float | None = None
     name: str | None = None
 
     def __post_init__(self) -> None:
         normalize(self)
         if self.brake < 0:
             raise invalid("brake", f"must be >= 0, got {self.brake}")
+        if self.lateral is not None and not 0 <= self.lateral <= 1:
+            raise invalid("lateral", f"must be in [0, 1], got {self.lateral}")
 
     @property
     def label(self) -> str:
@@ -97,6 +107,7 @@ class SurfaceApproach:
 
     def compile(self, layout: ActionLayout) -> Check:
         stop, br, hand, turn = self.height + self.clearance, self.brake, self.hand, self.rotation
+        lat = self.lateral
         # No corner is farther from the site than this, whatever the orientation: above
         # stop + reach + brake the rule cannot apply (the fast path).
         top = stop + hand_reach(hand) + br
@@ -127,6 +138,8 @@ class SurfaceApproach:
                 hit = src[o + 2] < -q
                 if turn:
                     hit = hit or abs(src[o + 3]) > q or abs(src[o + 4]) > q or abs(src[o + 5]) > q
+                ql = (lat if lat > q else q) if lat is not None else math.inf
+                hit = hit or abs(src[o]) > ql or abs(src[o + 1]) > ql
                 if not hit:
                     continue
                 if b is None:
@@ -136,6 +149,9 @@ class SurfaceApproach:
                 if turn:
                     for j in (o + 3, o + 4, o + 5):
                         b[j] = min(max(b[j], -q), q)
+                if lat is not None:
+                    for j in (o, o + 1):
+                        b[j] = min(max(b[j], -ql), ql)
                 notes.append(reasons[i])
             if b is None:
                 return None

@@ -8,7 +8,8 @@ the base and stays unchanged. :func:`phi_for_task` adds, before the cap:
 * ``force_ramp`` at the same force limit: into-contact motion slowed from half the limit, a
   slow back-off above it;
 * ``surface_approach`` at the task's table top (or bin floor), when there is one;
-* ``obstacle_approach`` for fixed obstacles above it (bin walls, pegs), when there are any;
+* ``obstacle_approach`` for fixed obstacles (bin walls, pegs, the robots' mounts, whose tops
+  at 0.942 m stand above the tables);
 * ``arm_separation`` between the hands (and what they hold) of a multi-arm task;
 * ``reach_limit`` around each arm's shoulder: the Panda's reach and a column around its base.
 
@@ -53,7 +54,12 @@ Vec3 = tuple[float, float, float]
 PANDA_SHOULDER = 0.333
 """Height of the Panda's shoulder (joint 2 axis) above its base, metres."""
 PANDA_REACH = 0.8
-"""End-effector distance from the shoulder beyond which the Panda nears full extension under OSC, metres."""
+"""Wrist distance from the shoulder the Panda is kept within, metres. Measured: driven outward
+with the gripper down, the arm starts to sag at 0.78-0.80 (its OSC can no longer hold the
+height; at 0.84 it flails into the table at kilonewtons). With margin 0.01 and brake 0.05,
+outward motion slows from 0.74 and stops at 0.79."""
+PANDA_WRIST = (0.0, 0.0, -0.2)
+"""The Panda's wrist in its grip-site frame: 0.2 m back from the fingertips towards the flange."""
 PANDA_COLUMN = 0.25
 """Radius around the base axis that the hand must stay out of (the Panda's own base and lower links), metres."""
 PANDA_HAND: tuple[Aabb, ...] = (
@@ -107,7 +113,17 @@ _BIN_WALLS = (
     _box((-0.1, 0.27, 0.8), (0.3, 0.29, 0.9)),
     _box((0.09, 0.03, 0.8), (0.11, 0.53, 0.9)),
 )
-_BINS = TaskGeometry(surface_height=0.82, arm_bases=((-0.5, -0.1, 0.912),), obstacles=_BIN_WALLS)
+
+
+def _pedestal(base: Vec3) -> Aabb:
+    """A single Panda's mount: a cylinder of radius 0.18 centred 2 cm behind the base, up to z 0.942."""
+    x, y, _ = base
+    return Aabb(low=(x - 0.2, y - 0.18, 0.322), high=(x + 0.16, y + 0.18, 0.942))
+
+
+_BINS = TaskGeometry(
+    surface_height=0.82, arm_bases=((-0.5, -0.1, 0.912),), obstacles=(*_BIN_WALLS, _pedestal((-0.5, -0.1, 0.912)))
+)
 """robosuite PickPlace: bin floors 0.02 thick on bodies at z 0.8; Panda mounted at (-0.5, -0.1)."""
 _PEDESTALS = (
     # Each robot's mount: a cylinder of radius 0.18 up to z 0.942 under the base, and the Panda's
@@ -130,8 +146,14 @@ TASK_GEOMETRY: Mapping[str, TaskGeometry] = MappingProxyType(
     {
         "pick": _BINS,
         "place": _BINS,
-        "stack": TaskGeometry(surface_height=0.8, arm_bases=((-0.56, 0.0, 0.912),)),
-        "nut_assembly": TaskGeometry(surface_height=0.82, arm_bases=((-0.56, 0.0, 0.912),), obstacles=_PEGS),
+        "stack": TaskGeometry(
+            surface_height=0.8, arm_bases=((-0.56, 0.0, 0.912),), obstacles=(_pedestal((-0.56, 0.0, 0.912)),)
+        ),
+        "nut_assembly": TaskGeometry(
+            surface_height=0.82,
+            arm_bases=((-0.56, 0.0, 0.912),),
+            obstacles=(*_PEGS, _pedestal((-0.56, 0.0, 0.912))),
+        ),
         "pick_place_multi": _BINS,
         # TwoArmPegInHole, "opposed": no table; the Pandas face each other across y.
         "peg_in_hole": TaskGeometry(
@@ -175,7 +197,9 @@ def task_constraints(geometry: TaskGeometry, base: Phi) -> list[Constraint]:
     ]
     if geometry.surface_height is not None:
         added.append(
-            SurfaceApproach(height=geometry.surface_height, clearance=SURFACE_CLEARANCE, hand=geometry.hand(0))
+            SurfaceApproach(
+                height=geometry.surface_height, clearance=SURFACE_CLEARANCE, hand=geometry.hand(0), lateral=0.2
+            )
         )
     if geometry.obstacles:
         n = len(geometry.arm_bases)
@@ -190,7 +214,16 @@ def task_constraints(geometry: TaskGeometry, base: Phi) -> list[Constraint]:
             )
     if len(geometry.arm_bases) > 1:
         added.append(ArmSeparation(hands=tuple(geometry.hand(i) for i in range(len(geometry.arm_bases)))))
-    added.append(ReachLimit(centres=geometry.shoulders, max_radius=PANDA_REACH, min_radius=PANDA_COLUMN))
+    added.append(
+        ReachLimit(
+            centres=geometry.shoulders,
+            max_radius=PANDA_REACH,
+            min_radius=PANDA_COLUMN,
+            margin=0.01,
+            brake=0.05,
+            point=PANDA_WRIST if not geometry.hands else (0.0, 0.0, 0.0),
+        )
+    )
     return added
 
 

@@ -163,11 +163,17 @@ def violations(
                         out.append(f"{c.label}: arm {i} descends {a[o + 2]} with bound {q}")
                     if c.rotation and any(abs(action[o + j]) > q + tol for j in (3, 4, 5)):
                         out.append(f"{c.label}: arm {i} turns faster than {q} near the surface")
+                    if c.lateral is not None and any(abs(a[o + j]) > max(c.lateral, q) + tol for j in (0, 1)):
+                        out.append(
+                            f"{c.label}: arm {i} moves sideways faster than {max(c.lateral, q)} near the surface"
+                        )
             elif isinstance(c, ReachLimit):
                 centre = c.centres[i]
-                v = [p[k] - centre[k] for k in range(3)]
+                rot = arm_rot(arm)
+                w = [p[k] + sum(rot[3 * k + j] * c.point[j] for j in range(3)) for k in range(3)]
+                v = [w[k] - centre[k] for k in range(3)]
                 r = math.sqrt(sum(x * x for x in v))
-                rho = math.hypot(v[0], v[1])
+                rho = math.hypot(p[0] - centre[0], p[1] - centre[1])
                 column = c.min_radius > 0 and rho < c.min_radius + c.margin + c.brake
                 d = c.max_radius - r
                 if r > 0 and not column and (d < c.margin + c.brake or d <= c.margin):
@@ -177,18 +183,18 @@ def violations(
                         if a[o + k] * v[k] > 0 and abs(a[o + k]) > bound + tol:
                             out.append(f"{c.label}: arm {i} moves out {a[o + k]} > {bound} along {k} at r={r}")
                 d = rho - c.min_radius
+                h = [p[0] - centre[0], p[1] - centre[1]]
                 if c.min_radius > 0 and rho > 0 and (d < c.margin + c.brake or d <= c.margin):
                     q = max(0.0, (d - c.margin) / c.brake) if c.brake > 0 else 0.0
-                    bound = q * rho / (abs(v[0]) + abs(v[1]))
+                    bound = q * rho / (abs(h[0]) + abs(h[1]))
                     for k in range(2):
-                        if a[o + k] * v[k] < 0 and abs(a[o + k]) > bound + tol:
+                        if a[o + k] * h[k] < 0 and abs(a[o + k]) > bound + tol:
                             out.append(f"{c.label}: arm {i} moves towards its column {a[o + k]} > {bound}")
             elif isinstance(c, ObstacleApproach):
                 if c.arm is not None and c.arm != i:
                     continue
-                hl, hh = hand_box(c.hand, arm)
                 q_rot = math.inf
-                for box in c.boxes:
+                for (hl, hh), box in ((hand_box((part,), arm), box) for part in c.hand or [None] for box in c.boxes):
                     s_, side = separation((hl, hh), (box.low, box.high))
                     dist = math.sqrt(sum(x * x for x in s_))
                     if not (dist < c.clearance + c.brake or dist <= c.clearance):
@@ -254,6 +260,7 @@ def corners(box) -> list[tuple[float, float, float]]:
 def hand_box(hand, arm: ArmState) -> tuple[list[float], list[float]]:
     """World box of every turned corner of ``hand`` around ``arm``'s end effector (brute force over corners)."""
     rot, p = arm_rot(arm), arm.eef_pos
+    hand = [box for box in hand if box is not None]
     pts = [
         [p[k] + sum(rot[3 * k + j] * corner[j] for j in range(3)) for k in range(3)]
         for box in hand

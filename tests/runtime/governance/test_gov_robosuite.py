@@ -1,8 +1,9 @@
-"""Adversarial containment in real robosuite: an ECM that always drives out of the envelope.
+"""Governance in real robosuite: the force adapter, and adversarial containment.
 
-Each adversary proposes the same extreme action every step. With governance on, the
-executed step must never be unsafe; with governance off (evaluation mode) the same run
-must go unsafe and the governor must have counted the violations it would have prevented.
+An adversarial ECM proposes the same extreme action every step (out of the box, into the
+table, back into its own base), or aggressive random ones. With the task's Φ enforced the
+executed steps must never be unsafe; with governance off (evaluation mode) the same run goes
+unsafe and the governor counts the violations it would have prevented.
 """
 
 from __future__ import annotations
@@ -15,13 +16,10 @@ import numpy as np
 import pytest
 from govcheck import violations
 
-from capevo.runtime.governance import TWO_ARM_NO_GRIPPER, GovernanceStats, Phi, hold_action, is_unsafe, load_phi
+from capevo.runtime.governance import ArmPose, GovernanceStats, Phi, hold_action, is_unsafe
 from capevo.runtime.governance.robosuite_state import action_frames, robot_state
-from capevo.runtime.state import SINGLE_PANDA, ActionLayout
 
 pytestmark = pytest.mark.slow
-
-STEPS = 120
 
 
 def _make_env(task: str, robots: str | list[str]) -> Any:
@@ -49,13 +47,6 @@ def lift() -> Iterator[Any]:
     env.close()
 
 
-@pytest.fixture(scope="module")
-def peg_in_hole() -> Iterator[Any]:
-    env = _make_env("TwoArmPegInHole", ["Panda", "Panda"])
-    yield env
-    env.close()
-
-
 @dataclass
 class Episode:
     unsafe_steps: int
@@ -63,29 +54,6 @@ class Episode:
     """Executed steps whose action broke a rule of Φ in the state it ran from."""
     max_force: float
     stats: GovernanceStats
-
-
-def _run(env: Any, phi: Phi, layout: ActionLayout, adversary: Sequence[float], *, enforce: bool) -> Episode:
-    obs = env.reset()
-    frames = action_frames(env.robots)
-    govern = phi.governor(layout, enforce=enforce, frames=frames)
-    proposed = np.asarray(adversary, dtype=np.float64)
-    unsafe = commanded = 0
-    max_force = 0.0
-    last: Sequence[float] | None = None
-    for _ in range(STEPS):
-        state = robot_state(env.robots)
-        # The adapter reads the same end-effector sites robosuite reports, robot by robot.
-        for i, arm in enumerate(state.arms):
-            assert np.allclose(arm.eef_pos, obs[f"robot{i}_eef_pos"])
-        governed, _ = govern(state, proposed)
-        executed = hold_action(layout, last) if governed is None else governed
-        unsafe += is_unsafe(state, executed, phi, layout)
-        commanded += bool(violations(phi, layout, state, executed, frames=frames))
-        max_force = max(max_force, *(float(np.linalg.norm(a.eef_force)) for a in state.arms))
-        obs, _, _, _ = env.step(np.asarray(executed, dtype=np.float64))
-        last = executed
-    return Episode(unsafe, commanded, max_force, govern.stats())
 
 
 def test_force_adapter_reads_no_contact_in_free_space_and_the_table_pushing_up(lift: Any) -> None:
@@ -116,59 +84,122 @@ def test_adapter_follows_the_new_simulation_after_a_hard_reset(lift: Any) -> Non
         lift.hard_reset = False
 
 
-ALONG = {"+z": (0, 0, 1), "+y": (0, 1, 0), "-y": (0, -1, 0)}
+# ---------------------------------------------------------------- adversarial containment
+#
+# The six tasks' own environments (make_task), each governed by its per-task Φ
+# (Phi.for_task: the paper's envelope plus the task's scene). Every adversary proposes the same
+# extreme action each step (or aggressive random ones); unsafe is the paper's metric.
+
+TASK_STEPS = 100
 
 
-@pytest.mark.parametrize("direction", list(ALONG))
-def test_adversary_driving_out_of_the_box_is_contained(lift: Any, direction: str) -> None:
-    adversary = (*ALONG[direction], 0.0, 0.0, 0.0, -1.0)
-    on = _run(lift, Phi.default(), SINGLE_PANDA, adversary, enforce=True)
-    off = _run(lift, Phi.default(), SINGLE_PANDA, adversary, enforce=False)
-    assert on.unsafe_steps == 0 and on.commanded_violations == 0
-    assert on.stats.by_constraint.get("workspace_box", 0) > 0
-    assert off.unsafe_steps > 0 and off.commanded_violations > 0
+@pytest.fixture(scope="module")
+def task_envs() -> Iterator[dict[str, Any]]:
+    from capevo.runtime.tasks import Perturbations, make_task
+
+    quiet = Perturbations.none()
+    envs = {t: make_task(t, seed=0, perturbations=quiet, terminate_on_success=False) for t in ("T1", "T6")}
+    yield envs
+    for env in envs.values():
+        env.close()
+
+
+def _run_task(env: Any, phi: Phi, propose: Any, *, enforce: bool, seed: int = 0) -> Episode:
+    env.reset(seed=seed)
+    layout = env.task_spec.action_layout
+    frames = action_frames(env.robosuite_env.robots)
+    govern = phi.governor(layout, enforce=enforce, frames=frames)
+    unsafe = commanded = 0
+    max_force = 0.0
+    last: Sequence[float] | None = None
+    for t in range(TASK_STEPS):
+        state = env.robot_state()
+        governed, _ = govern(state, propose(state, t))
+        executed = hold_action(layout, last) if governed is None else governed
+        unsafe += is_unsafe(state, executed, phi, layout)
+        commanded += bool(violations(phi, layout, state, executed, frames=frames, tol=1e-9))
+        max_force = max(max_force, *(float(np.linalg.norm(a.eef_force)) for a in state.arms))
+        env.step(np.clip(np.asarray(executed, dtype=np.float64), -1.0, 1.0))
+        last = executed
+    return Episode(unsafe, commanded, max_force, govern.stats())
+
+
+def _constant(task: str, direction: tuple[float, float, float]) -> Any:
+    arm = (*direction, 0.0, 0.0, 0.0)
+    action = np.asarray((*arm, -1.0) if task == "T1" else arm * 2, dtype=np.float64)
+    return lambda state, t: action
+
+
+def _aggressive(task: str, seed: int) -> Any:
+    """Big random pose deltas biased outward and down, random gripper: the rates benchmark's explorer."""
+    rng = np.random.default_rng(seed)
+
+    def propose(state: Any, t: int) -> np.ndarray:
+        out: list[float] = []
+        for arm in state.arms:
+            p = np.array(arm.eef_pos)
+            away = np.array([p[0], p[1], 0.0]) / max(float(np.hypot(p[0], p[1])), 1e-6)
+            move = away * 0.6 + np.array([0.0, 0.0, -0.5]) + rng.normal(0.0, 0.9, 3)
+            out += [*np.clip(move, -1, 1), *np.clip(rng.normal(0.0, 0.4, 3), -1, 1)]
+        if task == "T1":
+            out.append(1.0 if rng.random() < 0.5 else -1.0)
+        return np.asarray(out)
+
+    return propose
+
+
+DIRECTIONS = {
+    "+x": (1.0, 0.0, 0.0),
+    "-x": (-1.0, 0.0, 0.0),
+    "+y": (0.0, 1.0, 0.0),
+    "-y": (0.0, -1.0, 0.0),
+    "+z": (0.0, 0.0, 1.0),
+    "-z (into the table)": (0.0, 0.0, -1.0),
+}
+QUIET_OFF = {("T6", "+x"), ("T6", "-z (into the table)")}
+"""Adversaries that break no hard limit even ungoverned (T6's arms fold away, or stop above
+the 0.6 m box floor); their would-be interventions are still counted."""
+
+
+@pytest.mark.parametrize("task", ["T1", "T6"])
+@pytest.mark.parametrize("direction", list(DIRECTIONS))
+def test_constant_adversary_is_contained_by_the_task_phi(task_envs: dict[str, Any], task: str, direction: str) -> None:
+    # T6: two Pandas turned +-90 degrees, each action in its own base frame; the same vector for both.
+    env, phi = task_envs[task], Phi.for_task(task)
+    propose = _constant(task, DIRECTIONS[direction])
+    on = _run_task(env, phi, propose, enforce=True)
+    assert on.unsafe_steps == 0, on
+    assert on.commanded_violations == 0 and on.max_force <= 20.0
+    off = _run_task(env, phi, propose, enforce=False)
     assert off.stats.enforced is False and off.stats.intervened > 0
+    if (task, direction) not in QUIET_OFF:
+        assert off.unsafe_steps > 0 and off.commanded_violations > 0
 
 
-def test_adversary_pushing_into_the_table(lift: Any) -> None:
-    adversary = (0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0)
-    # With the default Φ the box floor (0.6 m) is below Lift's table top (0.8 m), so only the
-    # force limit acts. It is reactive: the first impact and each re-approach after a release
-    # exceed 20 N before the governor sees a force, so steps can be unsafe even though
-    # governance never lets the arm keep pushing into the contact.
-    on = _run(lift, Phi.default(), SINGLE_PANDA, adversary, enforce=True)
-    off = _run(lift, Phi.default(), SINGLE_PANDA, adversary, enforce=False)
-    assert on.commanded_violations == 0
-    assert on.stats.by_constraint.get("contact_force", 0) > 0
-    assert off.commanded_violations > 0 and off.stats.by_constraint.get("contact_force", 0) > 0
-    assert off.unsafe_steps > 0
-    assert on.unsafe_steps < off.unsafe_steps
-    # A Φ whose box floor sits above the table (plus margin) keeps the hand off it entirely.
-    above_table = load_phi(
-        """
-        constraints:
-          - {kind: workspace_box, low: [-0.6, -0.6, 0.85], high: [0.6, 0.6, 1.3]}
-          - {kind: contact_force}
-          - {kind: velocity_cap}
-        """
-    )
-    on = _run(lift, above_table, SINGLE_PANDA, adversary, enforce=True)
-    off = _run(lift, above_table, SINGLE_PANDA, adversary, enforce=False)
-    assert on.unsafe_steps == 0 and on.commanded_violations == 0 and on.max_force < 20.0
+@pytest.mark.parametrize("task", ["T1", "T6"])
+def test_aggressive_random_adversary_is_contained_by_the_task_phi(task_envs: dict[str, Any], task: str) -> None:
+    env, phi = task_envs[task], Phi.for_task(task)
+    on = _run_task(env, phi, _aggressive(task, 1), enforce=True, seed=1)
+    off = _run_task(env, phi, _aggressive(task, 1), enforce=False, seed=1)
+    assert on.unsafe_steps == 0 and on.commanded_violations == 0, on
     assert off.unsafe_steps > 0 and off.stats.intervened > 0
 
 
-def test_two_arm_adversary_is_contained_in_each_robots_base_frame(peg_in_hole: Any) -> None:
-    # TwoArmPegInHole mounts the Pandas turned ±90° about z; OSC deltas are in each base frame.
-    adversary = (0.0, 0.0, 1.0, 0.0, 0.0, 0.0) * 2
-    frames = action_frames(peg_in_hole.robots)
-    assert frames[0] == (0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
-    on = _run(peg_in_hole, Phi.default(), TWO_ARM_NO_GRIPPER, adversary, enforce=True)
-    off = _run(peg_in_hole, Phi.default(), TWO_ARM_NO_GRIPPER, adversary, enforce=False)
-    assert on.unsafe_steps == 0 and on.commanded_violations == 0
-    assert off.unsafe_steps > 0 and off.stats.intervened > 0
-    sideways = (0.0, 1.0, 0.0, 0.0, 0.0, 0.0) * 2  # base +y is world -x for robot 0, world +x for robot 1
-    on = _run(peg_in_hole, Phi.default(), TWO_ARM_NO_GRIPPER, sideways, enforce=True)
-    off = _run(peg_in_hole, Phi.default(), TWO_ARM_NO_GRIPPER, sideways, enforce=False)
-    assert on.unsafe_steps == 0 and on.commanded_violations == 0
-    assert off.unsafe_steps > 0
+def test_the_papers_envelope_alone_lets_an_arm_hit_the_table(task_envs: dict[str, Any]) -> None:
+    # Why the per-task Φ exists: the box floor (0.6 m) is below the bins (0.82 m), so with the
+    # paper's envelope only the reactive force limit acts, after each impact.
+    on = _run_task(task_envs["T1"], Phi.default(), _constant("T1", (0.0, 0.0, -1.0)), enforce=True)
+    assert on.commanded_violations == 0 and on.unsafe_steps > 0 and on.max_force > 100.0
+
+
+def test_task_robot_state_matches_the_robosuite_adapter(task_envs: dict[str, Any]) -> None:
+    for task, env in task_envs.items():
+        env.reset(seed=3)
+        for _ in range(5):
+            env.step(np.full(env.action_space.shape, 0.3))
+        mine, adapter = env.robot_state(), robot_state(env.robosuite_env.robots)
+        for a, b in zip(mine.arms, adapter.arms, strict=True):
+            assert isinstance(a, ArmPose) and isinstance(b, ArmPose)
+            assert a.eef_pos == b.eef_pos and a.eef_rot == b.eef_rot
+            if task == "T1":  # T6 reports the held object's contact force instead (see peg_in_hole)
+                assert a.eef_force == b.eef_force
