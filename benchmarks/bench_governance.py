@@ -119,14 +119,15 @@ def governance_cases(phi: Phi) -> dict[str, tuple[Callable[..., Any], Any, Any]]
     assert g7(inside, calm)[1] == () and g12(inside2, calm2)[1] == ()
     assert len(g7(near_face, out_fast)[1]) == 3 and len(g12(near2, out2)[1]) == 3
     # The per-task Φ (paper's envelope + speed-and-separation rules), on states with orientation,
-    # as TaskEnv.robot_state() produces them. "far": hand well above the table and clear of
-    # every obstacle (every check's fast path); "work": over the bins at grasp height.
+    # as TaskEnv.robot_state() produces them. "high": the hand at carrying height (inside the
+    # guard's braking band and the bins' range, so several checks take their slow path);
+    # "work": over the bins at grasp height.
     down = (-0.012, 0.989, 0.148, 1.0, 0.01, 0.012, 0.011, 0.148, -0.989)
     t1 = Phi.for_task("T1")
     gt = t1.governor(SINGLE_PANDA)
-    far = RobotState(arms=(ArmPose(eef_pos=(-0.15, -0.1, 1.15), eef_force=(0.0, 0.0, 0.0), eef_rot=down),))
+    high = RobotState(arms=(ArmPose(eef_pos=(-0.15, -0.1, 1.15), eef_force=(0.0, 0.0, 0.0), eef_rot=down),))
     work = RobotState(arms=(ArmPose(eef_pos=(0.1, -0.25, 0.9), eef_force=(0.0, 0.0, 0.0), eef_rot=down),))
-    assert gt(far, calm)[1] == ()
+    assert gt(high, calm)[1] == ()
     t6 = Phi.for_task("T6")
     g6 = t6.governor(TWO_ARM_NO_GRIPPER)
     apart = RobotState(
@@ -144,7 +145,7 @@ def governance_cases(phi: Phi) -> dict[str, tuple[Callable[..., Any], Any, Any]]
         "single_arm_7d/governance_off/modify": (g7_off, near_face, out_fast),
         "two_arm_12d/allow/numpy": (g12, inside2, calm2),
         "two_arm_12d/modify(box+force+cap)": (g12, near2, out2),
-        "task_phi_T1_7d/far/numpy": (gt, far, calm),
+        "task_phi_T1_7d/high/numpy": (gt, high, calm),
         "task_phi_T1_7d/work/numpy": (gt, work, calm),
         "task_phi_T6_12d/apart/numpy": (g6, apart, calm2),
         "reference_numpy_box_cap_7d": (_numpy_reference(phi), inside, calm),
