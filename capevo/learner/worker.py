@@ -43,14 +43,12 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import signal
 import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 from capevo.errors import CapevoError, Invalid, NotFound, Timeout, Unavailable
@@ -62,6 +60,7 @@ from capevo.registry.api import Registry
 from capevo.registry.records import AuditEvent, EcmVersion, Kind
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.tasks import Perturbations, task_spec
+from capevo.shutdown import stop_on_signals
 
 log = logging.getLogger(__name__)
 
@@ -407,26 +406,6 @@ class EpisodeFeed:
 # --- the worker ----------------------------------------------------------------------------
 
 
-@contextlib.contextmanager
-def _signals(enabled: bool, *events: threading.Event) -> Iterator[None]:
-    """While active, SIGTERM and SIGINT set every one of ``events``."""
-    if not enabled or threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        log.info("received %s; stopping the learner", signal.Signals(signum).name)
-        for event in events:
-            event.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
 class LearnerWorker:
     """Runs one learner against a registry (see the module docstring).
 
@@ -606,7 +585,7 @@ class LearnerWorker:
         """
         stop = stop if stop is not None else threading.Event()
         with contextlib.ExitStack() as stack:
-            stack.enter_context(_signals(handle_signals, stop, self._wake))
+            stack.enter_context(stop_on_signals(stop, self._wake, enabled=handle_signals, what="learner"))
             stack.callback(lambda: self._emit("stopped", published=len(self.published)))
             registry = self._connect(stop)
             if registry is None:

@@ -29,14 +29,12 @@ import json
 import logging
 import os
 import shutil
-import signal
 import sys
 import threading
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import zenoh
@@ -57,6 +55,7 @@ from capevo.registry.wire import (
     read_parameters,
 )
 from capevo.registry.zconfig import router_config
+from capevo.shutdown import stop_on_signals
 
 log = logging.getLogger("capevo.registry.service")
 
@@ -393,24 +392,6 @@ def _notify_ready(ready: Callable[[ServeInfo], Any] | threading.Event | None, in
         ready(info)
 
 
-@contextlib.contextmanager
-def _signals_set(stop: threading.Event, enabled: bool) -> Iterator[None]:
-    if not enabled or threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        log.info("received %s; shutting down", signal.Signals(signum).name)
-        stop.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
 def zenoh_max_message_size(max_artifact_bytes: int) -> int:
     """What Zenoh may reassemble: twice the artifact limit plus headroom.
 
@@ -507,7 +488,7 @@ def serve(
         stack.callback(commands.undeclare)
         token = session.liveliness().declare_token(keys.alive())
         stack.callback(token.undeclare)
-        stack.enter_context(_signals_set(stop, handle_signals))
+        stack.enter_context(stop_on_signals(stop, enabled=handle_signals, what="registry"))
         info = ServeInfo(
             root=str(Path(root).resolve()),
             namespace=keys.namespace,

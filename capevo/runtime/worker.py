@@ -48,15 +48,13 @@ import logging
 import os
 import queue
 import re
-import signal
 import socket
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import zenoh
@@ -85,6 +83,7 @@ from capevo.runtime.evaluator import LocalEvaluator, agent_identity_of, check_se
 from capevo.runtime.governance import Phi
 from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
 from capevo.runtime.traces import TraceMetadata, TraceWriter
+from capevo.shutdown import stop_on_signals
 
 log = logging.getLogger("capevo.runtime.worker")
 
@@ -506,7 +505,7 @@ class RuntimeWorker:
         """
         stop = stop if stop is not None else threading.Event()
         with contextlib.ExitStack() as stack:
-            stack.enter_context(_signals_set(stop, handle_signals))
+            stack.enter_context(stop_on_signals(stop, enabled=handle_signals, what="runtime worker"))
             client = self._open_client(stop)
             if client is None:
                 return 0
@@ -766,24 +765,6 @@ class RuntimeWorker:
                     break
         for item in items:
             _reply(item.query, Unavailable(why))
-
-
-@contextlib.contextmanager
-def _signals_set(stop: threading.Event, enabled: bool) -> Iterator[None]:
-    if not enabled or threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        log.info("received %s; shutting down", signal.Signals(signum).name)
-        stop.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
 
 
 # ---------------------------------------------------------------------------------------
