@@ -12,7 +12,6 @@ import contextlib
 import json
 import os
 import select
-import signal
 import socket
 import subprocess
 import sys
@@ -25,6 +24,7 @@ from typing import Any
 
 import pytest
 import zenoh
+from procs import kill, terminate
 
 from capevo.registry.client import Client
 from capevo.registry.service import READY_PREFIX
@@ -68,21 +68,13 @@ class ServerProcess:
 
     def stop(self, timeout: float = 20.0) -> int:
         """SIGTERM and wait; returns the exit code (SIGKILL if it does not exit in time)."""
-        if self.running():
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        code = terminate(self.proc, timeout)
         self._close_pipes()
-        return int(self.proc.returncode)
+        return code
 
     def kill(self) -> None:
         """SIGKILL: no handler runs, nothing is flushed or closed."""
-        if self.running():
-            self.proc.send_signal(signal.SIGKILL)
-            self.proc.wait()
+        kill(self.proc)
         self._close_pipes()
 
     def log_text(self) -> str:

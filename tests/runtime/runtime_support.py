@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import os
 import select
-import signal
 import socket
 import subprocess
 import sys
@@ -18,6 +17,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from procs import kill, terminate
 
 from capevo.registry.api import Registry
 from capevo.registry.records import EcmVersion, Interface, IOSpec, Kind, Origin, PublishSpec
@@ -206,15 +207,9 @@ class Proc:
         return self.popen.poll() is None
 
     def terminate(self, timeout: float = 30.0) -> int:
-        if self.running():
-            self.popen.send_signal(signal.SIGTERM)
-            try:
-                self.popen.wait(timeout=timeout)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait()
+        code = terminate(self.popen, timeout)
         self._drain()
-        return int(self.popen.returncode)
+        return code
 
     def _drain(self) -> None:
         """Keep whatever the exited process still had on stdout, then close it."""
@@ -227,9 +222,7 @@ class Proc:
         self.popen.stdout.close()
 
     def kill(self) -> None:
-        if self.running():
-            self.popen.send_signal(signal.SIGKILL)
-            self.popen.wait()
+        kill(self.popen)
         self._drain()
 
 
