@@ -33,7 +33,7 @@ def stop_on_signals(*events: threading.Event, enabled: bool = True, what: str = 
         return
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
-        log.info("received %s; stopping the %s", signal.Signals(signum).name, what)
+        log.info("received %s; shutting down the %s", signal.Signals(signum).name, what)
         for event in events:
             event.set()
 

@@ -10,8 +10,10 @@ Invariants:
 1. :func:`read_episode_ends` returns one :class:`EpisodeEnd` per ``/episode/summary`` record,
    in file order; an episode without a summary (crashed writer) is skipped.
 2. :func:`pick_ecm_to_update` returns None exactly when no failed episode has a readable
-   trace; otherwise an ECM of the decomposition: the one failed episodes most often ended in,
-   ties going to the earliest step (fix upstream first).
+   trace; otherwise the ECM of the decomposition with the largest blame, ties going to the
+   earliest step (fix upstream first). Each failed episode spreads a blame of 1 equally over
+   its failed activations: those that did not hand over to a later step (re-planned back,
+   or still running when the episode ended).
 3. :func:`progress` is 1.0 for a successful episode and ``k / n`` otherwise, ``k`` the index
    of the furthest decomposition step the episode started (0 when none).
 """
@@ -142,31 +144,47 @@ def _ends(evidence: Sequence[EpisodeOutcome] | Sequence[EpisodeEnd]) -> list[Epi
     return episode_ends(evidence)  # type: ignore[arg-type]
 
 
-def failed_step_counts(
-    evidence: Sequence[EpisodeOutcome] | Sequence[EpisodeEnd], decomposition: Sequence[str]
-) -> Counter[str]:
-    """For failed episodes, how many ended in each ECM of ``decomposition``.
+def failed_activations(end: EpisodeEnd, decomposition: Sequence[str]) -> list[str]:
+    """The activations of a failed episode that did not hand over to a later step, in order.
 
-    An episode whose last ECM is outside the decomposition (or that started none) counts for
-    the furthest decomposition step it started, else for the first step.
+    An activation of a decomposition step failed when the next ECM started is the same step
+    or an earlier one (a re-plan: the step ran out of budget, gave up, or undid an earlier
+    step's work, e.g. dropped the object), or when it was the last one of a failed episode.
+    A jump forward (later steps already done) is a hand-over. ECMs outside the decomposition
+    are skipped (not judged, and not a hand-over). A failed episode that started no step
+    blames the first step.
     """
     steps = list(decomposition)
-    counts: Counter[str] = Counter()
+    if end.success or not steps:
+        return []
+    plan = [ecm for ecm in end.plan if ecm in steps]
+    out = []
+    for i, ecm in enumerate(plan):
+        if i + 1 == len(plan) or steps.index(plan[i + 1]) <= steps.index(ecm):
+            out.append(ecm)
+    return out or [steps[0]]
+
+
+def failure_weights(
+    evidence: Sequence[EpisodeOutcome] | Sequence[EpisodeEnd], decomposition: Sequence[str]
+) -> dict[str, float]:
+    """Blame per ECM of ``decomposition`` over the failed episodes (see invariant 2).
+
+    Each failed episode carries weight 1, shared equally by its failed activations
+    (:func:`failed_activations`), so one episode's retries do not outweigh other episodes.
+    """
+    weights: dict[str, float] = {}
     for e in _ends(evidence):
-        if e.success or not steps:
-            continue
-        if e.last_ecm in steps:
-            counts[e.last_ecm] += 1
-            continue
-        started = [steps.index(p) for p in e.plan if p in steps]
-        counts[steps[max(started)] if started else steps[0]] += 1
-    return counts
+        failed = failed_activations(e, decomposition)
+        for ecm in failed:
+            weights[ecm] = weights.get(ecm, 0.0) + 1.0 / len(failed)
+    return {k: round(v, 6) for k, v in weights.items()}
 
 
 def pick_ecm_to_update(
     evidence: Sequence[EpisodeOutcome] | Sequence[EpisodeEnd], decomposition: Sequence[str]
 ) -> str | None:
-    """The ECM of ``decomposition`` where failed episodes most often ended (None: no failures).
+    """The ECM of ``decomposition`` that failed episodes blame most (None: no failures).
 
     Args:
         evidence: Recent outcomes (their traces are read) or already-read episode ends.
@@ -176,11 +194,11 @@ def pick_ecm_to_update(
         The ECM to improve next, ties going to the earliest step; None when no failed episode
         has a readable trace.
     """
-    counts = failed_step_counts(evidence, decomposition)
-    if not counts:
+    weights = failure_weights(evidence, decomposition)
+    if not weights:
         return None
     order = list(decomposition)
-    return max(counts, key=lambda name: (counts[name], -order.index(name)))
+    return max(weights, key=lambda name: (weights[name], -order.index(name)))
 
 
 def progress(end: EpisodeEnd, decomposition: Sequence[str]) -> float:
@@ -203,10 +221,11 @@ def failure_summary(
         return "No traced episodes are available."
     failed = [e for e in ends if not e.success]
     lines = [f"{len(ends) - len(failed)} of {len(ends)} recent episodes succeeded."]
-    counts = failed_step_counts(ends, decomposition)
-    if counts:
-        where = ", ".join(f"{name} ({n})" for name, n in counts.most_common())
-        lines.append(f"Failed episodes ended while running: {where}.")
+    weights = failure_weights(ends, decomposition)
+    if weights:
+        ranked = sorted(weights.items(), key=lambda kv: -kv[1])
+        where = ", ".join(f"{name} ({w:.3g})" for name, w in ranked)
+        lines.append(f"Steps that failed to hand over (blame, 1 per failed episode): {where}.")
     reasons = Counter(e.end_reason for e in failed)
     if reasons:
         lines.append("Why they ended: " + "; ".join(f"{r} ({n})" for r, n in reasons.most_common(4)) + ".")

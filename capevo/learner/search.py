@@ -17,7 +17,8 @@ positive stays ≥ 0 and a negative one ≤ 0 (gains, heights and widths keep th
 Explicit ``bounds`` override this per parameter.
 
 Which ECM: :func:`~capevo.learner.experience.pick_ecm_to_update` reads recent traces and
-names the step where failed episodes most often ended (exported here too).
+names the step that failed episodes blame most: the steps that did not hand over to a later
+one (exported here too).
 
 Origin: a CEM candidate is published as ``clone`` by default: its artifact is a copy of the
 parent's code with new parameter values, not new code (``rl`` would claim a trained policy,

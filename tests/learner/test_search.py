@@ -17,7 +17,9 @@ from capevo.learner.base import CandidateEvaluator, Score, config_hash, request_
 from capevo.learner.experience import (
     EpisodeEnd,
     episode_ends,
+    failed_activations,
     failure_summary,
+    failure_weights,
     pick_ecm_to_update,
     progress,
     read_episode_ends,
@@ -223,8 +225,29 @@ def test_pick_ecm_to_update_ties_go_upstream_and_none_without_failures() -> None
     assert pick_ecm_to_update(ends, STACK) == "stack.reach"
     assert pick_ecm_to_update([_end(list(STACK), success=True)], STACK) is None
     assert pick_ecm_to_update([], STACK) is None
-    # a last ECM outside the plan counts for the furthest plan step started
+    # an ECM outside the plan is skipped: the plan step before it is still running
     assert pick_ecm_to_update([_end(["stack.reach", "stack.grasp", "recover.x"])], STACK) == "stack.grasp"
+
+
+def test_blame_goes_to_steps_that_did_not_hand_over() -> None:
+    regrasp = _end(["stack.reach", "stack.grasp"] * 3)
+    assert failed_activations(regrasp, STACK) == ["stack.grasp"] * 3
+    dropped = _end(["stack.reach", "stack.grasp", "stack.lift"] * 2 + ["stack.reach"])
+    assert failed_activations(dropped, STACK) == ["stack.lift", "stack.lift", "stack.reach"]
+    skipped = _end(["stack.reach", "stack.grasp", "stack.lift", "stack.lower", "stack.release"])
+    assert failed_activations(skipped, STACK) == ["stack.release"]  # jumping ahead is a hand-over
+    assert failed_activations(_end([]), STACK) == ["stack.reach"]
+    assert failed_activations(_end(list(STACK), success=True), STACK) == []
+    weights = failure_weights([regrasp, dropped, skipped], STACK)
+    assert weights == {
+        "stack.grasp": 1.0,
+        "stack.lift": pytest.approx(2 / 3),
+        "stack.reach": pytest.approx(1 / 3),
+        "stack.release": 1.0,
+    }
+    # each episode weighs 1 in total, so retries of one episode do not outvote others
+    ends = [_end(["stack.reach"] * 3), *[_end(["stack.reach", "stack.grasp", "stack.lift"])] * 2]
+    assert pick_ecm_to_update(ends, STACK) == "stack.lift"
 
 
 def test_progress_measures_how_far_episodes_got() -> None:
@@ -314,7 +337,8 @@ def test_experience_is_read_from_real_trace_files(tmp_path) -> None:
     assert score == Score(success_rate=0.25, progress=(4 / 6 + 4 / 6 + 1.0 + 0.0) / 4, reward_per_step=0.01, episodes=4)
     text = failure_summary(outcomes, STACK, "stack.lower")
     assert "1 of 4 recent episodes succeeded" in text
-    assert "stack.lower (2)" in text and "started 3 times and ran out of its step budget 3 times" in text
+    assert "stack.lower (2)" in text and "stack.reach (1)" in text
+    assert "started 3 times and ran out of its step budget 3 times" in text
 
 
 # --- real robosuite -------------------------------------------------------------------

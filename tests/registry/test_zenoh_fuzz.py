@@ -348,5 +348,9 @@ def test_requests_beyond_zenohs_reassembly_limit_are_dropped_and_the_server_surv
     size = zenoh_max_message_size(MAX_ARTIFACT) + 4 * 2**20
     header = json.dumps({"name": unique_name("huge"), "spec": SPEC.to_dict()}).encode()
     replies = raw_query(session, f"{NS}/cmd/publish", attachment=header, payload=b"\0" * size, timeout=2.0)
-    assert [(r.ok, r.err.payload.to_bytes() if r.err else None) for r in replies] == [(None, b"Timeout")]
+    # Zenoh either drops the oversize message (the querier times out) or, when it reassembles it
+    # after all, the registry refuses it as too_large; both leave the server serving.
+    outcomes = [(r.ok, r.err.payload.to_bytes() if r.err else None) for r in replies]
+    assert len(outcomes) == 1 and outcomes[0][0] is None
+    assert outcomes[0][1] == b"Timeout" or b'"code": "too_large"' in outcomes[0][1]
     _still_serving(session, known)
