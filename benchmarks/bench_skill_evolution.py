@@ -4,7 +4,8 @@ For each task (default T1 pick, T2 place, T3 stack), in a fresh registry:
 
 1. seed every ECM of the task with its built-in v0 skill (manual, untuned) and promote it;
 2. measure v0 on held-out test seeds;
-3. evolve, round by round, until every experience episode succeeds or the rounds run out:
+3. evolve, round by round, until two experience batches in a row succeed on every episode or
+   the rounds run out:
    a. experience: run the active set on a fresh slice of training seeds (traced);
    b. pick the ECM the failed episodes blame most (``pick_ecm_to_update``: steps that did not
       hand over to a later one);
@@ -141,6 +142,7 @@ def evolve_task(task: str, cfg: dict[str, Any], work: Path, *, seed: int) -> dic
     print(f"[{task}] v0: {sum(o.success for o in v0)}/{len(v0)} on test seeds ({v0_wall:.0f} s)", flush=True)
     rounds: list[dict[str, Any]] = []
     learn_episodes = 0
+    clean = 0
     for r in range(cfg["max_rounds"]):
         t_round = time.perf_counter()
         experience = evaluator.evaluate(task, {}, take(cfg["experience_episodes"]))
@@ -149,8 +151,14 @@ def evolve_task(task: str, cfg: dict[str, Any], work: Path, *, seed: int) -> dic
         ecm = pick_ecm_to_update(ends, decomposition)
         print(f"[{task}] round {r}: experience {rate(experience):.2f}, failure blame {where}", flush=True)
         if ecm is None:
-            rounds.append({"round": r, "experience_success": rate(experience), "stopped": "no failures"})
-            break
+            # one clean batch of 8 is weak evidence (a 75 % policy gives one 10 % of the time):
+            # stop after two in a row
+            clean += 1
+            rounds.append({"round": r, "experience_success": rate(experience), "clean_batches": clean})
+            if clean >= 2:
+                break
+            continue
+        clean = 0
         train = take(cfg["episodes_per_candidate"] * cfg["iterations"] + cfg["validation_episodes"])
         request = request_for(registry, task, ecm, train_seeds=train, outcomes=experience)
 

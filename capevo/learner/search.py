@@ -4,12 +4,13 @@ Given a :class:`~capevo.learner.base.LearnRequest`, :class:`CemSearch` keeps the
 and searches its numeric parameters θ: each iteration samples a population of θ from a
 diagonal Gaussian, runs every candidate (unpublished, through a
 :class:`~capevo.learner.base.CandidateEvaluator`) on the same few training seeds with the
-task's other ECMs at their versions, scores them (success rate, then progress through the
-decomposition, then reward per step; see :mod:`capevo.learner.base`), and refits the
-Gaussian (smoothed) to the elite fraction. It stops early once the best candidate gets every
-episode past the ECM. The last iteration's best few are then validated on fresh training
-seeds and the best on all their episodes wins. The candidate is the parent's source with only
-the ``PARAMS`` literal rewritten (:func:`~capevo.runtime.ecm.code.with_params`).
+task's other ECMs at their versions, ranks them (success rate; then the fraction of episodes
+that got past the tuned ECM; then progress through the decomposition and reward per step, see
+:mod:`capevo.learner.base`), and refits the Gaussian (smoothed) to the elite fraction. It
+stops early once the best candidate gets every episode past the ECM. The last iteration's
+best few are then validated on fresh training seeds and the best on all their episodes wins.
+The candidate is the parent's source with only the ``PARAMS`` literal rewritten
+(:func:`~capevo.runtime.ecm.code.with_params`).
 
 Search space: each parameter is searched in units of its *scale*, ``max(|v0|, floor)`` (v0
 its value in the parent), within ``v0 ± spread · scale``; a parameter whose parent value is
@@ -319,6 +320,12 @@ class _Finalist:
     outcomes: list[Any]
     ends: list[EpisodeEnd]
     score: Score
+    passed: float
+
+    def rank(self) -> tuple[float, float, float, float]:
+        """Success, then how often the tuned ECM handed over, then progress, then reward."""
+        s = self.score
+        return (s.success_rate, self.passed, s.progress, s.reward_per_step)
 
 
 def _validation_seeds(seeds: Sequence[int], cfg: CemConfig) -> tuple[int, ...]:
@@ -491,7 +498,11 @@ class CemSearch:
                 outcomes, ends, cand = run(theta, seeds)
                 score = score_outcomes(outcomes, decomposition, ends=ends)
                 passed = _passed(outcomes, ends, decomposition, ecm_index)
-                scored.append(_Finalist(index=i, theta=theta, source=cand, outcomes=outcomes, ends=ends, score=score))
+                scored.append(
+                    _Finalist(
+                        index=i, theta=theta, source=cand, outcomes=outcomes, ends=ends, score=score, passed=passed
+                    )
+                )
                 event = CemEvent(iteration=it, index=i, params=theta, score=score, seeds=seeds, passed=passed)
                 history.append(event)
                 if it == 0 and i == 0:
@@ -499,11 +510,11 @@ class CemSearch:
                 if self.progress is not None:
                     self.progress(event)
             iterations_run += 1
-            order = sorted(scored, key=lambda f: (f.score.key(), -f.index), reverse=True)
+            order = sorted(scored, key=lambda f: (f.rank(), -f.index), reverse=True)
             # the latest iteration's best are the finalists: later iterations sample around
             # better means, and the candidates of one iteration share their seeds
             finalists = order
-            top_passed = history[len(history) - len(zs) + order[0].index].passed
+            top_passed = order[0].passed
             elites = np.array([zs[f.index] for f in order[: cfg.n_elite]])
             a = cfg.smoothing
             # smoothed refit: a couple of elites would otherwise collapse sigma at once
@@ -530,11 +541,20 @@ class CemSearch:
             judged = []
             for f in finalists[: cfg.validate_top]:
                 outcomes, ends, _ = run(f.theta, vseeds)
-                both = score_outcomes(f.outcomes + outcomes, decomposition, ends=f.ends + ends)
-                judged.append((both, f))
-            judged.sort(key=lambda t: (t[0].key(), -t[1].index), reverse=True)
-            score, best = judged[0]
-            best = _Finalist(index=best.index, theta=best.theta, source=best.source, outcomes=[], ends=[], score=score)
+                all_out, all_ends = f.outcomes + outcomes, f.ends + ends
+                judged.append(
+                    _Finalist(
+                        index=f.index,
+                        theta=f.theta,
+                        source=f.source,
+                        outcomes=all_out,
+                        ends=all_ends,
+                        score=score_outcomes(all_out, decomposition, ends=all_ends),
+                        passed=_passed(all_out, all_ends, decomposition, ecm_index),
+                    )
+                )
+            judged.sort(key=lambda f: (f.rank(), -f.index), reverse=True)
+            best = judged[0]
         return CemResult(
             params=best.theta,
             source=best.source,
