@@ -269,6 +269,45 @@ def registry_session(opts: RegistryOptions, *, create: bool = False) -> Iterator
         reg.close()
 
 
+def remember_password(password: str | None) -> str | None:
+    """Record ``password`` so no error line ever prints it; empty means none."""
+    if password:
+        _SEEN_PASSWORDS.add(password)
+    return password or None
+
+
+LOGIN_OPTIONS = (
+    click.option(
+        "--namespace",
+        default=DEFAULT_NAMESPACE,
+        envvar="CAPEVO_NAMESPACE",
+        show_default=True,
+        help="Zenoh key prefix of the registry (env CAPEVO_NAMESPACE).",
+    ),
+    click.option(
+        "--user",
+        envvar="CAPEVO_USER",
+        default=None,
+        help="Registry user (env CAPEVO_USER); with --root, only the actor recorded in the audit log.",
+    ),
+    click.option(
+        "--password",
+        envvar="CAPEVO_PASSWORD",
+        default=None,
+        show_envvar=False,
+        help="Registry password (env CAPEVO_PASSWORD; prefer the env var; never echoed; unused with --root).",
+    ),
+)
+"""``--namespace``, ``--user`` and ``--password``: the same on every command that talks to a registry."""
+
+
+def login_options(func: F) -> F:
+    """Add :data:`LOGIN_OPTIONS` to a command."""
+    for deco in reversed(LOGIN_OPTIONS):
+        func = deco(func)
+    return func
+
+
 def registry_options(func: F) -> F:
     """Add ``--root/--connect/--namespace/--user/--password/--timeout/--json`` to a command.
 
@@ -288,8 +327,7 @@ def registry_options(func: F) -> F:
         **kwargs: Any,
     ) -> Any:
         ctx = click.get_current_context()
-        if password:
-            _SEEN_PASSWORDS.add(password)
+        remember_password(password)
         root_path, endpoints = resolve_target(
             root=root,
             root_source=ctx.get_parameter_source("root"),
@@ -323,27 +361,7 @@ def registry_options(func: F) -> F:
             envvar="CAPEVO_CONNECT",
             help="Zenoh endpoint of a running registry, e.g. tcp/127.0.0.1:7447; repeatable (env CAPEVO_CONNECT).",
         ),
-        click.option(
-            "--namespace",
-            default=DEFAULT_NAMESPACE,
-            envvar="CAPEVO_NAMESPACE",
-            show_default=True,
-            help="Zenoh key prefix of the registry (env CAPEVO_NAMESPACE).",
-        ),
-        click.option(
-            "--user",
-            envvar="CAPEVO_USER",
-            default=None,
-            help="Registry user (env CAPEVO_USER); with --root, only the actor recorded in the audit log.",
-        ),
-        click.option(
-            "--password",
-            envvar="CAPEVO_PASSWORD",
-            default=None,
-            show_default=False,
-            show_envvar=False,
-            help="Registry password (env CAPEVO_PASSWORD; prefer the env var; never echoed; unused with --root).",
-        ),
+        *LOGIN_OPTIONS,
         click.option(
             "--timeout",
             type=click.FloatRange(min=0.01),

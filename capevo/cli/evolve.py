@@ -26,13 +26,13 @@ from typing import Any
 import click
 
 from capevo.cli import (
-    _SEEN_PASSWORDS,
-    DEFAULT_NAMESPACE,
     DEFAULT_ROOT,
     EXIT_INTERRUPTED,
     error_line,
     exit_code_for,
+    login_options,
     make_table,
+    remember_password,
     resolve_target,
     stdout_console,
 )
@@ -74,21 +74,7 @@ def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
     help="Use the registry server at ENDPOINT (e.g. tcp/127.0.0.1:7447) and its runtime workers instead of the "
     "embedded registry and runtime; repeatable (env CAPEVO_CONNECT).",
 )
-@click.option(
-    "--namespace",
-    default=DEFAULT_NAMESPACE,
-    envvar="CAPEVO_NAMESPACE",
-    show_default=True,
-    help="Zenoh key prefix of the registry.",
-)
-@click.option("--user", envvar="CAPEVO_USER", default=None, help="Registry user (with --connect).")
-@click.option(
-    "--password",
-    envvar="CAPEVO_PASSWORD",
-    default=None,
-    show_envvar=False,
-    help="Registry password (env CAPEVO_PASSWORD; never echoed).",
-)
+@login_options
 @click.option(
     "--timeout",
     type=click.FloatRange(min=0.01),
@@ -192,8 +178,7 @@ def evolve(
     or, with --learner remote, learner workers publish candidates and this command gates them.
     """
     ctx = click.get_current_context()
-    if password:
-        _SEEN_PASSWORDS.add(password)
+    remember_password(password)
     # Our own loggers only: robosuite has its own console handler (a root handler doubles its lines).
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))

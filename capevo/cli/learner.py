@@ -25,19 +25,13 @@ from typing import Any
 
 import click
 
-from capevo.cli import _SEEN_PASSWORDS, DEFAULT_NAMESPACE, CapevoGroup
+from capevo.cli import CapevoGroup, login_options, remember_password
 from capevo.errors import Invalid
 
 
 @click.group(cls=CapevoGroup, context_settings={"help_option_names": ["-h", "--help"]})
 def learner() -> None:
     """Learner workers: improve an ECM (rl, il, code, hybrid) and publish candidates."""
-
-
-def _remember(password: str | None) -> str | None:
-    if password:
-        _SEEN_PASSWORDS.add(password)
-    return password or None
 
 
 @learner.command("serve")
@@ -54,21 +48,7 @@ def _remember(password: str | None) -> str | None:
     default=None,
     help="Use the registry directory ROOT in-process instead of --connect.",
 )
-@click.option(
-    "--namespace",
-    default=DEFAULT_NAMESPACE,
-    envvar="CAPEVO_NAMESPACE",
-    show_default=True,
-    help="Zenoh key prefix of the registry (env CAPEVO_NAMESPACE).",
-)
-@click.option("--user", envvar="CAPEVO_USER", default=None, help="Zenoh user (env CAPEVO_USER).")
-@click.option(
-    "--password",
-    envvar="CAPEVO_PASSWORD",
-    default=None,
-    show_envvar=False,
-    help="Zenoh password (env CAPEVO_PASSWORD; prefer the env var; never echoed).",
-)
+@login_options
 @click.option("--ecm", required=True, help="The ECM to improve, e.g. pick.reach.")
 @click.option(
     "--modality",
@@ -191,7 +171,7 @@ def serve_cmd(
     endpoints = split_endpoints(connect)
     if (root is None) == (not endpoints):
         raise Invalid("give exactly one of --connect ENDPOINT or --root DIR", details={"field": "connect"})
-    secret = _remember(password)
+    secret = remember_password(password)
     config = LearnerConfig(
         ecm=ecm,
         modality=modality,

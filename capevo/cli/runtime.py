@@ -22,13 +22,13 @@ import click
 from rich.console import Console
 
 from capevo.cli import (
-    _SEEN_PASSWORDS,
-    DEFAULT_NAMESPACE,
+    LOGIN_OPTIONS,
     CapevoGroup,
     emit,
     fmt_time,
     json_option,
     make_table,
+    remember_password,
 )
 from capevo.errors import Invalid
 
@@ -48,31 +48,11 @@ def _connection_options(func: Any) -> Any:
             envvar="CAPEVO_CONNECT",
             help="Zenoh endpoint of the registry, e.g. tcp/127.0.0.1:7447; repeatable (env CAPEVO_CONNECT).",
         ),
-        click.option(
-            "--namespace",
-            default=DEFAULT_NAMESPACE,
-            envvar="CAPEVO_NAMESPACE",
-            show_default=True,
-            help="Zenoh key prefix of the registry (env CAPEVO_NAMESPACE).",
-        ),
-        click.option("--user", envvar="CAPEVO_USER", default=None, help="Zenoh user (env CAPEVO_USER)."),
-        click.option(
-            "--password",
-            envvar="CAPEVO_PASSWORD",
-            default=None,
-            show_envvar=False,
-            help="Zenoh password (env CAPEVO_PASSWORD; prefer the env var; never echoed).",
-        ),
+        *LOGIN_OPTIONS,
     ]
     for deco in reversed(decorators):
         func = deco(func)
     return func
-
-
-def _remember(password: str | None) -> str | None:
-    if password:
-        _SEEN_PASSWORDS.add(password)
-    return password or None
 
 
 @runtime.command("serve")
@@ -183,7 +163,7 @@ def serve_cmd(
         task=task,
         namespace=namespace,
         user=user or None,
-        password=_remember(password),
+        password=remember_password(password),
         worker_id=worker_id,
         trace_dir=trace_dir,
         cache_dir=cache_dir,
@@ -246,7 +226,7 @@ def list_cmd(
     from capevo.runtime.worker import list_workers
 
     workers = list_workers(
-        list(connect), namespace=namespace, user=user or None, password=_remember(password), timeout=timeout
+        list(connect), namespace=namespace, user=user or None, password=remember_password(password), timeout=timeout
     )
     emit(as_json, [w.to_dict() for w in workers], lambda c: _render_workers(c, workers))
 
@@ -324,7 +304,7 @@ def evaluate_cmd(
         list(connect),
         namespace=namespace,
         user=user or None,
-        password=_remember(password),
+        password=remember_password(password),
         worker_id=worker_id,
         timeout=timeout,
     ) as evaluator:
