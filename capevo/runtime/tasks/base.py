@@ -182,6 +182,7 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         self._rngs = EpisodeRngs(self._seed)
         self._episode_started = False
         self._over = True
+        self._signals_cache: dict[str, float] | None = None
         self._t = 0
         self._success = False
         self._obs_dict: dict[str, np.ndarray] = {}
@@ -233,9 +234,19 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
     def signals(self) -> dict[str, float]:
         """Named scalars of the current simulator state (exact, not perturbed).
 
+        Computed once per simulator state: the reward, the episode loop's termination checks
+        and the planner all read the same step's signals, so later calls return a copy of
+        the first (``step`` and ``reset`` start a new state).
+
         Returns:
             One float per name in ``task_spec.signals``.
         """
+        if self._signals_cache is None:
+            self._signals_cache = self._signals()
+        return dict(self._signals_cache)
+
+    def _signals(self) -> dict[str, float]:
+        """Compute :meth:`signals` from the simulator (the hook each task fills in)."""
         raise NotImplementedError
 
     # ------------------------------------------------------------------ gymnasium API
@@ -269,6 +280,7 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         if self.perturbations.object_position_jitter > 0:
             self._apply_jitter(self._rngs.jitter, self.perturbations.object_position_jitter)
             self._sim.forward()
+        self._signals_cache = None  # the scene moved: reset and jitter
         self._on_reset()
         self._episode_started = True
         self._over = False
@@ -302,6 +314,7 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         dropped = bool(self._rngs.drop.random() < self.perturbations.actuation_failure_p)
         applied = np.zeros_like(a) if dropped else np.clip(a, -1.0, 1.0)
         _, rs_reward, _, _ = self._env.step(applied)
+        self._signals_cache = None
         self._t += 1
         success_now = bool(self._is_success())
         self._success = self._success or success_now

@@ -140,7 +140,7 @@ class NutAssemblyTask(TaskEnv):
     def _is_success(self) -> bool:
         return bool(self._env._check_success())
 
-    def signals(self) -> dict[str, float]:
+    def _signals(self) -> dict[str, float]:
         env, d = self._env, self._data
         nut = c.xyz(d.xpos[self._nut_body])
         handle = c.xyz(d.site_xpos[self._handle_site])

@@ -226,7 +226,7 @@ class PegInHoleTask(TaskEnv):
             total += world if on2[i] else -world
         return total
 
-    def signals(self) -> dict[str, float]:
+    def _signals(self) -> dict[str, float]:
         env, d, m = self._env, self._data, self._model
         t, dist_perp, cos = env._compute_orientation()
         hole_pos = d.xpos[self._hole_body]

@@ -150,7 +150,7 @@ class PickTask(_PickPlaceBase):
         lift = min(max(s["object_height_above_start"] / LIFT_HEIGHT, 0.0), 1.0)
         return 0.2 * (1.0 - math.tanh(10.0 * s["eef_object_dist"])) + 0.3 * s["grasped"] + 0.4 * s["grasped"] * lift
 
-    def signals(self) -> dict[str, float]:
+    def _signals(self) -> dict[str, float]:
         s = self._object_signals("Can", self._eef(), c.gripper_opening(self._env))
         out = {k: s[k] for k in self.task_spec.signal_names if k != "success"}
         out["success"] = 1.0 if out["object_height_above_start"] > LIFT_HEIGHT else 0.0
@@ -234,7 +234,7 @@ class PlaceTask(_PickPlaceBase):
     def _is_success(self) -> bool:
         return bool(self._env._check_success())
 
-    def signals(self) -> dict[str, float]:
+    def _signals(self) -> dict[str, float]:
         s = self._object_signals("Can", self._eef(), c.gripper_opening(self._env))
         s["success"] = 1.0 if self._env._check_success() else 0.0
         return s
@@ -363,7 +363,7 @@ class PickPlaceMultiTask(_PickPlaceBase):
     def _is_success(self) -> bool:
         return bool(self._env._check_success())
 
-    def signals(self) -> dict[str, float]:
+    def _signals(self) -> dict[str, float]:
         eef = self._eef()
         opening = c.gripper_opening(self._env)
         out: dict[str, float] = {}

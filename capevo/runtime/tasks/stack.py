@@ -146,7 +146,7 @@ class StackTask(TaskEnv):
     def _is_success(self) -> bool:
         return bool(self._env._check_success())
 
-    def signals(self) -> dict[str, float]:
+    def _signals(self) -> dict[str, float]:
         env, d = self._env, self._data
         a = c.xyz(d.xpos[self._a_body])
         b = c.xyz(d.xpos[self._b_body])

@@ -472,3 +472,31 @@ def test_peg_arm_force_is_the_contact_force_on_the_peg() -> None:
         assert env.signals()["peg_hole_contact_force"] == pytest.approx(float(np.linalg.norm(f0)))
     finally:
         env.close()
+
+
+@pytest.mark.slow
+def test_signals_are_computed_once_per_simulator_state(envs: dict[str, TaskEnv]) -> None:
+    env = shared(envs, "pick")
+    computed = 0
+    compute = env._signals
+
+    def counting() -> dict[str, float]:
+        nonlocal computed
+        computed += 1
+        return compute()
+
+    env._signals = counting  # type: ignore[method-assign]
+    try:
+        env.reset(seed=11)
+        first = env.signals()
+        first["eef_object_dist"] = -1.0  # a caller's edit must not reach the next caller
+        again = env.signals()
+        assert computed == 1
+        assert again["eef_object_dist"] >= 0.0
+        env.step(np.zeros(env.action_space.shape, dtype=np.float32))
+        after_step = computed  # the shaped reward read the new state's signals
+        env.signals()
+        env.signals()
+        assert after_step == 2 and computed == 2
+    finally:
+        del env._signals
