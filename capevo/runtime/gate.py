@@ -28,15 +28,26 @@ With an active version (paired mode), the checks are:
    ``speed_metric``) of the candidate ≤ ``max_slowdown`` × those of the active version.
    With fewer than ``min_speed_pairs`` such seeds speed cannot be judged and the check
    passes; ``max_slowdown=None`` turns it off.
+7. ``safe``: the candidate is not less safe. Let b' be the seeds where only the candidate had
+   an unsafe episode (an executed step that broke Φ: see
+   :mod:`capevo.runtime.governance.unsafe`) and c' those where only the active version had
+   one. The check fails when the exact one-sided sign test ``binomtest(b', b' + c', 1/2,
+   "greater")`` has p < ``safety_alpha``, or when ``max_unsafe_rate`` is set and the
+   candidate's unsafe-episode rate is above it. ``safety_alpha`` is deliberately looser than
+   α (0.2 by default): wrongly rejecting a candidate costs one iteration, wrongly promoting a
+   less safe one costs the robot's safety, so the burden of proof is lighter here
+   (3 of 3 discordant seeds against the candidate, p = 0.125, reject it).
+   ``safety_alpha=None`` turns the comparison off.
 
-   Promote iff 1 ∧ 2 ∧ 6 ∧ (3 ∨ (4 ∧ 5) ∨ (4 ∧ ¬``require_improvement``)).
+   Promote iff 1 ∧ 2 ∧ 6 ∧ 7 ∧ (3 ∨ (4 ∧ 5) ∨ (4 ∧ ¬``require_improvement``)).
 
 Without an active version (the ECM's first promotion, absolute mode):
 
-7. ``enough`` as 1, and ``floor``: the lower Wilson bound of the candidate's success rate is
-   ≥ max(``min_success`` or 0, ``first_min_success``).
+8. ``enough`` as 1, and ``floor``: the lower Wilson bound of the candidate's success rate is
+   ≥ max(``min_success`` or 0, ``first_min_success``); and ``safe``: the candidate's
+   unsafe-episode rate is at most ``max_unsafe_rate`` when that is set.
 
-   Promote iff 1 ∧ 7.
+   Promote iff 1 ∧ 8.
 
 Why reward alone never promotes: an episode's total reward is not monotone in quality (a
 slower policy that holds the object longer collects more shaped reward before the success
@@ -131,6 +142,10 @@ class GateConfig:
         min_speed_pairs: Fewer seeds where both succeeded leave speed unjudged.
         speed_metric: ``steps`` (deterministic) or ``duration_s`` (wall clock).
         first_min_success: Floor on the lower Wilson bound when there is no active version.
+        safety_alpha: Level of the one-sided sign test that the candidate has unsafe episodes
+            more often than the active version; None disables it.
+        max_unsafe_rate: Ceiling on the candidate's unsafe-episode rate (0.0: any unsafe
+            episode rejects); None disables it.
 
     Raises:
         Invalid: a value out of range.
@@ -145,6 +160,8 @@ class GateConfig:
     min_speed_pairs: int = 3
     speed_metric: str = "steps"
     first_min_success: float = 0.5
+    safety_alpha: float | None = 0.2
+    max_unsafe_rate: float | None = None
 
     def __post_init__(self) -> None:
         _count("min_n", self.min_n, low=1)
@@ -163,6 +180,10 @@ class GateConfig:
         _count("min_speed_pairs", self.min_speed_pairs, low=1)
         check_speed_metric(self.speed_metric)
         _number("first_min_success", self.first_min_success, low=0.0, high=1.0)
+        if self.safety_alpha is not None:
+            _number("safety_alpha", self.safety_alpha, low=0.0, high=0.5, low_open=True)
+        if self.max_unsafe_rate is not None:
+            _number("max_unsafe_rate", self.max_unsafe_rate, low=0.0, high=1.0)
 
     @classmethod
     def cpu_small(cls) -> GateConfig:
@@ -195,6 +216,8 @@ class GateConfig:
             "min_speed_pairs": self.min_speed_pairs,
             "speed_metric": self.speed_metric,
             "first_min_success": self.first_min_success,
+            "safety_alpha": self.safety_alpha,
+            "max_unsafe_rate": self.max_unsafe_rate,
         }
 
     @classmethod
@@ -311,7 +334,7 @@ def _p(x: float) -> str:
 
 
 def decide_paired(stats: PairedStats, config: GateConfig) -> tuple[bool, tuple[Check, ...]]:
-    """Apply the paired-mode rule (checks 1-6) to ``stats``.
+    """Apply the paired-mode rule (checks 1-7) to ``stats``.
 
     Returns:
         (promote, checks in rule order).
@@ -339,10 +362,33 @@ def decide_paired(stats: PairedStats, config: GateConfig) -> tuple[bool, tuple[C
             detail=(f"mean reward {cand.mean_reward:.3f} vs {act.mean_reward:.3f}, Wilcoxon p={_p(stats.p_reward)}"),
         ),
         _speed(stats, config),
+        _safety(cand, config, stats),
     ]
     ok = {c.name: c.passed for c in checks}
     gain = ok["superior"] or (ok["noninferior"] and (ok["reward"] or not config.require_improvement))
-    return (ok["enough"] and ok["floor"] and ok["not_slower"] and gain), tuple(checks)
+    return (ok["enough"] and ok["floor"] and ok["not_slower"] and ok["safe"] and gain), tuple(checks)
+
+
+def _safety(cand: SideStats, config: GateConfig, stats: PairedStats | None) -> Check:
+    parts: list[str] = []
+    passed = True
+    if stats is not None and config.safety_alpha is not None:
+        worse = stats.p_less_safe < config.safety_alpha
+        passed = not worse
+        parts.append(
+            f"unsafe on {stats.unsafe_candidate_only} seeds only with the candidate, "
+            f"{stats.unsafe_active_only} only with the active, sign test p={_p(stats.p_less_safe)} "
+            f"vs {config.safety_alpha:.3g}"
+        )
+    if config.max_unsafe_rate is not None:
+        rate = cand.unsafe.estimate
+        passed = passed and rate <= config.max_unsafe_rate
+        parts.append(
+            f"candidate unsafe episodes {cand.unsafe_episodes}/{cand.n} vs max rate {config.max_unsafe_rate:.3g}"
+        )
+    if not parts:
+        return Check(name="safe", passed=True, detail="safety checks off")
+    return Check(name="safe", passed=passed, detail="; ".join(parts))
 
 
 def _floor(side: SideStats, threshold: float | None, alpha: float) -> Check:
@@ -378,7 +424,7 @@ def _speed(stats: PairedStats, config: GateConfig) -> Check:
 
 
 def decide_absolute(side: SideStats, config: GateConfig) -> tuple[bool, tuple[Check, ...]]:
-    """Apply the absolute-mode rule (checks 1 and 7) when there is no active version.
+    """Apply the absolute-mode rule (checks 1 and 8) when there is no active version.
 
     Returns:
         (promote, checks).
@@ -387,6 +433,7 @@ def decide_absolute(side: SideStats, config: GateConfig) -> tuple[bool, tuple[Ch
     checks = (
         Check(name="enough", passed=side.n >= config.min_n, detail=f"N={side.n}, min_n={config.min_n}"),
         _floor(side, threshold, config.alpha),
+        _safety(side, config, None),
     )
     return all(c.passed for c in checks), checks
 
@@ -463,8 +510,8 @@ class GateRegistry(Protocol):
     def reject(self, name: str, version: int, *, reason: str = "", actor: str | None = None) -> EcmVersion: ...
 
 
-Behaviour = Callable[[int], tuple[bool, float, int]]
-"""``seed -> (success, reward, steps)`` of one version in :class:`FakeEvaluator`."""
+Behaviour = Callable[[int], tuple[bool, float, int] | tuple[bool, float, int, int]]
+"""``seed -> (success, reward, steps[, unsafe_steps])`` of one version in :class:`FakeEvaluator`."""
 
 
 class FakeEvaluator:
@@ -472,7 +519,8 @@ class FakeEvaluator:
 
     A fake: no simulator runs. Each ``(ECM name, version)`` has a deterministic behaviour
     ``seed -> (success, reward, steps)``; ``evaluate`` looks up the single pinned version and
-    returns one outcome per seed with ``capability_set`` = ``versions``.
+    returns one outcome per seed with ``capability_set`` = ``versions`` (and ``unsafe_steps``
+    when the behaviour gives a fourth value).
 
     Args:
         behaviours: ``{(name, version): behaviour}``.
@@ -500,7 +548,7 @@ class FakeEvaluator:
         self.calls.append((task, dict(versions), tuple(seeds)))
         out = []
         for s in seeds:
-            success, reward, steps = behaviour(int(s))
+            success, reward, steps, *unsafe = behaviour(int(s))
             out.append(
                 EpisodeOutcome(
                     seed=int(s),
@@ -509,7 +557,7 @@ class FakeEvaluator:
                     steps=int(steps),
                     duration_s=float(steps) * 0.01,
                     interventions=0,
-                    unsafe_steps=0,
+                    unsafe_steps=int(unsafe[0]) if unsafe else 0,
                     ecm_failures=0,
                     capability_set=dict(versions),
                 )
@@ -569,6 +617,7 @@ def _compact(outcomes: Sequence[EpisodeOutcome], seeds: Sequence[int]) -> dict[s
         "steps": [by[s].steps for s in seeds],
         "duration_s": [round(_finite(by[s].duration_s), 4) for s in seeds],
         "unsafe_steps": [by[s].unsafe_steps for s in seeds],
+        "interventions": [by[s].interventions for s in seeds],
         "ecm_failures": [by[s].ecm_failures for s in seeds],
     }
 
@@ -802,6 +851,7 @@ def _summary(
                 if paired.speed_ratio is not None
                 else "speed not comparable"
             )
+            + f"; unsafe episodes {cand.unsafe_episodes} vs {act.unsafe_episodes}"
         )
     marks = " ".join(f"{c.name}={'ok' if c.passed else 'FAIL'}" for c in checks)
     return f"{head} ({body}; checks: {marks})"

@@ -15,7 +15,9 @@ Every number the gate decides on comes from here, computed with :mod:`scipy.stat
   t-test's normality is not credible; the signed-rank test needs no normality, is exact for
   small samples without ties, and loses at most ~5% efficiency when the data are normal.
 * speed as the ratio of mean steps (or seconds) over the seeds where *both* versions
-  succeeded, so harder instances cannot make either side look slow.
+  succeeded, so harder instances cannot make either side look slow;
+* safety as the same exact sign test on the seeds where exactly one version had an unsafe
+  episode (some executed step broke Φ), asking whether the candidate is unsafe more often.
 
 Confidence convention: every interval is two-sided at level ``1 - 2*alpha``, so each end is
 a one-sided ``1 - alpha`` bound, matching the one-sided tests at ``alpha``.
@@ -137,6 +139,8 @@ def wilson_interval(successes: int, n: int, *, alpha: float) -> Interval:
 def mcnemar_exact_p(candidate_only: int, active_only: int) -> float:
     """One-sided exact McNemar p-value that the candidate succeeds more often than the active.
 
+    (Any paired binary event works: the gate also feeds it unsafe episodes.)
+
     Conditional on the ``b + c`` discordant pairs, ``b`` (candidate-only successes) is
     Binomial(b + c, 1/2) under the null of equal rates; p = P(X >= b). No discordant pair
     gives p = 1.
@@ -243,6 +247,10 @@ class SideStats:
     """Mean speed metric over this side's successful episodes; None without successes."""
     interventions: int
     unsafe_steps: int
+    unsafe_episodes: int
+    """Episodes with at least one unsafe step."""
+    unsafe: Interval
+    """Unsafe-episode rate with its Wilson interval."""
     ecm_failures: int
 
     def to_dict(self) -> dict[str, Any]:
@@ -255,6 +263,8 @@ class SideStats:
             "mean_speed_success": self.mean_speed_success,
             "interventions": self.interventions,
             "unsafe_steps": self.unsafe_steps,
+            "unsafe_episodes": self.unsafe_episodes,
+            "unsafe_interval": self.unsafe.to_dict(),
             "ecm_failures": self.ecm_failures,
         }
 
@@ -270,6 +280,7 @@ def side_stats(outcomes: Sequence[EpisodeOutcome], *, alpha: float, speed_metric
         raise Invalid("no outcomes to summarise", details={"field": "outcomes"})
     ordered = sorted(outcomes, key=lambda o: o.seed)
     k = sum(1 for o in ordered if o.success)
+    unsafe = sum(1 for o in ordered if o.unsafe_steps > 0)
     speeds = [float(getattr(o, metric)) for o in ordered if o.success]
     return SideStats(
         n=len(ordered),
@@ -279,6 +290,8 @@ def side_stats(outcomes: Sequence[EpisodeOutcome], *, alpha: float, speed_metric
         mean_speed_success=_finite_mean(speeds) if speeds else None,
         interventions=sum(o.interventions for o in ordered),
         unsafe_steps=sum(o.unsafe_steps for o in ordered),
+        unsafe_episodes=unsafe,
+        unsafe=wilson_interval(unsafe, len(ordered), alpha=alpha),
         ecm_failures=sum(o.ecm_failures for o in ordered),
     )
 
@@ -328,6 +341,12 @@ class PairedStats:
     """Seeds where both versions succeeded (the speed comparison's sample)."""
     speed_ratio: float | None
     """Candidate over active mean speed metric on those seeds; None without such seeds."""
+    unsafe_candidate_only: int
+    """Seeds where only the candidate had an unsafe episode."""
+    unsafe_active_only: int
+    """Seeds where only the active version had an unsafe episode."""
+    p_less_safe: float
+    """One-sided exact sign test: the candidate is unsafe more often than the active version."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -347,6 +366,11 @@ class PairedStats:
             "p_reward": self.p_reward,
             "reward_difference_median": self.reward_difference_median,
             "speed": {"metric": self.speed_metric, "pairs": self.speed_pairs, "ratio": self.speed_ratio},
+            "safety": {
+                "candidate_only_unsafe": self.unsafe_candidate_only,
+                "active_only_unsafe": self.unsafe_active_only,
+                "p_less_safe": self.p_less_safe,
+            },
         }
 
 
@@ -381,6 +405,8 @@ def paired_stats(
     b = sum(1 for p in pairs if p.candidate.success and not p.active.success)
     c = sum(1 for p in pairs if p.active.success and not p.candidate.success)
     d = len(pairs) - a - b - c
+    unsafe_b = sum(1 for p in pairs if p.candidate.unsafe_steps > 0 and p.active.unsafe_steps == 0)
+    unsafe_c = sum(1 for p in pairs if p.active.unsafe_steps > 0 and p.candidate.unsafe_steps == 0)
     diffs = [_finite(p.candidate.reward) - _finite(p.active.reward) for p in pairs]
     both = [p for p in pairs if p.active.success and p.candidate.success]
     ratio: float | None = None
@@ -406,6 +432,10 @@ def paired_stats(
         speed_metric=metric,
         speed_pairs=len(both),
         speed_ratio=ratio,
+        unsafe_candidate_only=unsafe_b,
+        unsafe_active_only=unsafe_c,
+        # The same exact sign test as McNemar's, with "unsafe" in the role of "success".
+        p_less_safe=mcnemar_exact_p(unsafe_b, unsafe_c),
     )
 
 

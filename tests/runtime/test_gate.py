@@ -84,6 +84,8 @@ def test_presets_are_valid_and_round_trip() -> None:
         ({"require_improvement": 1}, "require_improvement", "require_improvement must be a bool"),
         ({"max_slowdown": 0.9}, "max_slowdown", "max_slowdown must be in [1.0"),
         ({"speed_metric": "wall"}, "speed_metric", "unknown speed metric 'wall'; valid: steps, duration_s"),
+        ({"safety_alpha": 0.0}, "safety_alpha", "safety_alpha must be in (0.0, 0.5]"),
+        ({"max_unsafe_rate": -0.1}, "max_unsafe_rate", "max_unsafe_rate must be in [0.0, 1.0]"),
     ],
 )
 def test_bad_config_is_invalid(kwargs: dict, field: str, fragment: str) -> None:
@@ -159,6 +161,7 @@ def test_a_better_candidate_is_promoted_with_its_evidence_in_the_audit_history(r
         "noninferior": True,
         "reward": False,
         "not_slower": True,
+        "safe": True,
     }
     # The reason states the numbers.
     for fragment in ("promote pick.reach v1", "vs v0 on N=10", "10/10", "5/10", "McNemar p=0.0312"):
@@ -230,6 +233,60 @@ def test_min_success_floor_blocks_a_relative_gain(registry: LocalRegistry) -> No
     assert not decision.promoted and decision.failed == ("floor", "reward")
 
 
+def unsafe_on(seeds: Sequence[int], success: bool = True, reward: float = 6.0) -> Behaviour:
+    return lambda seed: (success, reward, 50, 3 if seed in seeds else 0)
+
+
+def test_a_less_safe_candidate_is_rejected_despite_more_success(registry: LocalRegistry) -> None:
+    v_act = publish(registry, promote=True)
+    v_cand = publish(registry, text="# pushes harder")
+    # 10/10 vs 0/10 is a clear gain, but 3 seeds went unsafe only with the candidate (p = 1/8 < 0.2).
+    fake = FakeEvaluator({(NAME, v_act): always(False), (NAME, v_cand): unsafe_on(SEEDS[:3])})
+    decision = Gate(registry, fake, CFG).run(NAME, v_cand, task="T1", seeds=SEEDS)
+    assert not decision.promoted and decision.failed == ("safe",)
+    assert decision.paired is not None
+    assert (decision.paired.unsafe_candidate_only, decision.paired.unsafe_active_only) == (3, 0)
+    assert decision.paired.p_less_safe == pytest.approx(0.125)
+    assert "unsafe episodes 3 vs 0" in decision.reason and "safe=FAIL" in decision.reason
+    evidence = registry.get_version(NAME, v_cand).gate_evidence
+    assert evidence["candidate"]["unsafe_episodes"] == 3
+    assert evidence["paired"]["safety"]["candidate_only_unsafe"] == 3
+    assert evidence["outcomes"]["candidate"]["unsafe_steps"][:3] == [3, 3, 3]
+
+
+def test_equally_unsafe_versions_do_not_block_a_gain(registry: LocalRegistry) -> None:
+    v_act = publish(registry, promote=True)
+    v_cand = publish(registry)
+    # Both unsafe on the same seeds: no discordant pair, no evidence the candidate is less safe.
+    fake = FakeEvaluator({(NAME, v_act): unsafe_on(SEEDS[:4], False, 1.0), (NAME, v_cand): unsafe_on(SEEDS[:4])})
+    decision = Gate(registry, fake, CFG).run(NAME, v_cand, task="T1", seeds=SEEDS)
+    assert decision.promoted and "safe" not in decision.failed
+
+
+def test_safety_knobs(registry: LocalRegistry) -> None:
+    v_act = publish(registry, promote=True)
+    cand = [publish(registry, text=f"# {i}") for i in range(2)]
+    fake = FakeEvaluator({(NAME, v_act): always(False)})
+    for v in cand:
+        fake.set(NAME, v, unsafe_on(SEEDS[:1]))
+    # A zero ceiling on the unsafe-episode rate rejects one unsafe seed in ten...
+    strict = GateConfig(min_n=8, delta=0.3, max_slowdown=1.1, max_unsafe_rate=0.0)
+    decision = Gate(registry, fake, strict).run(NAME, cand[0], task="T1", seeds=SEEDS)
+    assert not decision.promoted and decision.failed == ("safe",)
+    assert "candidate unsafe episodes 1/10 vs max rate 0" in next(c.detail for c in decision.checks if c.name == "safe")
+    # ...which the sign test alone lets through (one discordant seed: p = 0.5).
+    assert Gate(registry, fake, CFG).run(NAME, cand[1], task="T1", seeds=SEEDS).promoted
+
+
+def test_the_sign_test_can_be_turned_off() -> None:
+    cand = [EpisodeOutcome.from_dict({**_row(s, True), "unsafe_steps": 2}) for s in range(8)]
+    act = [EpisodeOutcome.from_dict(_row(s, False)) for s in range(8)]
+    stats = paired_stats(act, cand, alpha=0.05, margin=0.3)
+    assert not decide_paired(stats, GateConfig(min_n=8))[0]
+    promote, checks = decide_paired(stats, GateConfig(min_n=8, safety_alpha=None))
+    assert promote and next(c for c in checks if c.name == "safe").detail == "safety checks off"
+
+
 # --- absolute mode -------------------------------------------------------------------------
 
 
@@ -240,7 +297,7 @@ def test_first_version_is_gated_against_the_absolute_threshold(tmp_path: Path) -
         fake = FakeEvaluator({(NAME, v): lambda s, k=successes: (s < SEEDS[0] + k, 1.0, 50)})
         decision = Gate(reg, fake, CFG).run(NAME, v, task="T1", seeds=SEEDS)
         assert decision.promoted is expect and decision.active_version is None and decision.paired is None
-        assert [c.name for c in decision.checks] == ["enough", "floor"]
+        assert [c.name for c in decision.checks] == ["enough", "floor", "safe"]
         assert len(fake.calls) == 1
         ev = reg.get_version(NAME, v).gate_evidence
         assert ev["mode"] == "absolute" and ev["active"] is None and ev["outcomes"]["active"] is None
@@ -433,3 +490,13 @@ def test_a_first_version_loses_to_one_promoted_meanwhile(registry: LocalRegistry
     assert e.value.message == "cannot promote pick.reach: gated as its first version, but v1 became active meanwhile"
     assert registry.get_version(NAME).version == theirs
     assert registry.get_version(NAME, mine).state is State.CANDIDATE
+
+
+def test_a_first_version_over_the_unsafe_ceiling_is_rejected(tmp_path: Path) -> None:
+    reg = LocalRegistry(tmp_path / "r", actor="tester")
+    v = publish(reg)
+    fake = FakeEvaluator({(NAME, v): unsafe_on(SEEDS[:2])})
+    cfg = GateConfig(min_n=8, delta=0.3, max_unsafe_rate=0.1)
+    decision = Gate(reg, fake, cfg).run(NAME, v, task="T1", seeds=SEEDS)
+    assert not decision.promoted and decision.failed == ("safe",)
+    reg.close()
