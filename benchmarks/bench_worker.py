@@ -1,36 +1,47 @@
 """Runtime throughput: raw robosuite vs the capevo episode loop (governance and MCAP traces on).
 
-Same task, same episodes: the episode loop runs T1 pick with the test suite's code ECMs
-(reach, grasp, lift from a real LocalRegistry) under an enforcing governor with traces to a
-real MCAP file; its executed actions are recorded and replayed, per seed, through
+Same task, same episodes, interleaved. A recording pass runs T1 pick with the test suite's
+code ECMs (reach, grasp, lift from a real LocalRegistry) under an enforcing governor and keeps
+each seed's executed actions. Then, every round, for every seed, three runs go back to back
+(their order rotating from round to round, so drift on a shared box hits all of them alike):
 
-* ``robosuite``: ``env.robosuite_env.step(action)`` (after ``TaskEnv.reset(seed)``): the floor;
-* ``task_env``: ``TaskEnv.step(action)`` (capevo's task wrapper: observation noise, dropped
-  actions, task reward and success);
-* ``loop``: ``run_episode`` itself (decisions, termination predicates over ``signals()``,
-  ECM invocation, governance + unsafe check, trace records for every step and call).
+* robosuite: ``robosuite_env.reset()``, then the recorded actions through
+  ``robosuite_env.step(a)``, on the robosuite environment capevo builds (PickPlace,
+  BASIC/OSC_POSE Panda controller, horizon, headless, every observable on). Between the timed
+  reset and the timed steps an untimed ``TaskEnv.reset(seed)`` puts the episode's scene in
+  place, so the steps replay the very episode the worker ran. Even steps run robosuite as
+  shipped (``robosuite_stock``: the floor); odd steps run it the way capevo's TaskEnv does,
+  without robosuite's per-substep observable sampling (``robosuite_lean``: capevo recomputes
+  every observable from the final state after each step, so those samples are never read).
+  Each is extrapolated to the whole episode from its own steps;
+* ``task_env``: ``TaskEnv.reset(seed)`` and ``TaskEnv.step(a)`` (capevo's task wrapper:
+  exact observations, observation noise, dropped actions, task reward, signals, success);
+* ``worker``: ``run_episode`` itself (decisions, termination predicates, ECM invocation,
+  governance R(a, Φ) + unsafe check, MCAP trace records on all five channels through a real
+  ``TraceWriter``, opened before and closed after the round).
 
-Two measurements, each the median over rounds:
+Every run is clocked in wall time (``perf_counter``) and in CPU time of the whole process
+(``process_time``: the trace writer's flush thread counts). Overheads are reported per round
+and per episode pair, as median and interquartile range. Inside the task_env and worker runs
+robosuite's own reset and step calls are clocked too ("in-run"): the variant against the
+robosuite work it contains, sampled in the same episodes, immune to drift between runs. A
+worker episode that runs a different number of steps than recorded stops the benchmark.
 
-* **in-run** (the headline; immune to the box's drift): during the loop's own run, the time
-  spent inside ``robosuite_env.step`` and inside ``TaskEnv.step``/``reset`` is clocked; the
-  robosuite rate is steps / (robosuite step time + reset time), the TaskEnv rate steps /
-  (TaskEnv step time + reset time), the loop rate steps / the loop's wall time.
-* **replay**: the recorded actions replayed through ``robosuite_env.step`` and through
-  ``TaskEnv.step`` in separate passes, interleaved round by round with the loop (a shared
-  2-core box drifts between passes, so this one is noisier).
+A last, separately instrumented pass splits a worker step into parts (µs per step).
 
-    .venv/bin/python benchmarks/bench_worker.py [--rounds 5] [--seeds 10] [--horizon 150]
+    .venv/bin/python benchmarks/bench_worker.py [--rounds 12] [--seeds 8] [--horizon 150]
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -41,9 +52,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "runtime"))
 
-from _common import markdown_table, save_results
+from _common import markdown_table, percentile, save_results
 from runtime_support import publish_pick
 
+import capevo
 from capevo.agent.identity import IdentityMemory
 from capevo.agent.policy import DecompositionPolicy
 from capevo.registry.local import LocalRegistry
@@ -54,141 +66,147 @@ from capevo.runtime.tasks import make_task
 from capevo.runtime.traces import MemoryTraceSink, TraceMetadata, TraceWriter
 
 TARGET_OVERHEAD_PCT = 3.0
+CLOCKS = ("wall", "cpu")
 
 
-class _TimedSink:
-    """Forwards to a TraceSink, clocking every write."""
+def _now() -> tuple[float, float]:
+    return time.perf_counter(), time.process_time()
 
-    def __init__(self, inner: Any, clock: dict[str, float]) -> None:
-        self.inner, self.clock = inner, clock
 
-    def __getattr__(self, name: str) -> Any:
-        fn = getattr(self.inner, name)
-        if not name.startswith("write_"):
-            return fn
+class _Timed:
+    """Wraps callables so each call's wall time adds to ``clock[key]``, its CPU time (this
+    thread's) to ``cpu[key]``. Nested timed calls count in both parts."""
 
-        def timed(record: Any) -> None:
-            t0 = time.perf_counter()
-            fn(record)
-            self.clock["trace writes"] += time.perf_counter() - t0
+    def __init__(self, clock: dict[str, float], cpu: dict[str, float]) -> None:
+        self.clock, self.cpu = clock, cpu
+
+    def wrap(self, fn: Callable[..., Any], key: str) -> Callable[..., Any]:
+        clock, cpu = self.clock, self.cpu
+        clock.setdefault(key, 0.0)
+        cpu.setdefault(key, 0.0)
+
+        def timed(*a: Any, **k: Any) -> Any:
+            t0, c0 = time.perf_counter(), time.thread_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                cpu[key] += time.thread_time() - c0
+                clock[key] += time.perf_counter() - t0
 
         return timed
 
 
+class _TimedSink:
+    """A TraceSink that forwards to ``inner``, clocking every write."""
+
+    def __init__(self, inner: Any, timed: _Timed) -> None:
+        for name in ("write_plan_step", "write_invocation", "write_intervention", "write_env_step"):
+            setattr(self, name, timed.wrap(getattr(inner, name), "trace writes"))
+        self.write_episode_summary = timed.wrap(inner.write_episode_summary, "trace: episode summary + flush")
+        self.flush, self.close = inner.flush, inner.close
+
+
 class _TimedGovernor:
-    def __init__(self, inner: Any, clock: dict[str, float]) -> None:
-        self.inner, self.clock = inner, clock
+    def __init__(self, inner: Any, timed: _Timed) -> None:
         self.phi, self.enforce = inner.phi, inner.enforce
+        self._call = timed.wrap(inner, "governance R(a, Φ)")
 
     def __call__(self, state: Any, action: Any) -> Any:
-        t0 = time.perf_counter()
-        try:
-            return self.inner(state, action)
-        finally:
-            self.clock["governance R(a, Φ)"] += time.perf_counter() - t0
+        return self._call(state, action)
 
 
 class _TimedCaps:
-    def __init__(self, inner: Any, clock: dict[str, float]) -> None:
-        self.inner, self.clock = inner, clock
+    def __init__(self, inner: Any, timed: _Timed) -> None:
+        self.inner, self.timed = inner, timed
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.inner, name)
 
     def make_invoker(self, name: str, **kwargs: Any) -> Any:
         invoker = self.inner.make_invoker(name, **kwargs)
-        step = invoker.step
-
-        def timed(obs: Any) -> Any:
-            t0 = time.perf_counter()
-            try:
-                return step(obs)
-            finally:
-                self.clock["ECM call (invoker)"] += time.perf_counter() - t0
-
-        invoker.step = timed
+        invoker.step = self.timed.wrap(invoker.step, "ECM call (invoker)")
         return invoker
 
 
 def component_breakdown(
-    env: Any, caps: Any, policy: Any, governor: Any, seeds: list[int], tmp: Path, phi: Any
+    env: Any, caps: Any, policy: Any, governor: Any, seeds: list[int], tmp: Path, metadata: TraceMetadata
 ) -> dict[str, dict[str, float]]:
-    """One instrumented loop pass: wall time per part of a step."""
-    clock = dict.fromkeys(
-        [
-            "TaskEnv.step (robosuite inside)",
-            "TaskEnv.reset",
-            "signals() for termination",
-            "robot_state()",
-            "ECM call (invoker)",
-            "governance R(a, Φ)",
-            "trace writes",
-        ],
-        0.0,
-    )
-    originals = {"step": env.step, "reset": env.reset, "signals": env.signals, "robot_state": env.robot_state}
-    keys = {
-        "step": "TaskEnv.step (robosuite inside)",
-        "reset": "TaskEnv.reset",
-        "signals": "signals() for termination",
-        "robot_state": "robot_state()",
-    }
-
-    depth = [0]  # TaskEnv.step calls signals() itself (for the reward); count only the loop's calls
-
-    def wrap(attr: str) -> Any:
-        fn = originals[attr]
-
-        def timed(*a: Any, **k: Any) -> Any:
-            if depth[0]:
-                return fn(*a, **k)
-            depth[0] += attr == "step"
-            t0 = time.perf_counter()
-            try:
-                return fn(*a, **k)
-            finally:
-                clock[keys[attr]] += time.perf_counter() - t0
-                depth[0] -= attr == "step"
-
-        return timed
-
-    for attr in originals:
-        setattr(env, attr, wrap(attr))
-    metadata = TraceMetadata.collect(
-        run_id="bench-breakdown",
-        task=env.task_spec.name,
-        capability_set=caps.capability_set,
-        phi_hash=phi.hash,
-        agent_identity_hash="bench",
-        seeds=seeds,
-    )
+    """One instrumented worker pass: wall time per part of a step (the timers add a little)."""
+    clock: dict[str, float] = {}
+    cpu: dict[str, float] = {}
+    timed = _Timed(clock, cpu)
+    rs = env.robosuite_env
+    # Instance attributes shadow the methods; TaskEnv calls self._env.step, the loop env.step.
+    rs.step = timed.wrap(rs.step, "robosuite env.step")
+    env.reset = timed.wrap(env.reset, "TaskEnv.reset")
+    env.robot_state = timed.wrap(env.robot_state, "robot_state()")
+    env.step = timed.wrap(env.step, "TaskEnv.step (robosuite step inside)")
     steps = 0
     try:
         with TraceWriter(tmp / "breakdown.mcap", metadata) as writer:
-            sink = _TimedSink(writer, clock)
-            tcaps, tgov = _TimedCaps(caps, clock), _TimedGovernor(governor, clock)
-            t0 = time.perf_counter()
+            sink = _TimedSink(writer, timed)
+            tcaps, tgov = _TimedCaps(caps, timed), _TimedGovernor(governor, timed)
+            t0, c0 = time.perf_counter(), time.thread_time()
             for i, seed in enumerate(seeds):
                 steps += run_episode(env, tcaps, policy, tgov, sink, seed=seed, episode=i).steps
-            total = time.perf_counter() - t0
+            total, total_cpu = time.perf_counter() - t0, time.thread_time() - c0
     finally:
-        for attr in originals:
-            delattr(env, attr)
-    out = {k: {"us_per_step": v / steps * 1e6, "share": v / total} for k, v in clock.items()}
-    rest = total - sum(clock.values())
-    out["rest of the loop (decisions, unsafe check, records)"] = {
-        "us_per_step": rest / steps * 1e6,
-        "share": rest / total,
+        del rs.step, env.reset, env.robot_state, env.step
+    out: dict[str, dict[str, float]] = {}
+    for k in clock:
+        wall, spent = clock[k], cpu[k]
+        if k.startswith("TaskEnv.step"):
+            k = "TaskEnv.step beyond robosuite"
+            wall, spent = wall - clock["robosuite env.step"], spent - cpu["robosuite env.step"]
+        out[k] = {"us_per_step": wall / steps * 1e6, "cpu_us_per_step": spent / steps * 1e6}
+    out["rest of the loop (decisions, predicates, unsafe check, records)"] = {
+        "us_per_step": total / steps * 1e6 - sum(v["us_per_step"] for v in out.values()),
+        "cpu_us_per_step": total_cpu / steps * 1e6 - sum(v["cpu_us_per_step"] for v in out.values()),
     }
+    for v in out.values():
+        v["share"] = v["us_per_step"] / (total / steps * 1e6)
     return out
+
+
+def _spread(xs: list[float]) -> dict[str, float]:
+    return {
+        "median": statistics.median(xs),
+        "p25": percentile(xs, 25),
+        "p75": percentile(xs, 75),
+        "min": min(xs),
+        "max": max(xs),
+        "n": len(xs),
+    }
+
+
+class _Clock:
+    """Wall and process-CPU seconds spent inside wrapped calls."""
+
+    def __init__(self) -> None:
+        self.wall = 0.0
+        self.cpu = 0.0
+
+    def wrap(self, fn: Callable[..., Any]) -> Callable[..., Any]:
+        def timed(*a: Any, **k: Any) -> Any:
+            w0, c0 = _now()
+            try:
+                return fn(*a, **k)
+            finally:
+                w1, c1 = _now()
+                self.wall += w1 - w0
+                self.cpu += c1 - c0
+
+        return timed
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--rounds", type=int, default=5)
-    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--rounds", type=int, default=12)
+    parser.add_argument("--seeds", type=int, default=8)
     parser.add_argument("--horizon", type=int, default=150)
     parser.add_argument("--task", default="T1")
+    parser.add_argument("--label", default="", help="free text stored with the results (e.g. the code state)")
+    parser.add_argument("--out", default="bench_worker", help="results file name under benchmarks/results/")
     args = parser.parse_args(argv)
     logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
 
@@ -205,143 +223,233 @@ def main(argv: list[str] | None = None) -> int:
     governor = make_governor(env, phi)
     seeds = list(range(args.seeds))
 
-    # One recording pass: the executed actions of each seed's episode.
-    actions: dict[int, list[np.ndarray]] = {}
-    for seed in seeds:
-        sink = MemoryTraceSink()
-        run_episode(env, caps, policy, governor, sink, seed=seed)
-        actions[seed] = [np.asarray(s.action, dtype=np.float64) for s in sink.env_steps]
-    total_steps = sum(len(a) for a in actions.values())
-
-    def raw() -> float:
-        t0 = time.perf_counter()
-        for seed in seeds:
-            env.reset(seed=seed)
-            for a in actions[seed]:
-                rs.step(a)
-        return time.perf_counter() - t0
-
-    def task_env() -> float:
-        t0 = time.perf_counter()
-        for seed in seeds:
-            env.reset(seed=seed)
-            for a in actions[seed]:
-                env.step(a)
-        return time.perf_counter() - t0
-
-    clock = {"robosuite": 0.0, "task_env": 0.0, "reset": 0.0}
-    rs_step, env_step, env_reset = rs.step, env.step, env.reset
-
-    def timed(fn: Any, key: str) -> Any:
-        def wrapper(*a: Any, **k: Any) -> Any:
-            t0 = time.perf_counter()
-            try:
-                return fn(*a, **k)
-            finally:
-                clock[key] += time.perf_counter() - t0
-
-        return wrapper
-
-    def loop(round_index: int) -> tuple[float, int, dict[str, float]]:
-        metadata = TraceMetadata.collect(
-            run_id=f"bench-{round_index}",
+    def metadata(run_id: str) -> TraceMetadata:
+        return TraceMetadata.collect(
+            run_id=run_id,
             task=env.task_spec.name,
             capability_set=caps.capability_set,
             phi_hash=phi.hash,
             agent_identity_hash="bench",
             seeds=seeds,
         )
-        steps = 0
-        for key in clock:
-            clock[key] = 0.0
-        # Instance attributes shadow the methods: TaskEnv calls self._env.step, the loop env.step.
-        rs.step, env.step, env.reset = (
-            timed(rs_step, "robosuite"),
-            timed(env_step, "task_env"),
-            timed(env_reset, "reset"),
-        )
-        try:
-            with TraceWriter(tmp / f"loop-{round_index}.mcap", metadata) as sink:
-                t0 = time.perf_counter()
-                for i, seed in enumerate(seeds):
-                    steps += run_episode(env, caps, policy, governor, sink, seed=seed, episode=i).steps
-                elapsed = time.perf_counter() - t0
-        finally:
-            del rs.step, env.step, env.reset
-        return elapsed, steps, dict(clock)
 
-    rates: dict[str, list[float]] = {"robosuite": [], "task_env": [], "loop": []}
-    in_run: dict[str, list[float]] = {"robosuite": [], "task_env": [], "loop": []}
+    # One recording pass: the executed actions of each seed's episode.
+    actions: dict[int, list[np.ndarray]] = {}
+    for seed in seeds:
+        sink = MemoryTraceSink()
+        run_episode(env, caps, policy, governor, sink, seed=seed)
+        actions[seed] = [np.asarray(s.action, dtype=np.float64) for s in sink.env_steps]
+    steps_per_round = sum(len(a) for a in actions.values())
+
+    # TaskEnv may replace robosuite's per-substep observable update with its own (an instance
+    # attribute); the replay switches between robosuite's and the lean one step by step.
+    capevo_update = rs.__dict__.get("_update_observables")
+    stock_update = type(rs)._update_observables.__get__(rs)
+
+    def lean_update(force: bool = False) -> None:
+        if force:
+            stock_update(force=True)
+
+    def use_update(fn: Callable[..., Any] | None) -> None:
+        if fn is None:
+            rs.__dict__.pop("_update_observables", None)
+        else:
+            rs._update_observables = fn
+
+    Times = dict[str, tuple[float, float]]  # variant -> (wall, cpu) seconds of one episode
+
+    def run_robosuite(seed: int, _episode: int, _writer: Any) -> Times:
+        """robosuite reset + the recorded steps, odd steps lean, even steps stock."""
+        acts = actions[seed]
+        use_update(stock_update)
+        try:
+            w0, c0 = _now()
+            rs.reset()
+            w1, c1 = _now()
+            env.reset(seed=seed)  # untimed: the recorded episode's scene (jitter included)
+            spent = {"stock": [0.0, 0.0, 0], "lean": [0.0, 0.0, 0]}
+            for i, a in enumerate(acts):
+                mode = "lean" if i % 2 else "stock"
+                use_update(lean_update if i % 2 else stock_update)
+                s0, p0 = _now()
+                rs.step(a)
+                s1, p1 = _now()
+                acc = spent[mode]
+                acc[0] += s1 - s0
+                acc[1] += p1 - p0
+                acc[2] += 1
+        finally:
+            use_update(capevo_update)
+        n = len(acts)
+        out: Times = {}
+        for mode, (wall, cpu, k) in spent.items():
+            # the whole episode at this mode's per-step cost (both modes see the same states)
+            out[f"robosuite_{mode}"] = ((w1 - w0) + wall / k * n, (c1 - c0) + cpu / k * n)
+        return out
+
+    def in_run(variant: str, call: Callable[[], int], seed: int) -> Times:
+        """Run ``call`` with robosuite's reset and step clocked: the variant's total and the
+        robosuite time inside it."""
+        clock = _Clock()
+        rs.step, rs.reset = clock.wrap(rs.step), clock.wrap(rs.reset)
+        try:
+            w0, c0 = _now()
+            steps = call()
+            w1, c1 = _now()
+        finally:
+            del rs.step, rs.reset
+        if steps != len(actions[seed]):
+            raise SystemExit(
+                f"seed {seed}: {variant} ran {steps} steps, the recording {len(actions[seed])}: "
+                "episodes are not reproducible"
+            )
+        return {variant: (w1 - w0, c1 - c0), f"{variant}_robosuite_inside": (clock.wall, clock.cpu)}
+
+    def run_task_env(seed: int, _episode: int, _writer: Any) -> Times:
+        def call() -> int:
+            env.reset(seed=seed)
+            for a in actions[seed]:
+                env.step(a)
+            return len(actions[seed])
+
+        return in_run("task_env", call, seed)
+
+    def run_worker(seed: int, episode: int, writer: Any) -> Times:
+        def call() -> int:
+            return run_episode(env, caps, policy, governor, writer, seed=seed, episode=episode).steps
+
+        return in_run("worker", call, seed)
+
+    runners = [run_robosuite, run_task_env, run_worker]
+    names = ("robosuite_stock", "robosuite_lean", "task_env", "worker")
+    inside = ("task_env_robosuite_inside", "worker_robosuite_inside")
+    # per quantity, per clock: per-round totals and per-episode times
+    totals: dict[str, dict[str, list[float]]] = {v: {c: [] for c in CLOCKS} for v in names + inside}
+    episodes: dict[str, dict[str, list[float]]] = {v: {c: [] for c in CLOCKS} for v in names + inside}
+    loads: list[float] = []
     for r in range(args.rounds):
-        rates["robosuite"].append(total_steps / raw())
-        rates["task_env"].append(total_steps / task_env())
-        elapsed, steps, spent = loop(r)
-        if steps != total_steps:
-            raise SystemExit(f"the loop ran {steps} steps, the recording {total_steps}: episodes are not reproducible")
-        rates["loop"].append(steps / elapsed)
-        in_run["loop"].append(steps / elapsed)
-        in_run["robosuite"].append(steps / (spent["robosuite"] + spent["reset"]))
-        in_run["task_env"].append(steps / (spent["task_env"] + spent["reset"]))
+        round_total = {v: [0.0, 0.0] for v in names + inside}
+        with TraceWriter(tmp / f"worker-{r}.mcap", metadata(f"bench-{r}")) as writer:
+            for i, seed in enumerate(seeds):
+                k = (r + i) % len(runners)
+                for runner in runners[k:] + runners[:k]:
+                    for v, (wall, cpu) in runner(seed, i, writer).items():
+                        round_total[v][0] += wall
+                        round_total[v][1] += cpu
+                        episodes[v]["wall"].append(wall)
+                        episodes[v]["cpu"].append(cpu)
+        for v in names + inside:
+            totals[v]["wall"].append(round_total[v][0])
+            totals[v]["cpu"].append(round_total[v][1])
+        loads.append(os.getloadavg()[0])
         print(
-            f"round {r + 1}/{args.rounds}: in-run "
-            + ", ".join(f"{k} {v[-1]:.1f}/s" for k, v in in_run.items())
-            + "; replay "
-            + ", ".join(f"{k} {v[-1]:.1f}/s" for k, v in rates.items() if k != "loop"),
+            f"round {r + 1}/{args.rounds} (load {loads[-1]:.1f}), steps/s wall|cpu: "
+            + ", ".join(
+                f"{v} {steps_per_round / round_total[v][0]:.1f}|{steps_per_round / round_total[v][1]:.1f}"
+                for v in names
+            ),
             flush=True,
         )
 
-    def table(rates: dict[str, list[float]]) -> tuple[dict[str, float], list[list[Any]], float, float]:
-        med = {k: statistics.median(v) for k, v in rates.items()}
-        vs_raw = (1.0 - med["loop"] / med["robosuite"]) * 100.0
-        vs_task = (1.0 - med["loop"] / med["task_env"]) * 100.0
-        rows: list[list[Any]] = [
-            ["robosuite (env.step)", f"{med['robosuite']:.1f}", "-", "-"],
-            ["TaskEnv.step", f"{med['task_env']:.1f}", f"{(1 - med['task_env'] / med['robosuite']) * 100:.2f}%", "-"],
-            ["episode loop (gov + MCAP)", f"{med['loop']:.1f}", f"{vs_raw:.2f}%", f"{vs_task:.2f}%"],
-        ]
-        return med, rows, vs_raw, vs_task
+    breakdown = component_breakdown(env, caps, policy, governor, seeds, tmp, metadata("bench-breakdown"))
 
-    breakdown = component_breakdown(env, caps, policy, governor, seeds, tmp, phi)
+    def pct(a: list[float], b: list[float]) -> list[float]:
+        return [(x / y - 1.0) * 100.0 for x, y in zip(a, b, strict=True)]
 
-    headers = ["mode", "steps/s", "slower than robosuite", "slower than TaskEnv"]
-    med_in, rows_in, in_raw, in_task = table(in_run)
-    med, rows, overhead_raw, overhead_task = table(rates)
-    per_step_us = (1.0 / med_in["loop"] - 1.0 / med_in["task_env"]) * 1e6
+    def us(a: list[float], b: list[float]) -> list[float]:
+        return [(x - y) / steps_per_round * 1e6 for x, y in zip(a, b, strict=True)]
+
+    results: dict[str, Any] = {
+        "task": args.task,
+        "label": args.label,
+        "seeds": args.seeds,
+        "horizon": args.horizon,
+        "rounds": args.rounds,
+        "steps_per_round": steps_per_round,
+        "loadavg_1m_per_round": loads,
+        "capevo": str(Path(capevo.__file__).resolve().parent),
+        "target_overhead_pct": TARGET_OVERHEAD_PCT,
+    }
+    rows: list[list[Any]] = []
+    inrun_rows: list[list[Any]] = []
+    for clock in CLOCKS:
+        tot, ep = {v: totals[v][clock] for v in totals}, {v: episodes[v][clock] for v in episodes}
+        comparisons = {
+            "robosuite_lean_vs_stock": ("robosuite_lean", "robosuite_stock"),
+            "task_env_vs_robosuite_stock": ("task_env", "robosuite_stock"),
+            "worker_vs_robosuite_stock": ("worker", "robosuite_stock"),
+            "worker_vs_robosuite_lean": ("worker", "robosuite_lean"),
+        }
+        res: dict[str, Any] = {
+            "steps_per_s": {v: _spread([steps_per_round / t for t in tot[v]]) for v in names},
+            "slower_pct_per_round": {k: _spread(pct(tot[a], tot[b])) for k, (a, b) in comparisons.items()},
+            "slower_pct_per_episode_pair": {k: _spread(pct(ep[a], ep[b])) for k, (a, b) in comparisons.items()},
+            "extra_us_per_step_per_round": {k: _spread(us(tot[a], tot[b])) for k, (a, b) in comparisons.items()},
+            # In-run: each variant against the robosuite calls made inside it (lean robosuite,
+            # as TaskEnv runs it), clocked in the same episodes: no drift between the two.
+            "in_run_slower_pct_per_round": {
+                v: _spread(pct(tot[v], tot[f"{v}_robosuite_inside"])) for v in ("task_env", "worker")
+            },
+            "in_run_extra_us_per_step_per_round": {
+                v: _spread(us(tot[v], tot[f"{v}_robosuite_inside"])) for v in ("task_env", "worker")
+            },
+        }
+        results[clock] = res
+        for v in names:
+            rate = res["steps_per_s"][v]
+            key = {"robosuite_lean": "robosuite_lean_vs_stock"}.get(v, f"{v}_vs_robosuite_stock")
+            if v == "robosuite_stock":
+                cells = ["—", "—"]
+            else:
+                o, e = res["slower_pct_per_round"][key], res["slower_pct_per_episode_pair"][key]
+                cells = [
+                    f"{o['median']:+.2f} % [{o['p25']:+.2f}, {o['p75']:+.2f}]",
+                    f"{e['median']:+.2f} % [{e['p25']:+.2f}, {e['p75']:+.2f}]",
+                ]
+            rows.append([clock, v, f"{rate['median']:.1f} [{rate['min']:.1f}–{rate['max']:.1f}]", *cells])
+        for v in ("task_env", "worker"):
+            o, x = res["in_run_slower_pct_per_round"][v], res["in_run_extra_us_per_step_per_round"][v]
+            inrun_rows.append(
+                [
+                    clock,
+                    v,
+                    f"{o['median']:+.2f} % [{o['p25']:+.2f}, {o['p75']:+.2f}]",
+                    f"{x['median']:.0f} [{x['p25']:.0f}, {x['p75']:.0f}]",
+                ]
+            )
+    results["breakdown"] = breakdown
+
     print()
-    print(f"{args.task}, {args.seeds} seeds, {total_steps} steps per round, median of {args.rounds} rounds")
-    print("\nin-run (clocked inside the loop's own run):")
-    print(markdown_table(headers, rows_in))
-    print("\nreplay (separate passes):")
-    print(markdown_table(headers, rows))
     print(
-        f"\nloop cost per step over TaskEnv.step (in-run): {per_step_us:.0f} µs; target: at most {TARGET_OVERHEAD_PCT}%"
+        f"{args.task}, {args.seeds} seeds, {steps_per_round} steps per variant per round, {args.rounds} rounds, "
+        f"load {min(loads):.1f}–{max(loads):.1f}"
     )
-    print("\nwhere a loop step's time goes (one instrumented pass):")
+    print("\ninterleaved episodes (robosuite_stock / robosuite_lean: alternate steps of the same replays):")
     print(
         markdown_table(
-            ["part", "µs per env step", "share of the loop's wall time"],
-            [[k, f"{v['us_per_step']:.1f}", f"{v['share'] * 100:.2f}%"] for k, v in breakdown.items()],
+            [
+                "clock",
+                "variant",
+                "steps/s median [min–max]",
+                "slower than robosuite_stock, per round: median [IQR]",
+                "per episode pair: median [IQR]",
+            ],
+            rows,
         )
     )
-    path = save_results(
-        "bench_worker",
-        {
-            "task": args.task,
-            "seeds": args.seeds,
-            "horizon": args.horizon,
-            "rounds": args.rounds,
-            "steps_per_round": total_steps,
-            "in_run_steps_per_s": {k: {"median": med_in[k], "all": v} for k, v in in_run.items()},
-            "in_run_overhead_vs_robosuite_pct": in_raw,
-            "in_run_overhead_vs_task_env_pct": in_task,
-            "replay_steps_per_s": {k: {"median": med[k], "all": v} for k, v in rates.items()},
-            "replay_overhead_vs_robosuite_pct": overhead_raw,
-            "replay_overhead_vs_task_env_pct": overhead_task,
-            "loop_cost_per_step_us": per_step_us,
-            "breakdown": breakdown,
-            "target_overhead_pct": TARGET_OVERHEAD_PCT,
-        },
+    print("\nin-run (against the robosuite reset/step calls inside the same episodes):")
+    print(markdown_table(["clock", "variant", "slower, per round: median [IQR]", "µs per step [IQR]"], inrun_rows))
+    print("\nwhere a worker step's time goes (one instrumented pass; wall and CPU of the main thread):")
+    print(
+        markdown_table(
+            ["part", "µs per env step (wall)", "µs per env step (CPU)", "share of the worker's step (wall)"],
+            [
+                [k, f"{v['us_per_step']:.1f}", f"{v['cpu_us_per_step']:.1f}", f"{v['share'] * 100:.2f}%"]
+                for k, v in breakdown.items()
+            ],
+        )
     )
+    path = save_results(args.out, results)
     print(f"results: {path}")
     caps.close()
     env.close()

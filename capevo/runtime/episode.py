@@ -17,8 +17,10 @@ Each environment step:
    traced to ``/ecm/invocation``.
 4. Govern the action with ``env.robot_state()``: R(a, Φ) = a | a′ | ⊥; on ⊥ hold still
    (:func:`~capevo.runtime.governance.hold_action`). Interventions go to
-   ``/governance/intervention`` (counting mode writes them too, with the action that really
-   ran as ``result_action`` and the reason prefixed ``not enforced:``).
+   ``/governance/intervention`` with ``enforced`` set to the governor's mode (counting mode
+   writes them too, with the action that really ran as ``result_action`` and the reason
+   prefixed ``not enforced:``). An invocation whose ECM's ``done()`` held is traced with
+   outcome ``terminated``.
 5. Judge the step with :func:`~capevo.runtime.governance.unsafe_reasons` (state it ran from,
    action executed), step the environment, trace ``/env/step``.
 
@@ -42,13 +44,15 @@ Invariants:
 
 from __future__ import annotations
 
+import functools
+import inspect
 import logging
 import math
 import time
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, ParamSpec, Protocol
 
 import numpy as np
 
@@ -60,7 +64,7 @@ from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.governance import Governor, Phi, hold_action, unsafe_reasons
 from capevo.runtime.policy import Decision, DecisionContext, DecisionPolicy, StepEnd
 from capevo.runtime.state import ActionLayout, RobotState
-from capevo.runtime.traces import EcmInvocation, EnvStep, EpisodeSummary, PlanStep, TraceSink
+from capevo.runtime.traces import NOT_ENFORCED_PREFIX, EcmInvocation, EnvStep, EpisodeSummary, PlanStep, TraceSink
 from capevo.runtime.traces import Intervention as TraceIntervention
 from capevo.runtime.traces import Outcome as TraceOutcome
 
@@ -75,7 +79,7 @@ END_PLAN_ECM = ""
 
 _TRACE_OUTCOME: Mapping[Status, TraceOutcome] = {
     Status.OK: TraceOutcome.OK,
-    Status.TERMINATED: TraceOutcome.OK,
+    Status.TERMINATED: TraceOutcome.TERMINATED,
     Status.EXCEPTION: TraceOutcome.EXCEPTION,
     Status.TIMEOUT: TraceOutcome.TIMEOUT,
     Status.NAN: TraceOutcome.NAN,
@@ -158,6 +162,9 @@ class EpisodeRun:
 def make_governor(env: Any, phi: Phi, *, enforce: bool = True) -> Governor:
     """R for ``env``'s action layout, with each arm's action frame read from the simulator.
 
+    Also sets ``env.sense_proximity`` to whether ``phi`` reads proximity pairs, so an env
+    governed by an envelope that does not (the paper's) skips the distance queries.
+
     Args:
         env: A :class:`~capevo.runtime.tasks.TaskEnv`.
         phi: The envelope.
@@ -166,11 +173,22 @@ def make_governor(env: Any, phi: Phi, *, enforce: bool = True) -> Governor:
     from capevo.runtime.governance.robosuite_state import action_frames
 
     frames = action_frames(env.robosuite_env.robots)
+    env.sense_proximity = phi.reads_proximity
     return phi.governor(env.task_spec.action_layout, enforce=enforce, frames=frames)
 
 
 class _Running:
-    __slots__ = ("attempt", "ecm", "end_after_step", "input_keys", "invoker", "record", "start_step", "steps")
+    __slots__ = (
+        "attempt",
+        "ecm",
+        "end_after_step",
+        "input_keys",
+        "invoker",
+        "record",
+        "start_step",
+        "steps",
+        "termination",
+    )
 
     def __init__(self, record: EcmVersion, invoker: EcmInvoker, start_step: int) -> None:
         self.record = record
@@ -180,40 +198,7 @@ class _Running:
         self.steps = 0
         self.end_after_step: StepEnd | None = None
         self.input_keys = tuple(s.name for s in record.interface.inputs)
-
-
-def run_episode(
-    env: EpisodeEnv,
-    capabilities: Capabilities,
-    policy: DecisionPolicy,
-    governor: Governor,
-    sink: TraceSink | None,
-    *,
-    seed: int,
-    step_budget_per_ecm: int | None = DEFAULT_STEP_BUDGET,
-    episode: int = 0,
-    timeout_s: float = DEFAULT_TIMEOUT_S,
-    max_decisions_per_step: int = MAX_DECISIONS_PER_STEP,
-    trace_path: str | None = None,
-    should_stop: Callable[[], bool] | None = None,
-    apply_swaps: bool = True,
-) -> EpisodeOutcome:
-    """Run one seeded episode and return its outcome; see :func:`run_episode_detailed`."""
-    return run_episode_detailed(
-        env,
-        capabilities,
-        policy,
-        governor,
-        sink,
-        seed=seed,
-        step_budget_per_ecm=step_budget_per_ecm,
-        episode=episode,
-        timeout_s=timeout_s,
-        max_decisions_per_step=max_decisions_per_step,
-        trace_path=trace_path,
-        should_stop=should_stop,
-        apply_swaps=apply_swaps,
-    ).outcome
+        self.termination = record.descriptor.termination
 
 
 def run_episode_detailed(
@@ -316,6 +301,13 @@ def run_episode_detailed(
             prev_ecm, prev_end = run.ecm, end
         running = None
 
+    def count_unsafe(why: tuple[str, ...], where: str) -> None:
+        nonlocal unsafe_steps
+        unsafe_steps += 1
+        unsafe_by.update({w.split(":", 1)[0] for w in why})
+        if len(unsafe_examples) < 5:
+            unsafe_examples.append(f"{where}: {'; '.join(why)}")
+
     def write_calls(run: _Running, result: StepResult) -> None:
         nonlocal failures
         if sink is None:
@@ -397,7 +389,7 @@ def run_episode_detailed(
                 invoker = capabilities.make_invoker(record.name, step_budget=step_budget_per_ecm, timeout_s=timeout_s)
                 running = _Running(record, invoker, steps)
             run = running
-            termination = run.record.descriptor.termination
+            termination = run.termination
             if termination.all and predicate_holds(termination, current_signals()):
                 finish(run, StepEnd.TERMINATED, "termination predicate holds")
                 continue
@@ -461,7 +453,7 @@ def run_episode_detailed(
                     reason = iv.reason
                 else:
                     result_action = executed
-                    reason = f"not enforced: {iv.reason}"
+                    reason = NOT_ENFORCED_PREFIX + iv.reason
                 sink.write_intervention(
                     TraceIntervention(
                         episode=episode,
@@ -470,14 +462,12 @@ def run_episode_detailed(
                         original_action=iv.original,
                         result_action=result_action,
                         reason=reason,
+                        enforced=enforce,
                     )
                 )
         why = unsafe_reasons(state, executed, phi, layout)
         if why:
-            unsafe_steps += 1
-            unsafe_by.update({w.split(":", 1)[0] for w in why})
-            if len(unsafe_examples) < 5:
-                unsafe_examples.append(f"step {steps}: {'; '.join(why)}")
+            count_unsafe(why, f"step {steps}")
         next_obs, reward, terminated, truncated, info = env.step(np.asarray(executed, dtype=np.float64))
         signals = None
         next_t = tuple(next_obs.tolist())
@@ -518,10 +508,7 @@ def run_episode_detailed(
     if steps:
         why = unsafe_reasons(env.robot_state(), None, phi, layout)
         if why:
-            unsafe_steps += 1
-            unsafe_by.update({w.split(":", 1)[0] for w in why})
-            if len(unsafe_examples) < 5:
-                unsafe_examples.append(f"final state: {'; '.join(why)}")
+            count_unsafe(why, "final state")
     duration = time.perf_counter() - started
     outcome = EpisodeOutcome(
         seed=seed,
@@ -561,6 +548,33 @@ def run_episode_detailed(
         unsafe_reasons=tuple(unsafe_examples),
         unsafe_by_constraint=dict(unsafe_by),
     )
+
+
+P = ParamSpec("P")
+
+
+def _outcome_only(fn: Callable[P, EpisodeRun], *, name: str, doc: str) -> Callable[P, EpisodeOutcome]:
+    """``fn`` returning only its run's ``outcome``: the same parameters, one definition of them."""
+
+    @functools.wraps(fn)
+    def outcome(*args: P.args, **kwargs: P.kwargs) -> EpisodeOutcome:
+        return fn(*args, **kwargs).outcome
+
+    outcome.__name__ = outcome.__qualname__ = name
+    outcome.__doc__ = doc
+    outcome.__signature__ = inspect.signature(fn).replace(return_annotation="EpisodeOutcome")  # type: ignore[attr-defined]
+    return outcome
+
+
+run_episode = _outcome_only(
+    run_episode_detailed,
+    name="run_episode",
+    doc="""Run one seeded episode and return its outcome.
+
+    Takes exactly the arguments of :func:`run_episode_detailed` and returns its ``outcome``
+    (an :class:`~capevo.runtime.evaluation.EpisodeOutcome`).
+    """,
+)
 
 
 def _key_state(state: RobotState) -> dict[str, tuple[float, ...]]:

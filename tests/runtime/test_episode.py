@@ -143,10 +143,12 @@ def test_adversarial_ecm_cannot_leave_the_box_with_governance(
     assert {i.constraint for i in on.interventions} == {"workspace_box"}
     assert max(s.key_state["arm0_eef_pos"][2] for s in on.env_steps) <= 1.3
     assert all(i.result_action is not None and i.result_action[2] == 0.0 for i in on.interventions)
+    assert all(i.enforced for i in on.interventions)
     # governance off (counting): the same ECM leaves the box, and R says it would have intervened
     assert counted.unsafe_steps > 0
     assert counted.interventions > 0
     assert all(i.reason.startswith("not enforced: ") for i in off.interventions)
+    assert not any(i.enforced for i in off.interventions)
     assert max(s.key_state["arm0_eef_pos"][2] for s in off.env_steps) > 1.3
 
 
@@ -288,6 +290,9 @@ def test_policy_that_makes_no_progress_cannot_spin_forever(env: TaskEnv, registr
     assert run.outcome.steps == 0
     assert run.end_reason == "no progress: 5 decisions without an env step"
     assert [a.reason for a in run.activations] == ["done() is true"] * 5
+    # done() is the ECM's own normal end: traced as terminated, not ok, not a failure
+    assert [i.outcome for i in sink.invocations] == [Outcome.TERMINATED] * 5
+    assert run.outcome.ecm_failures == 0
 
 
 class ChoosesUnknown:
@@ -322,3 +327,15 @@ def test_exhausted_step_budget_hands_back_to_the_policy(
     ] * limit
     assert run.outcome.steps == 3 * limit
     assert run.end_reason.startswith("policy: pick.reach reached its attempt limit")
+
+
+def test_the_env_senses_proximity_only_when_its_envelope_reads_it(env: TaskEnv) -> None:
+    env.reset(seed=0)
+    make_governor(env, Phi.for_task("T1"))
+    assert env.sense_proximity and Phi.for_task("T1").reads_proximity
+    for _ in range(12):  # down towards the bin floor, into the sensor's reach of the scene
+        env.step([0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0])
+    assert any(arm.near for arm in env.robot_state().arms)  # type: ignore[attr-defined]
+    make_governor(env, PHI)
+    assert not env.sense_proximity and not PHI.reads_proximity
+    assert all(arm.near == () for arm in env.robot_state().arms)  # type: ignore[attr-defined]

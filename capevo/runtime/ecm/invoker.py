@@ -168,59 +168,66 @@ class EcmInvoker:
         """
         if ecm.runner is None:
             raise Invalid(f"{ecm.label}: not executable")
-        inputs = (
-            marshal_inputs(obs, ecm.interface.inputs, ecm=ecm.label) if ecm.interface.inputs else raw_observation(obs)
-        )
-
-        def outcome(
-            status: Status,
-            started: float,
-            *,
-            action: tuple[float, ...] | None = None,
-            error: str | None = None,
-            clipped: bool = False,
-        ) -> Outcome:
-            return Outcome(
-                status=status,
-                ecm=ecm.name,
-                version=ecm.version,
-                action=action,
-                duration_s=self._clock() - started,
-                error=error,
-                clipped=clipped,
-            )
-
-        t0 = self._clock()
+        interface = ecm.interface
+        inputs = marshal_inputs(obs, interface.inputs, ecm=ecm.label) if interface.inputs else raw_observation(obs)
+        clock = self._clock
+        t0 = clock()
         try:
             result = ecm.runner.step(inputs, timeout_s=self.timeout_s)
         except Timeout as exc:
-            return outcome(Status.TIMEOUT, t0, error=exc.message)
+            return self._outcome(ecm, Status.TIMEOUT, t0, error=exc.message)
         except BadOutput as exc:
-            return outcome(Status.BAD_SHAPE, t0, error=str(exc)[:MAX_ERROR_CHARS])
+            return self._outcome(ecm, Status.BAD_SHAPE, t0, error=str(exc)[:MAX_ERROR_CHARS])
         except KeyboardInterrupt:
             raise
         except BaseException as exc:  # an ECM may raise anything, even SystemExit
-            return outcome(Status.EXCEPTION, t0, error=_error_text(exc))
-        elapsed = self._clock() - t0
+            return self._outcome(ecm, Status.EXCEPTION, t0, error=_error_text(exc))
+        elapsed = clock() - t0
         if ecm.in_process and elapsed > self.timeout_s:
-            return outcome(
+            return self._outcome(
+                ecm,
                 Status.TIMEOUT,
                 t0,
                 error=f"in-process call took {elapsed:.3f}s, over the {self.timeout_s}s limit; result discarded",
             )
         if result.done:
-            return outcome(Status.TERMINATED, t0)
+            return self._outcome(ecm, Status.TERMINATED, t0)
         raw = result.action
         if raw is None or raw.shape != (self.layout.dim,):
             got = None if raw is None else raw.shape
-            return outcome(Status.BAD_SHAPE, t0, error=f"action has shape {got}, expected ({self.layout.dim},)")
-        if not bool(np.all(np.isfinite(raw))):
-            return outcome(Status.NAN, t0, error=f"action has non-finite values: {raw.tolist()}")
+            return self._outcome(
+                ecm, Status.BAD_SHAPE, t0, error=f"action has shape {got}, expected ({self.layout.dim},)"
+            )
+        if not np.isfinite(raw).all():
+            return self._outcome(ecm, Status.NAN, t0, error=f"action has non-finite values: {raw.tolist()}")
         action = raw
         clipped = False
-        if self.clip and ecm.interface.outputs:
-            action, clipped = clip_to_bounds(raw, ecm.interface.outputs)
-        return outcome(Status.OK, t0, action=tuple(float(x) for x in action.tolist()), clipped=clipped)
+        if self.clip and interface.outputs:
+            action, clipped = clip_to_bounds(raw, interface.outputs)
+        values = action.tolist()
+        if action.dtype.kind != "f":  # tolist() gives Python floats only for float arrays
+            values = [float(x) for x in values]
+        return self._outcome(ecm, Status.OK, t0, action=tuple(values), clipped=clipped)
+
+    def _outcome(
+        self,
+        ecm: LoadedEcm,
+        status: Status,
+        started: float,
+        *,
+        action: tuple[float, ...] | None = None,
+        error: str | None = None,
+        clipped: bool = False,
+    ) -> Outcome:
+        return Outcome(
+            status=status,
+            ecm=ecm.name,
+            version=ecm.version,
+            action=action,
+            duration_s=self._clock() - started,
+            error=error,
+            clipped=clipped,
+        )
 
     def step(self, obs: Mapping[str, Any]) -> StepResult:
         """Advance the ECM by one step.

@@ -15,6 +15,7 @@ Invariants:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -55,6 +56,13 @@ def marshal_inputs(obs: Mapping[str, Any], inputs: Sequence[IOSpec], *, ecm: str
         raise Invalid(f"{ecm}: observation must be a dict of arrays, got {type(obs).__name__}")
     out: dict[str, np.ndarray] = {}
     for spec in inputs:
+        value = obs.get(spec.name) if type(obs) is dict else None
+        # Fast path, every step of a running ECM: already an array of the declared dtype and shape.
+        if type(value) is np.ndarray and value.dtype is _dtype(spec.dtype) and value.shape == spec.shape:
+            view = value.view()
+            view.flags.writeable = False
+            out[spec.name] = view
+            continue
         if spec.name not in obs:
             keys = ", ".join(sorted(map(str, obs))) or "none"
             raise Invalid(
@@ -85,6 +93,14 @@ def marshal_inputs(obs: Mapping[str, Any], inputs: Sequence[IOSpec], *, ecm: str
     return out
 
 
+@functools.lru_cache(maxsize=64)
+def _dtype(name: str) -> np.dtype[Any] | None:
+    try:
+        return np.dtype(name)
+    except TypeError:
+        return None
+
+
 def flatten_inputs(inputs: Mapping[str, np.ndarray], specs: Sequence[IOSpec]) -> np.ndarray:
     """The marshalled inputs concatenated in interface order as one float32 vector."""
     if not specs:
@@ -98,10 +114,27 @@ def clip_to_bounds(action: np.ndarray, outputs: Sequence[IOSpec]) -> tuple[np.nd
     Returns:
         The (possibly new) array and whether any value was clipped.
     """
-    if not any(s.low is not None or s.high is not None for s in outputs):
+    try:
+        bounds = _bounds(tuple(outputs), action.shape)
+    except TypeError:  # an unhashable spec: work the bounds out for this call only
+        bounds = _bounds.__wrapped__(tuple(outputs), action.shape)
+    if bounds is None:
         return action, False
-    lows = np.full(action.shape, -np.inf)
-    highs = np.full(action.shape, np.inf)
+    lows, highs = bounds
+    clipped = np.clip(action, lows, highs)
+    return clipped, bool((clipped != action).any())
+
+
+@functools.lru_cache(maxsize=256)
+def _bounds(outputs: tuple[IOSpec, ...], shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per-element lower and upper bounds of a flat action (read-only), or None if unbounded.
+
+    Cached: an invoker clips every step with the same interface.
+    """
+    if not any(s.low is not None or s.high is not None for s in outputs):
+        return None
+    lows = np.full(shape, -np.inf)
+    highs = np.full(shape, np.inf)
     i = 0
     for s in outputs:
         n = spec_size(s)
@@ -110,5 +143,6 @@ def clip_to_bounds(action: np.ndarray, outputs: Sequence[IOSpec]) -> tuple[np.nd
         if s.high is not None:
             highs[i : i + n] = s.high
         i += n
-    clipped = np.clip(action, lows, highs)
-    return clipped, bool(np.any(clipped != action))
+    lows.flags.writeable = False
+    highs.flags.writeable = False
+    return lows, highs

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from capevo.registry.records import Predicate
 from capevo.runtime.tasks.spec import EcmStep, SignalSpec, cond, pred
 
 PANDA_PROPRIO_KEYS: tuple[str, ...] = (
@@ -99,13 +100,32 @@ def gripper_opening(env: Any) -> float:
     return float(q[0] - q[1])
 
 
-def reach_step(ecm: str, what: str, keys: tuple[str, ...], *, prefix: str = "") -> EcmStep:
-    p = prefix
+def step(
+    ecm: str, description: str, keys: tuple[str, ...], done: Predicate, *, when: Predicate | None = None
+) -> EcmStep:
+    """One ECM of a decomposition: what it does, what it reads, when it is done (termination)
+    and when it can start (applicability; none by default)."""
     return EcmStep(
         ecm=ecm,
-        description=f"Bring the open gripper around {what}, fingers straddling its grasp point.",
+        description=description,
         observation_keys=keys,
-        termination=pred(
+        termination=done,
+        applicability=when if when is not None else Predicate(),
+    )
+
+
+def holding(what: str, *, prefix: str = "") -> Predicate:
+    """``<what> grasped``: the gripper holds the object (both finger pads touch it)."""
+    return pred(f"{what} grasped", cond(f"{prefix}grasped", ">=", 1.0))
+
+
+def reach_step(ecm: str, what: str, keys: tuple[str, ...], *, prefix: str = "") -> EcmStep:
+    p = prefix
+    return step(
+        ecm,
+        f"Bring the open gripper around {what}, fingers straddling its grasp point.",
+        keys,
+        pred(
             f"gripper open and within 2 cm of {what}'s grasp point",
             cond(f"{p}eef_object_xy_dist", "<", 0.02),
             cond(f"{p}eef_object_dz", "<", 0.02),
@@ -116,23 +136,23 @@ def reach_step(ecm: str, what: str, keys: tuple[str, ...], *, prefix: str = "") 
 
 
 def grasp_step(ecm: str, what: str, keys: tuple[str, ...], *, prefix: str = "") -> EcmStep:
-    return EcmStep(
-        ecm=ecm,
-        description=f"Close the gripper on {what} without moving it.",
-        observation_keys=keys,
-        applicability=pred(f"gripper near {what}", cond(f"{prefix}eef_object_dist", "<", 0.04)),
-        termination=pred(f"both finger pads touch {what}", cond(f"{prefix}grasped", ">=", 1.0)),
+    return step(
+        ecm,
+        f"Close the gripper on {what} without moving it.",
+        keys,
+        pred(f"both finger pads touch {what}", cond(f"{prefix}grasped", ">=", 1.0)),
+        when=pred(f"gripper near {what}", cond(f"{prefix}eef_object_dist", "<", 0.04)),
     )
 
 
 def lift_step(ecm: str, what: str, keys: tuple[str, ...], height: float, *, prefix: str = "") -> EcmStep:
-    return EcmStep(
-        ecm=ecm,
-        description=f"Lift {what} straight up by more than {height * 100:.0f} cm, keeping the grasp.",
-        observation_keys=keys,
-        applicability=pred(f"{what} grasped", cond(f"{prefix}grasped", ">=", 1.0)),
-        termination=pred(
+    return step(
+        ecm,
+        f"Lift {what} straight up by more than {height * 100:.0f} cm, keeping the grasp.",
+        keys,
+        pred(
             f"{what} more than {height * 100:.0f} cm above its start",
             cond(f"{prefix}object_height_above_start", ">", height),
         ),
+        when=holding(what, prefix=prefix),
     )

@@ -23,6 +23,11 @@ Invariants:
    ``info["is_success"]``.
 3. Observations are float32, finite, of the shape of ``observation_space``.
 4. Stepping after the episode ended, or before the first reset, raises :class:`Invalid`.
+5. Every observation is of the final simulator state of the step: after each step every
+   robosuite observable equals robosuite's forced two-pass refresh (``_raw_observations``),
+   computed in one pass in dependency order (:mod:`.observables`). robosuite's own sampling
+   at each physics substep is switched off in the wrapped environment: those samples are
+   taken early in the step and nothing reads them.
 """
 
 from __future__ import annotations
@@ -37,9 +42,10 @@ import gymnasium as gym
 import numpy as np
 
 from capevo.errors import Invalid
-from capevo.runtime.governance.pose import ArmPose
+from capevo.runtime.governance.proximity import ArmScene, ProximitySensor
 from capevo.runtime.governance.robosuite_state import force_sensor, sensor_contact_force
 from capevo.runtime.state import RobotState
+from capevo.runtime.tasks.observables import ObservablePlan, plan_observables
 from capevo.runtime.tasks.perturbations import EpisodeRngs, Perturbations
 from capevo.runtime.tasks.spec import TaskSpec
 
@@ -167,15 +173,21 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
                 self._env = self._build(kwargs)
             except TypeError as e:
                 raise Invalid(f"{spec.name}: bad robosuite argument: {e}", details={"field": "env_kwargs"}) from e
+        _skip_sampling_in_step(self._env)
         self._sim = self._env.sim
         self._model = self._sim.model._model
         self._data = self._sim.data._data
         self._bind()
         self._eef_sites = tuple(int(r.eef_site_id["right"]) for r in self._env.robots)
         self._force_sensors = tuple(force_sensor(r, "right") for r in self._env.robots)
+        self._proximity = ProximitySensor.for_robots(self._model, self._data, self._env.robots)
+        self.sense_proximity = True
+        """Whether :meth:`robot_state` measures proximity pairs; :func:`capevo.runtime.episode.make_governor`
+        turns it off when the governing Φ does not read them (they cost ~0.08 ms per step)."""
         self._gravity = tuple(float(g) for g in self._model.opt.gravity)
 
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(spec.action_layout.dim,), dtype=np.float32)
+        self._action_shape = (spec.action_layout.dim,)
         if self._env.action_dim != spec.action_layout.dim:
             raise AssertionError(f"{spec.name}: robosuite action dim {self._env.action_dim} != spec")
 
@@ -188,6 +200,7 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         self._obs_dict: dict[str, np.ndarray] = {}
         self._clean_obs_dict: dict[str, np.ndarray] = {}
         self._key_sizes: dict[str, int] = {}
+        self._obs_plan: ObservablePlan | None = None
         # A throwaway reset to learn observation sizes; the first real reset reseeds.
         self._env.reset()
         raw = self._raw_observations()
@@ -196,6 +209,8 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
             raise AssertionError(f"{spec.name}: robosuite gives no observation keys {missing}")
         self._key_sizes = {k: int(np.asarray(raw[k]).size) for k in spec.observation_keys}
         self._pos_sizes = tuple(int(np.asarray(raw[k]).size) for k in spec.position_keys)
+        self._pos_total = sum(self._pos_sizes)
+        self._flat_keys = spec.observation_keys
         n = sum(self._key_sizes.values())
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float32)
 
@@ -287,6 +302,9 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         self._t = 0
         self._success = False
         obs = self._observe(self._raw_observations())
+        # Planned per episode: a reset may switch observables on or off (robosuite's
+        # single-object modes), and the cache is full now.
+        self._obs_plan = plan_observables(self._env)
         return obs, {"is_success": False, "success_now": False, "actuation_dropped": False}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
@@ -304,15 +322,16 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         if self._over:
             raise Invalid(f"{self.task_spec.name}: the episode is over (or never started); call reset()")
         a = np.asarray(action, dtype=np.float64)
-        if a.shape != self.action_space.shape:
+        if a.shape != self._action_shape:
             raise Invalid(
-                f"{self.task_spec.name}: action shape {a.shape} != {self.action_space.shape}",
+                f"{self.task_spec.name}: action shape {a.shape} != {self._action_shape}",
                 details={"field": "action"},
             )
-        if not np.all(np.isfinite(a)):
+        if not np.isfinite(a).all():
             raise Invalid(f"{self.task_spec.name}: action has non-finite values", details={"field": "action"})
         dropped = bool(self._rngs.drop.random() < self.perturbations.actuation_failure_p)
-        applied = np.zeros_like(a) if dropped else np.clip(a, -1.0, 1.0)
+        # minimum(maximum()) is np.clip's arithmetic for finite values, without its dispatch cost.
+        applied = np.zeros_like(a) if dropped else np.minimum(np.maximum(a, -1.0), 1.0)
         _, rs_reward, _, _ = self._env.step(applied)
         self._signals_cache = None
         self._t += 1
@@ -322,7 +341,7 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         terminated = self.terminate_on_success and success_now
         truncated = (not terminated) and self._t >= self.horizon
         self._over = terminated or truncated
-        obs = self._observe(self._raw_observations())
+        obs = self._observe(self._fresh_observations())
         info = {"is_success": self._success, "success_now": success_now, "actuation_dropped": dropped}
         return obs, reward, terminated, truncated, info
 
@@ -365,7 +384,7 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
     def flatten(self, obs_dict: dict[str, np.ndarray]) -> np.ndarray:
         """Concatenate ``task_spec.observation_keys`` of ``obs_dict`` into the flat float32 vector."""
         return np.concatenate(
-            [np.asarray(obs_dict[k], dtype=np.float32).reshape(-1) for k in self.task_spec.observation_keys]
+            [np.asarray(obs_dict[k], dtype=np.float32) for k in self.task_spec.observation_keys], axis=None
         )
 
     def robot_state(self) -> RobotState:
@@ -376,15 +395,22 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         sensor removed (:func:`capevo.runtime.governance.robosuite_state.sensor_contact_force`):
         the force the environment exerts on the end effector, about 0 in free motion, plus
         inertial terms while accelerating and the weight of a held object. Arms are
-        :class:`~capevo.runtime.governance.pose.ArmPose`: an ``ArmState`` plus the end-effector
-        site's rotation, which governance uses for the hand's extent.
+        :class:`~capevo.runtime.governance.proximity.ArmScene`: an ``ArmState`` plus the end-effector
+        site's rotation, which governance uses for the hand's extent, and the hand's nearest
+        points to the rest of the scene (``ProximitySensor``), which ``contact_approach`` reads
+        (empty while :attr:`sense_proximity` is off).
         """
         d = self._data
         arms = []
         for i, site in enumerate(self._eef_sites):
             x, y, z = d.site_xpos[site].tolist()
             arms.append(
-                ArmPose(eef_pos=(x, y, z), eef_force=self._arm_force(i), eef_rot=tuple(d.site_xmat[site].tolist()))
+                ArmScene(
+                    eef_pos=(x, y, z),
+                    eef_force=self._arm_force(i),
+                    eef_rot=tuple(d.site_xmat[site].tolist()),
+                    near=self._proximity.near(i) if self.sense_proximity else (),
+                )
             )
         return RobotState(arms=tuple(arms))
 
@@ -401,20 +427,42 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         raw.update(self._extra_observations())
         return raw
 
+    def _fresh_observations(self) -> dict[str, Any]:
+        """:meth:`_raw_observations` after a step, in one forced pass instead of two.
+
+        robosuite samples its observables early in a control step, so the values its ``step``
+        returns are stale; a forced pass reads the final state. Run in :attr:`_obs_plan`'s
+        order (every observable after those whose cached values it reads), one pass gives
+        the values the two-pass refresh gives, bit for bit, at half the cost and without
+        building robosuite's concatenated ``*-state`` arrays, which capevo drops.
+        """
+        env = self._env
+        plan = self._obs_plan
+        if plan is None or plan.source is not env._observables:
+            return self._raw_observations()
+        cache, dt = env._obs_cache, env.model_timestep
+        for observable in plan.order:
+            observable.update(timestep=dt, obs_cache=cache, force=True)
+        raw = {name: observable.obs for name, observable in plan.active}
+        raw.update(self._extra_observations())
+        return raw
+
     def _observe(self, raw: dict[str, Any]) -> np.ndarray:
-        clean = {k: np.asarray(v, dtype=np.float32) for k, v in raw.items() if not k.endswith("-state")}
+        f32 = np.float32
+        clean = {k: np.asarray(v, dtype=f32) for k, v in raw.items() if not k.endswith("-state")}
         noisy = dict(clean)
         std = self.perturbations.obs_position_noise_std
         if std > 0 and self.task_spec.position_keys:
-            draws = self._rngs.obs_noise.normal(0.0, std, size=sum(self._pos_sizes))
+            draws = self._rngs.obs_noise.normal(0.0, std, size=self._pos_total)
             at = 0
             for k, n in zip(self.task_spec.position_keys, self._pos_sizes, strict=True):
                 v = clean[k]
-                noisy[k] = (v + draws[at : at + n].reshape(v.shape)).astype(np.float32)
+                noisy[k] = (v + draws[at : at + n].reshape(v.shape)).astype(f32)
                 at += n
         self._clean_obs_dict = clean
         self._obs_dict = noisy
-        return self.flatten(noisy)
+        # Every value is a float32 array now: concatenate them as they are.
+        return np.concatenate([noisy[k] for k in self._flat_keys], axis=None)
 
     def _jitter_object(self, m: Movable, rng: np.random.Generator, half_width: float) -> None:
         """Shift one object's initial x, y; redraw while it would overlap another geom."""
@@ -440,6 +488,22 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
             if (c.geom1 in geom_ids or c.geom2 in geom_ids) and -c.dist > worst:
                 worst = -float(c.dist)
         return worst
+
+
+def _skip_sampling_in_step(env: Any) -> None:
+    """Stop robosuite sampling observables at every physics substep of ``step``.
+
+    Those samples are taken early in the control step and capevo never reads them: after each
+    step :meth:`TaskEnv._fresh_observations` recomputes every observable from the final state.
+    Forced refreshes (reset, ``_get_observations(force_update=True)``) still run.
+    """
+    update = env._update_observables
+
+    def update_observables(force: bool = False) -> None:
+        if force:
+            update(force=True)
+
+    env._update_observables = update_observables
 
 
 def _check_seed(seed: object) -> int | None:

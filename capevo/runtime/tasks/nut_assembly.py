@@ -19,7 +19,7 @@ from capevo.runtime.state import SINGLE_PANDA
 from capevo.runtime.tasks import _common as c
 from capevo.runtime.tasks.base import Movable, TaskEnv
 from capevo.runtime.tasks.registry import register_task
-from capevo.runtime.tasks.spec import EcmStep, SignalSpec, TaskSpec, cond, pred
+from capevo.runtime.tasks.spec import SignalSpec, TaskSpec, cond, pred
 
 NUT_HALF_THICKNESS = 0.01
 PEG_CLEAR_HEIGHT = 0.15
@@ -63,31 +63,31 @@ class NutAssemblyTask(TaskEnv):
             c.reach_step("nut_assembly.reach", "the nut's handle", _REACH_KEYS),
             c.grasp_step("nut_assembly.grasp", "the nut", _REACH_KEYS),
             c.lift_step("nut_assembly.lift", "the nut", _TARGET_KEYS, PEG_CLEAR_HEIGHT),
-            EcmStep(
-                ecm="nut_assembly.align",
-                description="Carry the nut until its hole is centred over the square peg, above the peg's top.",
-                observation_keys=_TARGET_KEYS,
-                applicability=pred("nut grasped", cond("grasped", ">=", 1.0)),
-                termination=pred(
+            c.step(
+                "nut_assembly.align",
+                "Carry the nut until its hole is centred over the square peg, above the peg's top.",
+                _TARGET_KEYS,
+                pred(
                     "nut centre within 1 cm (horizontally) of the peg and above its top",
                     cond("object_target_xy_dist", "<", 0.01),
                     cond("object_height_above_start", ">", 0.13),
                     cond("grasped", ">=", 1.0),
                 ),
+                when=c.holding("nut"),
             ),
-            EcmStep(
-                ecm="nut_assembly.insert",
-                description="Lower the nut down the peg until it is seated.",
-                observation_keys=_TARGET_KEYS,
-                applicability=pred("nut over the peg", cond("object_target_xy_dist", "<", 0.02)),
-                termination=pred("nut seated (robosuite's check)", cond("success", ">=", 1.0)),
+            c.step(
+                "nut_assembly.insert",
+                "Lower the nut down the peg until it is seated.",
+                _TARGET_KEYS,
+                pred("nut seated (robosuite's check)", cond("success", ">=", 1.0)),
+                when=pred("nut over the peg", cond("object_target_xy_dist", "<", 0.02)),
             ),
-            EcmStep(
-                ecm="nut_assembly.release",
-                description="Open the gripper and leave the nut on the peg.",
-                observation_keys=_TARGET_KEYS,
-                applicability=pred("nut seated", cond("success", ">=", 1.0)),
-                termination=pred("nut seated and released", cond("success", ">=", 1.0), cond("grasped", "<", 1.0)),
+            c.step(
+                "nut_assembly.release",
+                "Open the gripper and leave the nut on the peg.",
+                _TARGET_KEYS,
+                pred("nut seated and released", cond("success", ">=", 1.0), cond("grasped", "<", 1.0)),
+                when=pred("nut seated", cond("success", ">=", 1.0)),
             ),
         ),
         success_text=(

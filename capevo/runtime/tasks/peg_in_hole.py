@@ -24,7 +24,9 @@ from typing import Any
 
 import numpy as np
 
+from capevo.registry.records import Predicate
 from capevo.runtime.state import ActionLayout, ArmActionLayout
+from capevo.runtime.tasks import _common as c
 from capevo.runtime.tasks.base import JITTER_TRIES, PENETRATION_LIMIT, TaskEnv
 from capevo.runtime.tasks.registry import register_task
 from capevo.runtime.tasks.spec import EcmStep, SignalSpec, TaskSpec, cond, pred
@@ -59,75 +61,72 @@ PEG_SIGNALS: tuple[SignalSpec, ...] = (
 )
 
 
-def _step(ecm: str, description: str, text: str, *conditions: Any, applicability: Any = None) -> EcmStep:
-    return EcmStep(
-        ecm=ecm,
-        description=description,
-        observation_keys=_BOTH,
-        termination=pred(text, *conditions),
-        **({"applicability": applicability} if applicability is not None else {}),
-    )
+_INSIDE = ("success", ">=", 1.0)
 
-
-PEG_DECOMPOSITION: tuple[EcmStep, ...] = (
-    # At reset the peg hangs down and the plate stands upright (cos about 0), 20-35 cm apart.
-    _step(
-        "peg_in_hole.orient_peg",
+# (ECM, what it does, when it is done, its termination conditions, applicability or None).
+# At reset the peg hangs down and the plate stands upright (cos about 0), 20-35 cm apart.
+_PEG_STEPS: tuple[tuple[str, str, str, tuple[tuple[str, str, float], ...], Predicate | None], ...] = (
+    (
+        "orient_peg",
         "Peg arm turns the peg from hanging down toward pointing at the plate.",
         "peg axis within about 45 degrees of the hole normal",
-        cond("peg_hole_cos", ">", 0.7),
+        (("peg_hole_cos", ">", 0.7),),
+        None,
     ),
-    _step(
-        "peg_in_hole.orient_hole",
+    (
+        "orient_hole",
         "Plate arm turns the plate so the hole faces the peg.",
         "peg axis within about 25 degrees of the hole normal",
-        cond("peg_hole_cos", ">", 0.9),
+        (("peg_hole_cos", ">", 0.9),),
+        None,
     ),
-    _step(
-        "peg_in_hole.approach_peg",
+    (
+        "approach_peg",
         "Peg arm moves the peg in front of the hole.",
         "hole centre within 6 cm of the peg axis",
-        cond("peg_hole_perp_dist", "<", 0.06),
-        cond("peg_hole_cos", ">", 0.9),
+        (("peg_hole_perp_dist", "<", 0.06), ("peg_hole_cos", ">", 0.9)),
+        None,
     ),
-    _step(
-        "peg_in_hole.approach_hole",
+    (
+        "approach_hole",
         "Plate arm moves the hole onto the peg's axis.",
         "hole centre within 3 cm of the peg axis",
-        cond("peg_hole_perp_dist", "<", 0.03),
-        cond("peg_hole_cos", ">", 0.9),
+        (("peg_hole_perp_dist", "<", 0.03), ("peg_hole_cos", ">", 0.9)),
+        None,
     ),
-    _step(
-        "peg_in_hole.align",
+    (
+        "align",
         "Both arms fine-tune orientation so peg and hole are coaxial.",
         "peg axis within about 14 degrees of the hole normal, centred",
-        cond("peg_hole_cos", ">", 0.97),
-        cond("peg_hole_perp_dist", "<", 0.03),
+        (("peg_hole_cos", ">", 0.97), ("peg_hole_perp_dist", "<", 0.03)),
+        None,
     ),
-    _step(
-        "peg_in_hole.pre_insert",
+    (
+        "pre_insert",
         "Bring the peg to the hole entrance along its axis.",
         "peg centre within 20 cm of the hole plane, centred and aligned",
-        cond("peg_hole_axial_abs", "<", 0.2),
-        cond("peg_hole_perp_dist", "<", 0.03),
-        cond("peg_hole_cos", ">", 0.95),
+        (("peg_hole_axial_abs", "<", 0.2), ("peg_hole_perp_dist", "<", 0.03), ("peg_hole_cos", ">", 0.95)),
+        None,
     ),
-    _step(
-        "peg_in_hole.insert",
+    (
+        "insert",
         "Push the peg through the hole.",
         "peg inside the hole (robosuite's check) with its centre within 5 cm of the hole plane",
-        cond("success", ">=", 1.0),
-        cond("peg_hole_axial_abs", "<", 0.05),
-        applicability=pred("peg at the entrance", cond("peg_hole_perp_dist", "<", 0.04)),
+        (_INSIDE, ("peg_hole_axial_abs", "<", 0.05)),
+        pred("peg at the entrance", cond("peg_hole_perp_dist", "<", 0.04)),
     ),
-    _step(
-        "peg_in_hole.hold",
+    (
+        "hold",
         "Hold peg and plate still with the peg inside the hole.",
         "peg inside the hole and both arms still",
-        cond("success", ">=", 1.0),
-        cond("peg_hole_rel_speed", "<", 0.01),
-        applicability=pred("peg inside the hole", cond("success", ">=", 1.0)),
+        (_INSIDE, ("peg_hole_rel_speed", "<", 0.01)),
+        pred("peg inside the hole", cond(*_INSIDE)),
     ),
+)
+
+PEG_DECOMPOSITION: tuple[EcmStep, ...] = tuple(
+    c.step(f"peg_in_hole.{name}", description, _BOTH, pred(text, *(cond(*x) for x in done)), when=when)
+    for name, description, text, done, when in _PEG_STEPS
 )
 
 

@@ -67,6 +67,7 @@ class _PickPlaceBase(TaskEnv):
         self._obj_index = {n: [o.name for o in env.objects].index(n) for n in self._object_names}
         self._obj_body = {n: int(env.obj_body_id[n]) for n in self._object_names}
         self._start_z = {n: 0.0 for n in self._object_names}
+        self._goals: dict[str, tuple[float, float, float]] = {}
 
     def _movables(self) -> tuple[Movable, ...]:
         return tuple(_bin_movable(self._sim, o) for o in self._objects)
@@ -74,9 +75,20 @@ class _PickPlaceBase(TaskEnv):
     def _on_reset(self) -> None:
         d = self._data
         self._start_z = {n: float(d.xpos[b][2]) for n, b in self._obj_body.items()}
+        self._goals = {}
 
     def _goal(self, name: str) -> tuple[float, float, float]:
-        """Where the object's origin is when it rests in its goal quadrant."""
+        """Where the object's origin is when it rests in its goal quadrant.
+
+        Worked out once per episode: robosuite's object offsets are read from the model's
+        XML on every access, and the goal bin does not move.
+        """
+        goal = self._goals.get(name)
+        if goal is None:
+            goal = self._goals[name] = self._compute_goal(name)
+        return goal
+
+    def _compute_goal(self, name: str) -> tuple[float, float, float]:
         env = self._env
         tx, ty, tz = env.target_bin_placements[self._obj_index[name]]
         obj = self._objects[self._object_names.index(name)]
@@ -87,14 +99,18 @@ class _PickPlaceBase(TaskEnv):
     def _extra_observations(self) -> dict[str, np.ndarray]:
         return {f"{n}_target_pos": np.array(self._goal(n), dtype=np.float32) for n in self._object_names}
 
-    def _object_signals(self, name: str, eef: tuple[float, float, float], opening: float) -> dict[str, float]:
+    def _object_signals(
+        self, name: str, eef: tuple[float, float, float], opening: float, *, to_target: bool = True
+    ) -> dict[str, float]:
+        """The reach signals of object ``name``, plus (``to_target``) its goal signals."""
         env = self._env
         pos = c.xyz(self._data.xpos[self._obj_body[name]])
         obj = self._objects[self._object_names.index(name)]
         grasped = bool(env._check_grasp(gripper=env.robots[0].gripper["right"], object_geoms=obj))
         s = c.reach_signals(eef, pos, pos[2], self._start_z[name], grasped, opening)
-        s.update(c.target_signals(pos, self._goal(name)))
-        s["object_in_bin"] = 0.0 if env.not_in_bin(np.asarray(pos), self._obj_index[name]) else 1.0
+        if to_target:
+            s.update(c.target_signals(pos, self._goal(name)))
+            s["object_in_bin"] = 0.0 if env.not_in_bin(np.asarray(pos), self._obj_index[name]) else 1.0
         return s
 
     def _eef(self) -> tuple[float, float, float]:
@@ -151,10 +167,10 @@ class PickTask(_PickPlaceBase):
         return 0.2 * (1.0 - math.tanh(10.0 * s["eef_object_dist"])) + 0.3 * s["grasped"] + 0.4 * s["grasped"] * lift
 
     def _signals(self) -> dict[str, float]:
-        s = self._object_signals("Can", self._eef(), c.gripper_opening(self._env))
-        out = {k: s[k] for k in self.task_spec.signal_names if k != "success"}
-        out["success"] = 1.0 if out["object_height_above_start"] > LIFT_HEIGHT else 0.0
-        return out
+        # T1 has no goal: its signals are the reach signals alone, in spec order.
+        s = self._object_signals("Can", self._eef(), c.gripper_opening(self._env), to_target=False)
+        s["success"] = 1.0 if s["object_height_above_start"] > LIFT_HEIGHT else 0.0
+        return s
 
 
 PLACE_SIGNALS: tuple[SignalSpec, ...] = (
@@ -169,30 +185,30 @@ PLACE_SIGNALS: tuple[SignalSpec, ...] = (
 
 
 def _move_step(ecm: str, what: str, keys: tuple[str, ...], *, prefix: str = "") -> EcmStep:
-    return EcmStep(
-        ecm=ecm,
-        description=f"Carry {what} over its goal quadrant of the goal bin, keeping it above the rims.",
-        observation_keys=keys,
-        applicability=pred(f"{what} grasped", cond(f"{prefix}grasped", ">=", 1.0)),
-        termination=pred(
+    return c.step(
+        ecm,
+        f"Carry {what} over its goal quadrant of the goal bin, keeping it above the rims.",
+        keys,
+        pred(
             f"{what} within 4 cm (horizontally) of its goal, still held",
             cond(f"{prefix}object_target_xy_dist", "<", 0.04),
             cond(f"{prefix}grasped", ">=", 1.0),
         ),
+        when=c.holding(what, prefix=prefix),
     )
 
 
 def _release_step(ecm: str, what: str, keys: tuple[str, ...], *, prefix: str = "") -> EcmStep:
-    return EcmStep(
-        ecm=ecm,
-        description=f"Lower {what} into the goal quadrant, open the gripper and move the hand away.",
-        observation_keys=keys,
-        applicability=pred(f"{what} above its goal", cond(f"{prefix}object_target_xy_dist", "<", 0.06)),
-        termination=pred(
+    return c.step(
+        ecm,
+        f"Lower {what} into the goal quadrant, open the gripper and move the hand away.",
+        keys,
+        pred(
             f"{what} in its goal quadrant with the gripper clear (robosuite's check)",
             cond(f"{prefix}object_in_bin", ">=", 1.0),
             cond(f"{prefix}eef_object_dist", ">", round(RELEASE_CLEARANCE, 3) + 0.001),
         ),
+        when=pred(f"{what} above its goal", cond(f"{prefix}object_target_xy_dist", "<", 0.06)),
     )
 
 

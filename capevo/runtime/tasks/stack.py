@@ -15,7 +15,7 @@ from capevo.runtime.state import SINGLE_PANDA
 from capevo.runtime.tasks import _common as c
 from capevo.runtime.tasks.base import Movable, TaskEnv
 from capevo.runtime.tasks.registry import register_task
-from capevo.runtime.tasks.spec import EcmStep, SignalSpec, TaskSpec, cond, pred
+from capevo.runtime.tasks.spec import SignalSpec, TaskSpec, cond, pred
 
 TABLE_REACH = 0.15
 """Half-width of the table square (around its centre) that jittered cubes are clipped into."""
@@ -71,35 +71,31 @@ class StackTask(TaskEnv):
             c.reach_step("stack.reach", "cube A", _REACH_KEYS),
             c.grasp_step("stack.grasp", "cube A", _REACH_KEYS),
             c.lift_step("stack.lift", "cube A", _TARGET_KEYS, 0.06),
-            EcmStep(
-                ecm="stack.align",
-                description="Carry cube A until it hangs right above cube B.",
-                observation_keys=_TARGET_KEYS,
-                applicability=pred("cube A grasped", cond("grasped", ">=", 1.0)),
-                termination=pred(
+            c.step(
+                "stack.align",
+                "Carry cube A until it hangs right above cube B.",
+                _TARGET_KEYS,
+                pred(
                     "cube A within 1 cm (horizontally) of cube B and clear of it",
                     cond("object_target_xy_dist", "<", 0.01),
                     cond("object_target_dz", ">", 0.0),
                     cond("grasped", ">=", 1.0),
                 ),
+                when=c.holding("cube A"),
             ),
-            EcmStep(
-                ecm="stack.lower",
-                description="Lower cube A onto cube B until they touch.",
-                observation_keys=_TARGET_KEYS,
-                applicability=pred("cube A above cube B", cond("object_target_xy_dist", "<", 0.02)),
-                termination=pred(
-                    "cube A touches cube B",
-                    cond("object_on_target", ">=", 1.0),
-                    cond("object_target_dz", "<", 0.01),
-                ),
+            c.step(
+                "stack.lower",
+                "Lower cube A onto cube B until they touch.",
+                _TARGET_KEYS,
+                pred("cube A touches cube B", cond("object_on_target", ">=", 1.0), cond("object_target_dz", "<", 0.01)),
+                when=pred("cube A above cube B", cond("object_target_xy_dist", "<", 0.02)),
             ),
-            EcmStep(
-                ecm="stack.release",
-                description="Open the gripper and leave cube A resting on cube B.",
-                observation_keys=_TARGET_KEYS,
-                applicability=pred("cube A on cube B", cond("object_on_target", ">=", 1.0)),
-                termination=pred("cube A stacked and released (robosuite's check)", cond("success", ">=", 1.0)),
+            c.step(
+                "stack.release",
+                "Open the gripper and leave cube A resting on cube B.",
+                _TARGET_KEYS,
+                pred("cube A stacked and released (robosuite's check)", cond("success", ">=", 1.0)),
+                when=pred("cube A on cube B", cond("object_on_target", ">=", 1.0)),
             ),
         ),
         success_text=(

@@ -25,6 +25,7 @@ from capevo.runtime.traces.export import (
 )
 from capevo.runtime.traces.reader import TraceReader
 from capevo.runtime.traces.records import (
+    NOT_ENFORCED_PREFIX,
     PACKAGES,
     TRACE_FORMAT,
     EcmInvocation,
@@ -46,6 +47,7 @@ from capevo.runtime.traces.writer import TraceWriter
 
 __all__ = [
     "EXPORT_FORMATS",
+    "NOT_ENFORCED_PREFIX",
     "PACKAGES",
     "TRACE_FORMAT",
     "EcmInvocation",

@@ -50,7 +50,7 @@ _INVOCATION_TEMPLATE = (
     '"duration_s":%s,"outcome":%s,"error":%s}'
 )
 _INTERVENTION_TEMPLATE = (
-    '{"episode":%d,"step":%d,"constraint":%s,"original_action":[%s],"result_action":%s,"reason":%s}'
+    '{"episode":%d,"step":%d,"constraint":%s,"original_action":[%s],"result_action":%s,"reason":%s,"enforced":%s}'
 )
 _OUTCOMES = {o: json.dumps(o.value) for o in Outcome}
 
@@ -154,7 +154,17 @@ class RecordEncoder:
         )
         return text.encode()
 
+    def invocation(self, r: EcmInvocation) -> bytes:
+        """:meth:`encode` for an ECM invocation (the writer's hot path skips the dispatch)."""
+        try:
+            return self._invocation(r)
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise _not_encodable(r, exc) from None
+
     def _invocation(self, r: EcmInvocation) -> bytes:
+        outcome = _OUTCOMES.get(r.outcome)  # a str enum: members and their values both hit
+        if outcome is None:
+            outcome = _OUTCOMES[Outcome(r.outcome)]  # ValueError for anything else
         text = _INVOCATION_TEMPLATE % (
             r.episode,
             r.step,
@@ -163,7 +173,7 @@ class RecordEncoder:
             format_vector(r.input_state),
             "null" if r.output is None else f"[{format_vector(r.output)}]",
             _format_float(r.duration_s),
-            _OUTCOMES[Outcome(r.outcome)],
+            outcome,
             "null" if r.error is None else json.dumps(str(r.error), ensure_ascii=False),
         )
         return text.encode()
@@ -176,6 +186,7 @@ class RecordEncoder:
             format_vector(r.original_action),
             "null" if r.result_action is None else f"[{format_vector(r.result_action)}]",
             json.dumps(str(r.reason), ensure_ascii=False),
+            "true" if r.enforced else "false",
         )
         return text.encode()
 

@@ -49,6 +49,9 @@ MESSAGE_ENCODING = "json"
 
 _NAN = float("nan")
 
+NOT_ENFORCED_PREFIX = "not enforced: "
+"""How the episode loop starts the reason of an intervention governance only counted."""
+
 
 class Outcome(str, enum.Enum):
     """How one ECM invocation ended. Add new values here; the schema's enum follows."""
@@ -61,6 +64,8 @@ class Outcome(str, enum.Enum):
     BUDGET_EXHAUSTED = "budget_exhausted"
     SANDBOX_VIOLATION = "sandbox_violation"
     SAFETY_VIOLATION = "safety_violation"
+    TERMINATED = "terminated"
+    """The ECM's own termination check (``done()``) said it is finished: no action, no failure."""
 
 
 # ---------------------------------------------------------------------------------------
@@ -105,13 +110,19 @@ def _version_map(description: str) -> dict[str, Any]:
     }
 
 
+_EPISODE = _int("Episode index within the run")
+_ECM = _str("ECM name")
+_VERSION = _int("ECM version")
+
+
 def _object_schema(title: str, description: str, properties: dict[str, Any]) -> dict[str, Any]:
     return {
         "$schema": JSON_SCHEMA_DIALECT,
         "title": title,
         "description": description,
         "type": "object",
-        "properties": properties,
+        # each schema owns its property dicts (the shared building blocks are copied)
+        "properties": {k: dict(v) for k, v in properties.items()},
         "required": list(properties),
         "additionalProperties": False,
     }
@@ -190,13 +201,13 @@ class PlanStep:
     TOPIC: ClassVar[str] = "/plan"
     SCHEMA_NAME: ClassVar[str] = "capevo.PlanStep"
     SCHEMA: ClassVar[dict[str, Any]] = _object_schema(
-        "capevo.PlanStep",
+        SCHEMA_NAME,
         "One plan step: which ECM version the planner chose and why.",
         {
-            "episode": _int("Episode index within the run"),
+            "episode": _EPISODE,
             "step": _int("Plan step index within the episode"),
-            "ecm": _str("ECM name"),
-            "version": _int("ECM version"),
+            "ecm": _ECM,
+            "version": _VERSION,
             "reason": _str("Why the planner chose it"),
         },
     )
@@ -239,13 +250,13 @@ class EcmInvocation:
     TOPIC: ClassVar[str] = "/ecm/invocation"
     SCHEMA_NAME: ClassVar[str] = "capevo.EcmInvocation"
     SCHEMA: ClassVar[dict[str, Any]] = _object_schema(
-        "capevo.EcmInvocation",
+        SCHEMA_NAME,
         "One ECM invocation with its input state, output, duration and outcome.",
         {
-            "episode": _int("Episode index within the run"),
+            "episode": _EPISODE,
             "step": _int("Env step index at which the ECM was invoked"),
-            "ecm": _str("ECM name"),
-            "version": _int("ECM version"),
+            "ecm": _ECM,
+            "version": _VERSION,
             "input_state": _vector("Flat input state given to the ECM"),
             "output": _nullable_vector("Flat output of the ECM; null when it produced none"),
             "duration_s": _num("Wall time of the call in seconds"),
@@ -300,20 +311,30 @@ class EcmInvocation:
 @register_topic
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Intervention:
-    """Governance changed or refused an action; ``result_action`` is None for a reject."""
+    """Governance changed or refused an action; ``result_action`` is None for a reject.
+
+    ``enforced`` tells an enforcing governor (``result_action`` ran instead of the original)
+    from counting mode (governance would have intervened, but the action ran unchanged; the
+    episode loop then records what ran as ``result_action``). Reading a file written before
+    the field, it is inferred from the reason's :data:`NOT_ENFORCED_PREFIX`.
+    """
 
     TOPIC: ClassVar[str] = "/governance/intervention"
     SCHEMA_NAME: ClassVar[str] = "capevo.Intervention"
     SCHEMA: ClassVar[dict[str, Any]] = _object_schema(
-        "capevo.Intervention",
+        SCHEMA_NAME,
         "A governance intervention: the constraint, the proposed action and what was executed instead.",
         {
-            "episode": _int("Episode index within the run"),
+            "episode": _EPISODE,
             "step": _int("Env step index"),
             "constraint": _str("Name of the safety constraint that fired"),
             "original_action": _vector("Action the ECM proposed"),
             "result_action": _nullable_vector("Action executed instead; null when the action was rejected"),
             "reason": _str("Why governance intervened"),
+            "enforced": _bool(
+                "True: governance enforced, result_action ran instead. False: counting mode, governance "
+                "would have intervened but the action ran unchanged (result_action is what ran)"
+            ),
         },
     )
 
@@ -323,6 +344,7 @@ class Intervention:
     original_action: tuple[float, ...]
     result_action: tuple[float, ...] | None
     reason: str = ""
+    enforced: bool = True
 
     @property
     def rejected(self) -> bool:
@@ -336,18 +358,25 @@ class Intervention:
             "original_action": list(self.original_action),
             "result_action": None if self.result_action is None else list(self.result_action),
             "reason": self.reason,
+            "enforced": self.enforced,
         }
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Intervention:
         result = d.get("result_action")
+        reason = str(d.get("reason", ""))
+        enforced = d.get("enforced")
+        if enforced is None:
+            # Files from before the field: counting mode marked its reasons instead.
+            enforced = not reason.startswith(NOT_ENFORCED_PREFIX)
         return cls(
             episode=int(d["episode"]),
             step=int(d["step"]),
             constraint=str(d["constraint"]),
             original_action=_floats32(d["original_action"]),
             result_action=None if result is None else _floats32(result),
-            reason=str(d.get("reason", "")),
+            reason=reason,
+            enforced=bool(enforced),
         )
 
 
@@ -364,10 +393,10 @@ class EnvStep:
     TOPIC: ClassVar[str] = "/env/step"
     SCHEMA_NAME: ClassVar[str] = "capevo.EnvStep"
     SCHEMA: ClassVar[dict[str, Any]] = _object_schema(
-        "capevo.EnvStep",
+        SCHEMA_NAME,
         "One environment step: observation, executed action, reward and next observation.",
         {
-            "episode": _int("Episode index within the run"),
+            "episode": _EPISODE,
             "step": _int("Env step index within the episode"),
             "ecm": _str("ECM that produced the action"),
             "version": _int("Version of that ECM"),
@@ -445,10 +474,10 @@ class EpisodeSummary:
     TOPIC: ClassVar[str] = "/episode/summary"
     SCHEMA_NAME: ClassVar[str] = "capevo.EpisodeSummary"
     SCHEMA: ClassVar[dict[str, Any]] = _object_schema(
-        "capevo.EpisodeSummary",
+        SCHEMA_NAME,
         "Outcome of one episode and the capability set (ECM -> version) it ran with.",
         {
-            "episode": _int("Episode index within the run"),
+            "episode": _EPISODE,
             "seed": {"type": ["integer", "null"], "description": "Env seed of the episode, if seeded"},
             "success": _bool("The task succeeded"),
             "total_reward": _num("Sum of rewards"),

@@ -204,8 +204,9 @@ class TraceWriter:
 
     def write_invocation(self, record: EcmInvocation) -> None:
         """Append an ECM invocation to ``/ecm/invocation``."""
-        check_record(record, EcmInvocation, "write_invocation")
-        self._write(EcmInvocation.TOPIC, self._encoder.encode(record))
+        if type(record) is not EcmInvocation:
+            check_record(record, EcmInvocation, "write_invocation")
+        self._write(EcmInvocation.TOPIC, self._encoder.invocation(record))
 
     def write_intervention(self, record: Intervention) -> None:
         """Append a governance intervention to ``/governance/intervention``."""

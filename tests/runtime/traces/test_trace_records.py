@@ -12,6 +12,7 @@ from _trace_helpers import make_env_step, make_metadata, one_of_each
 
 from capevo.errors import Conflict, Corrupt, ErrorCode, Invalid
 from capevo.registry.records import CapabilitySet
+from capevo.runtime.traces import codec
 from capevo.runtime.traces import records as rec
 from capevo.runtime.traces.records import (
     EcmInvocation,
@@ -196,3 +197,40 @@ def test_metadata_from_foreign_file_is_corrupt() -> None:
     with pytest.raises(Corrupt) as exc:
         TraceMetadata.from_mcap(broken)
     assert "does not parse" in exc.value.message
+
+
+def test_intervention_enforced_round_trips_and_is_inferred_for_old_files() -> None:
+    counted = Intervention(
+        episode=0,
+        step=1,
+        constraint="workspace_box",
+        original_action=(1.0, 0.0),
+        result_action=(1.0, 0.0),
+        reason=rec.NOT_ENFORCED_PREFIX + "eef would leave the box",
+        enforced=False,
+    )
+    assert Intervention.from_dict(counted.to_dict()) == counted
+    assert codec.decode(Intervention.TOPIC, codec.encode(counted)) == counted
+    jsonschema.validate(counted.to_dict(), Intervention.SCHEMA)
+    assert Intervention(episode=0, step=0, constraint="c", original_action=(), result_action=None).enforced
+    # A file written before the field: counting mode is read off the reason's prefix.
+    old = counted.to_dict()
+    del old["enforced"]
+    assert Intervention.from_dict(old).enforced is False
+    old["reason"] = "eef would leave the box"
+    assert Intervention.from_dict(old).enforced is True
+
+
+def test_terminated_outcome_round_trips() -> None:
+    done = EcmInvocation(
+        episode=0,
+        step=2,
+        ecm="reach",
+        version=1,
+        input_state=(0.5,),
+        output=None,
+        duration_s=0.001,
+        outcome=Outcome.TERMINATED,
+    )
+    assert codec.decode(EcmInvocation.TOPIC, codec.encode(done)) == done
+    jsonschema.validate(done.to_dict(), EcmInvocation.SCHEMA)

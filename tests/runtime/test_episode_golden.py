@@ -1,0 +1,63 @@
+"""Golden digests of whole T1 episodes through the episode loop, as before the per-step cost
+work: plan steps, ECM invocations (inputs, outputs, outcomes), env steps (observations,
+actions, rewards, flags, key state), the summary and the activations, bit for bit.
+
+A counting governor lets every action through, so the episodes do not depend on Φ (which
+another part of the project evolves); the code ECMs are the test suite's reach, grasp, lift.
+The digests pin this machine's floating point; regenerate them from a known-good commit with
+``golden_support.trace_digest`` after a change of CPU or library versions.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from runtime_support import publish_pick
+
+from capevo.agent.identity import IdentityMemory
+from capevo.agent.policy import DecompositionPolicy
+from capevo.registry.local import LocalRegistry
+from capevo.runtime.capabilities import LoadedCapabilitySet
+from capevo.runtime.episode import make_governor, run_episode_detailed
+from capevo.runtime.governance import Phi
+from capevo.runtime.tasks import TaskEnv, make_task
+from capevo.runtime.traces import MemoryTraceSink
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "tasks"))
+from golden_support import trace_digest
+
+pytestmark = pytest.mark.slow
+
+HORIZON = 60
+GOLDEN = {
+    0: (35, True, "c7a29a5ed952bd114701bc90899f02c94b8ec50f18f5120ca0377b932520361e"),
+    3: (41, True, "8b13fde2b1f5a93877de307fa92bed79b5f5f1e240db51e7ed37628ff1f0f626"),
+}
+
+
+@pytest.fixture(scope="module")
+def env() -> Iterator[TaskEnv]:
+    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
+    e = make_task("T1", horizon=HORIZON)
+    yield e
+    e.close()
+
+
+def test_t1_episodes_match_the_golden_digests(env: TaskEnv, tmp_path: Path) -> None:
+    env.reset(seed=0)
+    shapes = {k: tuple(v.shape) for k, v in env.obs_dict.items()}
+    with LocalRegistry(tmp_path / "registry", actor="tester") as registry:
+        publish_pick(registry)
+        with LoadedCapabilitySet(registry, "T1", observation_shapes=shapes) as caps:
+            policy = DecompositionPolicy(identity=IdentityMemory.default())
+            governor = make_governor(env, Phi.default(), enforce=False)
+            got = {}
+            for seed in GOLDEN:
+                sink = MemoryTraceSink()
+                run = run_episode_detailed(env, caps, policy, governor, sink, seed=seed)
+                got[seed] = (run.outcome.steps, run.outcome.success, trace_digest(sink.records, run))
+    assert got == GOLDEN
