@@ -5,8 +5,13 @@ Run::
     .venv/bin/python benchmarks/bench_governance.py                 # writes benchmarks/results/governance.json
     .venv/bin/python benchmarks/bench_governance.py --n 200000 --out /tmp/gov.json --env-steps 300
 
-Cases named ``task_phi_*`` time ``Phi.for_task`` (the paper's envelope plus the
-speed-and-separation rules) on orientation-carrying states; the targets apply to the paper's Φ.
+Cases named ``task_phi_*`` time ``Phi.for_task(task)`` (: the paper's
+envelope plus the speed-and-separation rules) on orientation-carrying states; the targets apply
+to the paper's Φ. Cases named ``task_phi_*/live_*`` govern states read from a real task
+environment (``TaskEnv.robot_state()``, with the proximity pairs ``contact_approach`` reads),
+with the hand near the bin floor and the can (T1), over the cubes (T3), or the two hands close
+(T6). ``--env-steps`` also times ``TaskEnv.robot_state()`` itself and the proximity sensor's share
+of it in those states (``proximity``): the task's cost of producing the state.
 
 Each call is timed on its own with ``time.perf_counter_ns`` (the timer's own cost, reported
 as ``timer_ns``, is included, so figures are slightly pessimistic). The garbage collector
@@ -152,6 +157,40 @@ def governance_cases(phi: Phi) -> dict[str, tuple[Callable[..., Any], Any, Any]]
     }
 
 
+def live_states() -> dict[str, tuple[Any, Any, Any]]:
+    """Real task states with proximity pairs: ``{name: (env, state, action)}``; the envs stay open."""
+    import logging
+
+    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
+    from capevo.runtime.tasks import Perturbations, make_task
+
+    out: dict[str, tuple[Any, Any, Any]] = {}
+    quiet = Perturbations.none()
+    # (task, steps of a scripted approach: move towards target offset, then hold)
+    for task, target_key, offset, steps in (
+        ("T1", "Can_pos", (0.0, 0.0, 0.06), 40),
+        ("T3", "cubeA_pos", (0.0, 0.0, 0.05), 30),
+    ):
+        env = make_task(task, seed=0, perturbations=quiet, terminate_on_success=False, horizon=100_000)
+        env.reset(seed=0)
+        for _ in range(steps):
+            obs = env.obs_dict
+            err = np.asarray(obs[target_key], dtype=np.float64) + np.array(offset) - obs["robot0_eef_pos"]
+            env.step(np.array([*np.clip(err * 10.0, -1, 1), 0.0, 0.0, 0.0, -1.0]))
+        state = env.robot_state()
+        out[f"task_phi_{task}_7d/live_near_object/numpy"] = (
+            env,
+            state,
+            np.array([0.3, -0.2, -1.0, 0.1, 0.0, 0.0, 1.0]),
+        )
+    env = make_task("T6", seed=0, perturbations=quiet, terminate_on_success=False, horizon=100_000)
+    env.reset(seed=0)
+    for _ in range(25):
+        env.step(np.array([0.0, 1.0, 0.0, 0.0, 0.0, 0.0] * 2))  # each arm towards the other (own frames)
+    out["task_phi_T6_12d/live_hands_close/numpy"] = (env, env.robot_state(), np.array([0.0, 1.0, -0.3, 0.2, 0, 0] * 2))
+    return out
+
+
 def env_step_times(task: str, robots: str | list[str], steps: int) -> dict[str, Any]:
     import robosuite as suite
     from robosuite.controllers import load_composite_controller_config
@@ -203,6 +242,28 @@ def main(argv: list[str] | None = None) -> int:
             lambda fn=fn, s=state, a=action: fn(s, a), args.n, min(args.n, 20_000), batches=200
         )
 
+    live = live_states()
+    for name, (env, state, action) in live.items():
+        task = name.split("_")[2]
+        govern = Phi.for_task(task).governor(env.task_spec.action_layout)
+        results["cases"][name] = _time_calls(
+            lambda g=govern, s=state, a=action: g(s, a), args.n, min(args.n, 20_000), batches=200
+        )
+        results["cases"][name]["pairs"] = [len(getattr(arm, "near", ())) for arm in state.arms]
+    if args.env_steps:
+        results["task_state_read"] = {}
+        for name, (env, _, _) in live.items():
+            task = name.split("_")[2]
+            sensor = env._proximity
+            arms = range(len(env.robosuite_env.robots))
+            results["task_state_read"][task] = {
+                "robot_state": _time_calls(env.robot_state, 5000, 500),
+                "proximity": _time_calls(lambda s=sensor, arms=arms: [s.near(i) for i in arms], 5000, 500),
+                "env_step": _time_calls(lambda e=env: e.step(np.zeros(e.action_space.shape)), args.env_steps, 0),
+            }
+    for env, _, _ in live.values():
+        env.close()
+
     if args.env_steps:
         results["env"] = {
             "Lift/Panda (7d)": env_step_times("Lift", "Panda", args.env_steps),
@@ -243,6 +304,16 @@ def main(argv: list[str] | None = None) -> int:
         for name, r in results["env"].items():
             s, rd = r["env_step"], r["robot_state_read"]
             print(f"| {name} | {s['p50_ms']:.3f} | {s['p99_ms']:.3f} | {rd['p50_ms']:.5f} |")
+    if "task_state_read" in results:
+        print()
+        print("| task (live state) | TaskEnv.step p50 (ms) | robot_state() p50 / p99 (ms) | proximity p50 / p99 (ms) |")
+        print("|---|---:|---:|---:|")
+        for task, r in results["task_state_read"].items():
+            rs, px, st = r["robot_state"], r["proximity"], r["env_step"]
+            print(
+                f"| {task} | {st['p50_ms']:.3f} | {rs['p50_ms']:.4f} / {rs['p99_ms']:.4f} "
+                f"| {px['p50_ms']:.4f} / {px['p99_ms']:.4f} |"
+            )
     print(f"\ntargets: p50 <= {TARGET_P50_MS} ms: {results['meets_p50_target']}", end="")
     if args.env_steps:
         print(f"; < {TARGET_PCT_OF_STEP}% of an env step: {results['meets_pct_target']}")

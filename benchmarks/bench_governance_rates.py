@@ -19,7 +19,11 @@ counting governor: actions pass unchanged, R's would-be interventions are counte
 The explorer's noise is a pure function of the observation (seeded from it), so a seed fixes
 an episode; jobs (task x mode) run in 2 spawned processes.
 
-    .venv/bin/python benchmarks/bench_governance_rates.py [--episodes 50] [--horizon 100] [--jobs 2]
+    .venv/bin/python benchmarks/bench_governance_rates.py [--episodes 50] [--horizon 100] [--jobs 2] [--phi task|paper]
+
+``--phi task`` (the default) runs the per-task envelope, ``Phi.for_task(task)``: the paper's
+Φ plus the task's scene, including ``contact_approach`` over the proximity pairs the task's
+``robot_state()`` reports; ``--phi paper`` runs ``Phi.default()`` alone.
 """
 
 from __future__ import annotations
@@ -98,7 +102,7 @@ def _pushes(action: Any, key_state: Any, offsets: list[int], frames: Any, limit2
     return False
 
 
-def run_job(task: str, enforce: bool, episodes: int, horizon: int) -> dict[str, Any]:
+def run_job(task: str, enforce: bool, episodes: int, horizon: int, phi_kind: str = "task") -> dict[str, Any]:
     """One task in one governance mode; runs in a worker process."""
     logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
     from capevo.registry.local import LocalRegistry
@@ -129,7 +133,7 @@ def run_job(task: str, enforce: bool, episodes: int, horizon: int) -> dict[str, 
         env = make_task(task, horizon=horizon)
         env.reset(seed=0)
         shapes = {k: tuple(v.shape) for k, v in env.obs_dict.items()}
-        phi = Phi.default()
+        phi = Phi.default() if phi_kind == "paper" else Phi.for_task(task)
         caps = LoadedCapabilitySet(registry, task, observation_shapes=shapes)
         governor = make_governor(env, phi, enforce=enforce)
         policy = Explore(spec.ecm_names[0])
@@ -168,6 +172,8 @@ def run_job(task: str, enforce: bool, episodes: int, horizon: int) -> dict[str, 
         "task": task,
         "name": spec.name,
         "governance": "on" if enforce else "off",
+        "phi": phi_kind,
+        "phi_hash": phi.hash,
         "episodes": episodes,
         "horizon": horizon,
         "steps": steps,
@@ -198,13 +204,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--horizon", type=int, default=100)
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--tasks", nargs="+", default=list(TASKS))
+    parser.add_argument(
+        "--phi",
+        choices=("task", "paper"),
+        default="task",
+        help="task: Phi.for_task(task), the runtime's envelope (paper Φ plus the scene); paper: Phi.default()",
+    )
     args = parser.parse_args(argv)
 
     started = time.perf_counter()
     jobs = [(task, enforce) for task in args.tasks for enforce in (False, True)]
     results: list[dict[str, Any]] = []
     with ProcessPoolExecutor(max_workers=args.jobs, mp_context=get_context("spawn")) as pool:
-        futures = {pool.submit(run_job, t, e, args.episodes, args.horizon): (t, e) for t, e in jobs}
+        futures = {pool.submit(run_job, t, e, args.episodes, args.horizon, args.phi): (t, e) for t, e in jobs}
         for future in futures:
             r = future.result()
             results.append(r)
@@ -234,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
             ]
         )
     print()
-    print(f"{args.episodes} episodes x {args.horizon} steps per task and mode; aggressive explorer")
+    print(f"{args.episodes} episodes x {args.horizon} steps per task and mode; aggressive explorer; Φ: {args.phi}")
     print(
         markdown_table(
             [
@@ -260,6 +272,7 @@ def main(argv: list[str] | None = None) -> int:
             "episodes": args.episodes,
             "horizon": args.horizon,
             "jobs": args.jobs,
+            "phi": args.phi,
             "seconds": time.perf_counter() - started,
             "results": results,
         },

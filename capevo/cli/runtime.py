@@ -16,7 +16,7 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 from rich.console import Console
@@ -31,6 +31,9 @@ from capevo.cli import (
     remember_password,
 )
 from capevo.errors import Invalid
+
+if TYPE_CHECKING:
+    from capevo.runtime.governance import Phi
 
 
 @click.group(cls=CapevoGroup, context_settings={"help_option_names": ["-h", "--help"]})
@@ -82,7 +85,13 @@ def _connection_options(func: Any) -> Any:
     show_default=True,
     help="Enforce the safety envelope Φ; --no-governance only counts what it would do (evaluation only).",
 )
-@click.option("--phi", "phi_path", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Φ YAML file.")
+@click.option(
+    "--phi",
+    "phi_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Φ YAML file, or 'task' for the paper's Φ plus the task's scene (Phi.for_task).  [default: the paper's Φ]",
+)
 @click.option(
     "--identity",
     "identity_path",
@@ -148,7 +157,6 @@ def serve_cmd(
     on <ns>/runtime/<worker_id>/evaluate and <ns>/runtime/evaluate/<task>.
     """
     from capevo.registry.zconfig import split_endpoints
-    from capevo.runtime.governance import Phi, load_phi
     from capevo.runtime.tasks import Perturbations
     from capevo.runtime.worker import RuntimeWorker, WorkerConfig
 
@@ -172,7 +180,7 @@ def serve_cmd(
         horizon=horizon,
         perturbations=Perturbations.none() if no_perturbations else Perturbations(),
         governance=governance,
-        phi=load_phi(phi_path) if phi_path is not None else Phi.default(),
+        phi=_phi(phi_path, task),
         identity_path=identity_path,
         seed=seed,
         step_budget_per_ecm=step_budget,
@@ -189,6 +197,17 @@ def serve_cmd(
         sys.stdout.flush()
 
     RuntimeWorker(config, emit=show).run(handle_signals=True)
+
+
+def _phi(phi_path: Path | None, task: str) -> Phi:
+    """``--phi``: a YAML file, the word ``task`` (the per-task envelope), or None (the paper's)."""
+    from capevo.runtime.governance import Phi, load_phi
+
+    if phi_path is None:
+        return Phi.default()
+    if str(phi_path) == "task":
+        return Phi.for_task(task)
+    return load_phi(phi_path)
 
 
 def _human(event: dict[str, Any]) -> str:

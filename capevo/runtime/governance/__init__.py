@@ -8,7 +8,7 @@ Quick use::
     from capevo.runtime.state import SINGLE_PANDA
 
     phi = Phi.default()                      # the paper's envelope; or load_phi("my_phi.yaml")
-    phi = Phi.for_task("T1")                 # the paper's envelope plus the task's scene (recommended)
+    phi = Phi.for_task("T1")                 # the paper's envelope plus the task's scene (0 % unsafe)
     govern = phi.governor(SINGLE_PANDA)      # once per run; enforce=False for governance-off
     trace.header["phi_hash"] = phi.hash
     governed, interventions = govern(state, proposed)
@@ -21,6 +21,7 @@ from __future__ import annotations
 from capevo.runtime.governance.base import CONSTRAINTS, Check, Constraint, constraint_kinds, make, register
 from capevo.runtime.governance.box import WorkspaceBox
 from capevo.runtime.governance.cap import VelocityCap
+from capevo.runtime.governance.contact_approach import ContactApproach
 from capevo.runtime.governance.force import ContactForce
 from capevo.runtime.governance.governor import GUARD, Governor, hold_action
 from capevo.runtime.governance.guard import WorkspaceGuard
@@ -28,6 +29,7 @@ from capevo.runtime.governance.layouts import TWO_ARM_NO_GRIPPER, check_layout, 
 from capevo.runtime.governance.obstacle import ObstacleApproach
 from capevo.runtime.governance.phi import Phi, load_phi, phi_from_document
 from capevo.runtime.governance.pose import ArmPose
+from capevo.runtime.governance.proximity import ArmScene, Near, ProximitySensor, near_of
 from capevo.runtime.governance.ramp import ForceRamp
 from capevo.runtime.governance.reach import ReachLimit
 from capevo.runtime.governance.records import GovernanceStats, Intervention, Verdict, verdict_of
@@ -44,17 +46,21 @@ __all__ = [
     "TWO_ARM_NO_GRIPPER",
     "Aabb",
     "ArmPose",
+    "ArmScene",
     "ArmSeparation",
     "Check",
     "Constraint",
+    "ContactApproach",
     "ContactForce",
     "ForbiddenZone",
     "ForceRamp",
     "GovernanceStats",
     "Governor",
     "Intervention",
+    "Near",
     "ObstacleApproach",
     "Phi",
+    "ProximitySensor",
     "ReachLimit",
     "SurfaceApproach",
     "TaskGeometry",
@@ -69,6 +75,7 @@ __all__ = [
     "layout_for",
     "load_phi",
     "make",
+    "near_of",
     "phi_for_task",
     "phi_from_document",
     "register",

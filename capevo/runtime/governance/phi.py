@@ -48,6 +48,7 @@ from capevo.registry.audit import canonical_json
 from capevo.runtime.governance import (  # noqa: F401 - registers the built-in kinds
     box,
     cap,
+    contact_approach,
     force,
     guard,
     obstacle,
@@ -120,6 +121,15 @@ class Phi:
         from capevo.runtime.governance.task_phi import phi_for_task
 
         return phi_for_task(task, base)
+
+    @property
+    def reads_proximity(self) -> bool:
+        """True if some constraint reads the hands' proximity pairs, so the state must sense them.
+
+        Sensing costs about 0.08 ms per step (MuJoCo distance queries), so environments skip
+        it unless the envelope they are governed by needs it.
+        """
+        return any(getattr(c, "reads_proximity", False) for c in self.constraints)
 
     @property
     def labels(self) -> tuple[str, ...]:

@@ -23,8 +23,8 @@ column is the vertical line through it):
 
 Invariants (after the check, per arm, with the quantities above):
 1. Outer: ``d < margin + brake`` implies, for every axis with ``a_k · v_k > 0``,
-   ``|a_k| <= max(0, (d − margin) / brake) · r / (|v_x| + |v_y| + |v_z|)`` (``brake == 0``: 0 once
-   ``d <= margin``).
+   ``|a_k| <= s · r / (|v_x| + |v_y| + |v_z|)`` with ``s = max(0, (d − margin) / brake)``
+   (``brake == 0``: 0 once ``d <= margin``), raised to ``creep`` where ``0 < d``.
 2. Inner: ``d < margin + brake`` implies, for x and y with ``a_k · h_k < 0``,
    ``|a_k| <= max(0, (d − margin) / brake) · ρ / (|h_x| + |h_y|)``.
 3. With ``restore > 0``: outside the reach (``r > max_radius``) every axis has
@@ -82,6 +82,8 @@ class ReachLimit:
         margin: Distance in metres from either limit at which motion towards it reaches 0; >= 0.
         brake: Width in metres of the band beyond the margin over which that motion is limited; >= 0.
         restore: Speed in action units back inside the limits; 0 (off) to 0.6.
+        creep: Outward speed in action units still allowed between the margin and the reach
+            itself (``0 < d``), so a hand can be placed slowly at the very edge; 0 (off) to 1.
         point: The point whose distance from the centre the reach limits, in the end-effector
             site frame (a Panda's wrist sits about 0.2 m behind its grip site: ``[0, 0, -0.2]``),
             turned by the arm's orientation (``ArmPose.eef_rot``; :data:`~capevo.runtime.governance.pose.DOWN`
@@ -101,6 +103,7 @@ class ReachLimit:
     margin: float = 0.03
     brake: float = 0.1
     restore: float = 0.1
+    creep: float = 0.0
     point: tuple[float, float, float] = (0.0, 0.0, 0.0)
     name: str | None = None
 
@@ -118,6 +121,8 @@ class ReachLimit:
             raise invalid("brake", f"must be >= 0, got {self.brake}")
         if not 0 <= self.restore <= MAX_RESTORE:
             raise invalid("restore", f"must be in [0, {MAX_RESTORE}], got {self.restore}")
+        if not 0 <= self.creep <= 1:
+            raise invalid("creep", f"must be in [0, 1], got {self.creep}")
 
     @property
     def label(self) -> str:
@@ -132,7 +137,7 @@ class ReachLimit:
                 f"centres: {len(self.centres)} given; the layout has {len(layout.arms)} arm(s)",
                 details={"field": "centres"},
             )
-        m, br, rs = self.margin, self.brake, self.restore
+        m, br, rs, creep = self.margin, self.brake, self.restore, self.creep
         band = m + br
         r_out = self.max_radius
         r_in = self.min_radius
@@ -186,7 +191,10 @@ class ReachLimit:
                 d = r_out - r
                 if (d < band or d <= m) and u is not None:
                     # One bound for every outward axis: the radial speed is then at most limit(d).
-                    cap_k = limit(d) / (abs(u[0]) + abs(u[1]) + abs(u[2]))
+                    q = limit(d)
+                    if d > 0.0 and q < creep:
+                        q = creep  # inside the reach a gentle creep is left (see ``creep``)
+                    cap_k = q / (abs(u[0]) + abs(u[1]) + abs(u[2]))
                     hit = False
                     for k in (0, 1, 2):
                         if arm[k] * u[k] > 0.0 and abs(arm[k]) > cap_k:

@@ -23,7 +23,8 @@ and bounded by a world-frame box. Per pair of arms ``i < j``, with the per-axis 
 Invariants (per pair within range, after the check):
 1. ``0 < dist < clearance + brake``: every approaching component along a separated axis has
    magnitude ``<= max(floor, q · dist / (s_x + s_y + s_z))``.
-2. ``dist == 0``: every component towards the other hand's box centre has magnitude ``<= floor``.
+2. ``dist == 0``: every component towards the other hand's box centre (along axes where the
+   centres differ by more than :data:`CENTRE_TIE`) has magnitude ``<= floor``.
 3. With ``rotation``, both arms' rotation components have magnitude ``<= max(floor, q)``
    (``floor`` when ``dist == 0``).
 4. Only those components change (clamped); an action no rule touches is allowed (None) and
@@ -45,6 +46,9 @@ from capevo.runtime.governance.hand import hand_extent, hand_reach
 from capevo.runtime.governance.pose import DOWN, rotation_of
 from capevo.runtime.governance.zone import Aabb
 from capevo.runtime.state import ActionLayout, ArmState
+
+CENTRE_TIE = 1e-9
+"""Overlapping boxes whose centres differ by at most this along an axis (metres) set no direction on it."""
 
 
 @register("arm_separation")
@@ -147,7 +151,8 @@ class ArmSeparation:
                 else:
                     for k in (0, 1, 2):
                         ci, cj = (li[k] + hi_[k]) / 2, (lj[k] + hj[k]) / 2
-                        side[k] = 1.0 if cj > ci else -1.0 if cj < ci else 0.0
+                        # Centres within rounding of each other give no direction to slow.
+                        side[k] = 1.0 if cj > ci + CENTRE_TIE else -1.0 if cj < ci - CENTRE_TIE else 0.0
                     bound = fl
                 rb = max(fl, q) if dist > 0.0 else fl
                 changed = False

@@ -7,11 +7,22 @@ the base and stays unchanged. :func:`phi_for_task` adds, before the cap:
   an end effector is outside, and no turning within the margin;
 * ``force_ramp`` at the same force limit: into-contact motion slowed from half the limit, a
   slow back-off above it;
+* ``contact_approach`` (:data:`CONTACT_APPROACH`): motion slowed along every pair of nearest
+  points between a hand (with what it touches) and the rest of the scene, which the task's
+  ``robot_state()`` measures on the live simulator each step
+  (:class:`~capevo.runtime.governance.proximity.ProximitySensor`): the only rule that knows
+  where the movable objects are; a state without those pairs leaves it idle;
 * ``surface_approach`` at the task's table top (or bin floor), when there is one;
 * ``obstacle_approach`` for fixed obstacles (bin walls, pegs, the robots' mounts, whose tops
   at 0.942 m stand above the tables);
 * ``arm_separation`` between the hands (and what they hold) of a multi-arm task;
-* ``reach_limit`` around each arm's shoulder: the Panda's reach and a column around its base.
+* ``reach_limit`` around each arm's shoulder: the Panda's reach (with a slow creep left up to
+  its edge) and a column around its base wide enough to keep the elbow off its joint limit.
+
+:func:`phi_for_task` (``Phi.for_task``) is opt-in: the runtime's default stays the paper's Φ,
+because this envelope also slows the scripted place and stack references to failure (place
+needs the arm at full stretch, where the reach limit stops outward pushes; stack closes its
+gripper too early once the descent past cube A is slowed; see BENCHMARKS.md).
 
 The scene numbers are robosuite's defaults for the environments capevo builds (checked against
 the live simulators in the slow tests). The result is an ordinary Φ: fixed for the run, its
@@ -37,6 +48,7 @@ from capevo.errors import Invalid
 from capevo.runtime.governance.base import Constraint
 from capevo.runtime.governance.box import WorkspaceBox
 from capevo.runtime.governance.cap import VelocityCap
+from capevo.runtime.governance.contact_approach import ContactApproach
 from capevo.runtime.governance.force import ContactForce
 from capevo.runtime.governance.guard import WorkspaceGuard
 from capevo.runtime.governance.obstacle import ObstacleApproach
@@ -58,10 +70,15 @@ PANDA_REACH = 0.8
 with the gripper down, the arm starts to sag at 0.78-0.80 (its OSC can no longer hold the
 height; at 0.84 it flails into the table at kilonewtons). With margin 0.01 and brake 0.05,
 outward motion slows from 0.74 and stops at 0.79."""
+PANDA_CREEP = 0.05
+"""Outward speed (action units) left between the reach's margin and the reach itself: the place
+reference lowers the can into the far goal quadrant with the arm fully stretched (wrist 0.79 m
+from the shoulder), while a full push at full stretch makes the arm sag and flail."""
 PANDA_WRIST = (0.0, 0.0, -0.2)
 """The Panda's wrist in its grip-site frame: 0.2 m back from the fingertips towards the flange."""
-PANDA_COLUMN = 0.25
-"""Radius around the base axis that the hand must stay out of (the Panda's own base and lower links), metres."""
+PANDA_COLUMN = 0.3
+"""Radius around the base axis that the hand must stay out of, metres: the Panda's own base and lower
+links, and the folded elbow (driven closer, joint 4 hits its limit and the jolt reads 35 N at the hand)."""
 PANDA_HAND: tuple[Aabb, ...] = (
     Aabb(low=(-0.102, -0.032, -0.124), high=(0.106, 0.032, -0.026)),
     Aabb(low=(-0.05, -0.011, -0.049), high=(0.05, 0.011, 0.012)),
@@ -69,6 +86,10 @@ PANDA_HAND: tuple[Aabb, ...] = (
 """The robosuite Panda gripper's collision geometry in its grip-site frame (+z out through the
 fingertips, +x along the fingers' travel): the hand body, and both fingers fully open.
 Measured from the model's geom bounding boxes."""
+CONTACT_APPROACH: Mapping[str, float] = MappingProxyType(
+    {"clearance": 0.005, "brake": 0.1, "touch": 0.04, "touch_loose": 0.04}
+)
+"""``contact_approach`` settings of every per-task Φ."""
 SURFACE_CLEARANCE = -0.004
 """Let the fingertips settle 4 mm "into" the surface: the OSC push that remains there is gentle (about 10 N)."""
 
@@ -194,6 +215,7 @@ def task_constraints(geometry: TaskGeometry, base: Phi) -> list[Constraint]:
     added: list[Constraint] = [
         WorkspaceGuard(low=box.low, high=box.high, margin=box.margin),
         ForceRamp(max_force=force.max_force, soft_from=force.max_force / 2),
+        ContactApproach(**CONTACT_APPROACH),
     ]
     if geometry.surface_height is not None:
         added.append(
@@ -221,6 +243,7 @@ def task_constraints(geometry: TaskGeometry, base: Phi) -> list[Constraint]:
             min_radius=PANDA_COLUMN,
             margin=0.01,
             brake=0.05,
+            creep=PANDA_CREEP,
             point=PANDA_WRIST if not geometry.hands else (0.0, 0.0, 0.0),
         )
     )

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from capevo.runtime.governance import (
     ArmSeparation,
+    ContactApproach,
     ContactForce,
     ForbiddenZone,
     ForceRamp,
@@ -25,6 +26,7 @@ from capevo.runtime.governance import (
     WorkspaceGuard,
 )
 from capevo.runtime.governance.pose import DOWN, ArmPose
+from capevo.runtime.governance.separation import CENTRE_TIE
 from capevo.runtime.state import ActionLayout, ArmState, RobotState
 
 FINITE = st.floats(allow_nan=False, allow_infinity=False)
@@ -178,6 +180,8 @@ def violations(
                 d = c.max_radius - r
                 if r > 0 and not column and (d < c.margin + c.brake or d <= c.margin):
                     q = max(0.0, (d - c.margin) / c.brake) if c.brake > 0 else 0.0
+                    if d > 0:
+                        q = max(q, c.creep)
                     bound = q * r / sum(abs(x) for x in v)
                     for k in range(3):
                         if a[o + k] * v[k] > 0 and abs(a[o + k]) > bound + tol:
@@ -215,6 +219,53 @@ def violations(
                     out.append(f"{c.label}: arm {i} turns faster than {q_rot} near an obstacle")
         if isinstance(c, ArmSeparation):
             out.extend(_separation_violations(c, layout, state, a, action, tol))
+        if isinstance(c, ContactApproach):
+            out.extend(_contact_violations(c, layout, state, a, action, tol))
+    return out
+
+
+def contact_bound(c: ContactApproach, dist: float, owner: int) -> float:
+    """q for one pair, restated from the spec."""
+    loose = owner == -2
+    touch = c.touch_loose if loose else c.touch
+    brake = c.brake_loose if loose and c.brake_loose is not None else c.brake
+    x = min(1.0, max(0.0, (dist - c.clearance) / brake))
+    return touch + (1.0 - touch) * x
+
+
+def _contact_violations(
+    c: ContactApproach, layout: ActionLayout, state: RobotState, a: list[float], action: Sequence[float], tol: float
+) -> list[str]:
+    out: list[str] = []
+    n_arms = len(layout.arms)
+    for i, arm in enumerate(state.arms):
+        for dist, nx, ny, nz, rx, ry, rz, owner in getattr(arm, "near", ()):
+            q = contact_bound(c, dist, owner)
+            q_down = contact_bound(c, dist, -1) if owner == -2 and nz < 0 else q
+            pinned = q_down < q
+            if q >= 1.0 and q_down >= 1.0:
+                continue
+            n = (nx, ny, nz)
+            o = layout.arms[i].offset
+            axes = (0, 1) if pinned else (0, 1, 2)
+            closing = sum(a[o + k] * n[k] for k in axes if a[o + k] * n[k] > 0)
+            if closing > q * (1 + 1e-9) + tol:
+                out.append(f"{c.label}: arm {i} closes at {closing} > {q} on a pair {dist} m away")
+            if pinned and a[o + 2] * nz > q_down * (1 + 1e-9) + tol:
+                out.append(f"{c.label}: arm {i} pushes a loose object down at {a[o + 2] * nz} > {q_down}")
+            q = min(q, q_down)
+            if c.rotation:
+                r = math.sqrt(rx * rx + ry * ry + rz * rz)
+                qr = q * min(1.0, c.lever / r) if r > 0 else q
+                if any(abs(action[o + j]) > qr + tol for j in (3, 4, 5)):
+                    out.append(f"{c.label}: arm {i} turns faster than {qr} near a pair")
+            if 0 <= owner < n_arms and owner != i:
+                p = layout.arms[owner].offset
+                closing = sum(-a[p + k] * n[k] for k in range(3) if a[p + k] * n[k] < 0)
+                if closing > q * (1 + 1e-9) + tol:
+                    out.append(f"{c.label}: arm {owner} closes at {closing} > {q} on arm {i}'s pair")
+                if c.rotation and any(abs(action[p + j]) > q + tol for j in (3, 4, 5)):
+                    out.append(f"{c.label}: arm {owner} turns faster than {q} near arm {i}'s pair")
     return out
 
 
@@ -237,7 +288,8 @@ def _separation_violations(
                 bound = rb = c.floor
                 ci = [(lo + hi) / 2 for lo, hi in zip(*boxes[i], strict=True)]
                 cj = [(lo + hi) / 2 for lo, hi in zip(*boxes[j], strict=True)]
-                side = [1 if cj[k] > ci[k] else -1 if cj[k] < ci[k] else 0 for k in range(3)]
+                tie = CENTRE_TIE
+                side = [1 if cj[k] > ci[k] + tie else -1 if cj[k] < ci[k] - tie else 0 for k in range(3)]
             for arm_index, sign in ((i, 1), (j, -1)):
                 o = layout.arms[arm_index].offset
                 for k in range(3):

@@ -1,0 +1,218 @@
+"""contact_approach: slow the hand down along every nearby pair the proximity sensor reports.
+
+The predictive half of the force limit for what a fixed Φ cannot know: movable objects (cans,
+cubes, nuts), the object in the hand, and the exact, tilted shape of the hand near anything.
+It reads the per-arm :data:`~capevo.runtime.governance.proximity.Near` pairs of an
+:class:`~capevo.runtime.governance.proximity.ArmScene` (arm states without them are left
+alone). A contact struck at speed reads hundreds of newtons within one control step; struck
+at the touch speed (0.04 action units, about 2 mm per step) it stays near 10 N, and the force
+ramp takes over from there.
+
+Per arm and pair ``(dist, n, r, owner)`` with ``q < 1``, where
+``q = t + (1 − t) · clip((dist − clearance) / b, 0, 1)`` (``t``, ``b``: ``touch_loose`` and
+``brake_loose`` for a movable object, ``touch`` and ``brake`` otherwise):
+
+* translation: the approaching components (``a_k · n_k > 0``) are scaled down by one factor
+  so that their closing speed ``Σ_{a_k n_k > 0} a_k · n_k`` is at most ``q`` (receding
+  components are left out of the sum: a later edit may shrink them, never the other way);
+  for a movable object below the hand (``n_z < 0``) whose bound is looser than the fixed
+  scene's, the sum runs over x and y only, and the downward part ``a_z · n_z`` gets the fixed
+  scene's bound (``touch``, ``brake``) on its own: pushed sideways such an object slides,
+  pushed down it is pinned against what it rests on;
+* rotation (``rotation``): every rotation component is limited to
+  ``q · min(1, lever / |r|)``: turning swings the hand's far points, the more the farther
+  they are from the site;
+* another arm (``owner`` another arm of the layout: the pair's other geom is that arm's hand
+  or one of its links): the same for that arm with ``−n`` (its components with
+  ``a_k · n_k < 0``), and with ``rotation`` its rotation components are limited to ``q``, so
+  neither side closes the gap fast.
+
+``touch > 0`` keeps the hand able to close a small gap (to grasp, place or insert) at a gentle
+speed; OSC's steady push at that speed stays far below the force limit.
+
+Invariants (per arm, after the check):
+1. For every pair with ``q < 1``: ``Σ_{k: a_k n_k > 0} a_k · n_k <= q`` (to rounding); for a
+   movable object with ``n_z < 0`` and ``q > q_fixed(dist)`` the sum is over x and y, and
+   ``a_z · n_z <= q_fixed(dist)``.
+2. With ``rotation``, every rotation component has ``|ω_k| <= min over those pairs of
+   q · min(1, lever / |r|)`` (``q`` the smaller of the two bounds for a movable object below).
+3. For a pair whose ``owner`` is another arm ``j`` of the layout, arm ``j`` has
+   ``Σ_{k: a_k n_k < 0} −a_k · n_k <= q(dist)`` and (with ``rotation``) ``|ω_k| <= q`` for its rotation components.
+4. Only those components change, by clamping towards 0 (sign kept); arms no pair concerns
+   are untouched; an action no rule touches is allowed (None) and never copied.
+5. A non-finite pair is ⊥ with a reason.
+6. No hard limit of its own (:meth:`ContactApproach.unsafe` is None).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.cap import SHRINK
+from capevo.runtime.governance.proximity import FIXED, LOOSE
+from capevo.runtime.state import ActionLayout, ArmState
+
+
+@register("contact_approach")
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ContactApproach:
+    """Closing speed along each sensed hand-to-scene pair limited in proportion to its distance.
+
+    Args:
+        clearance: Distance in metres at which the closing speed reaches ``touch``; >= 0.
+        brake: Width in metres of the band beyond the clearance over which it is limited; > 0.
+        touch: Closing speed allowed at and within the clearance, action units; in [0, 1].
+        touch_loose: The same for a pair with a movable object (``owner`` -2), which gives way
+            when pushed; in [0, 1].
+        brake_loose: ``brake`` for a pair with a movable object; None: ``brake``; > 0.
+        rotation: Also limit the rotation components near a pair.
+        lever: Metres; a pair farther than this from the site limits rotation more; > 0.
+        name: Label for interventions; defaults to the kind.
+
+    Raises:
+        Invalid: naming the field, on a wrong type, a non-finite value, a negative clearance,
+            a non-positive brake or lever, or ``touch`` outside [0, 1].
+    """
+
+    kind: ClassVar[str]
+    reads_proximity: ClassVar[bool] = True
+    """The state must carry proximity pairs (:class:`~capevo.runtime.governance.proximity.ArmScene`)."""
+    clearance: float = 0.005
+    brake: float = 0.1
+    touch: float = 0.04
+    touch_loose: float = 0.04
+    brake_loose: float | None = None
+    rotation: bool = True
+    lever: float = 0.1
+    name: str | None = None
+
+    def __post_init__(self) -> None:
+        normalize(self)
+        if self.clearance < 0:
+            raise invalid("clearance", f"must be >= 0, got {self.clearance}")
+        if not self.brake > 0:
+            raise invalid("brake", f"must be > 0, got {self.brake}")
+        if not 0 <= self.touch <= 1:
+            raise invalid("touch", f"must be in [0, 1], got {self.touch}")
+        if not 0 <= self.touch_loose <= 1:
+            raise invalid("touch_loose", f"must be in [0, 1], got {self.touch_loose}")
+        if self.brake_loose is not None and not self.brake_loose > 0:
+            raise invalid("brake_loose", f"must be > 0, got {self.brake_loose}")
+        if not self.lever > 0:
+            raise invalid("lever", f"must be > 0, got {self.lever}")
+
+    @property
+    def label(self) -> str:
+        return self.name or self.kind
+
+    def to_config(self) -> dict[str, Any]:
+        return config_of(self)
+
+    def bound(self, dist: float, owner: int = -1) -> float:
+        """Largest closing speed ``q`` allowed at ``dist`` metres (1.0 beyond the band)."""
+        loose = owner == LOOSE
+        brake = self.brake_loose if loose and self.brake_loose is not None else self.brake
+        x = (dist - self.clearance) / brake
+        x = 0.0 if x < 0.0 else 1.0 if x > 1.0 else x
+        t = self.touch_loose if loose else self.touch
+        return t + (1.0 - t) * x
+
+    def compile(self, layout: ActionLayout) -> Check:
+        band = self.clearance + max(self.brake, self.brake_loose or 0.0)
+        bound, turn, lever = self.bound, self.rotation, self.lever
+        offsets = tuple(arm.offset for arm in layout.arms)
+        reasons = tuple(f"arm {i}: hand near a contact: motion towards it braked" for i in range(len(offsets)))
+        isfinite, sqrt = math.isfinite, math.sqrt
+
+        n_arms = len(offsets)
+
+        def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
+            poses = [[a[o + j] for j in range(6)] for o in offsets]
+            q_rot = [math.inf] * n_arms
+            for i in range(n_arms):
+                for pair in getattr(arms[i], "near", ()):
+                    dist, nx, ny, nz, rx, ry, rz, owner = pair
+                    if not (isfinite(dist) and isfinite(nx) and isfinite(ny) and isfinite(nz)):
+                        return None, f"arm {i}: proximity pair {pair} is not finite"  # rare: format here
+                    if dist >= band:
+                        continue
+                    q = bound(dist, owner)
+                    q_down = bound(dist, FIXED) if owner == LOOSE and nz < 0.0 else q
+                    pinned = q_down < q  # only a looser bound for the object needs the split
+                    if q >= 1.0 and q_down >= 1.0:
+                        continue  # at the edge of the band: nothing to limit
+                    arm = poses[i]
+                    if pinned:
+                        # A loose object below the hand slides when pushed sideways but is pinned
+                        # against its support when pushed down: that part keeps the fixed bound.
+                        if arm[2] * nz > q_down:
+                            arm[2] = q_down / nz * SHRINK
+                        axes: tuple[tuple[int, float], ...] = ((0, nx), (1, ny))
+                    else:
+                        axes = ((0, nx), (1, ny), (2, nz))
+                    # Closing speed of the approaching components alone: later edits only shrink
+                    # components, which can lower this sum but never raise it.
+                    c = 0.0
+                    for k, n in axes:
+                        v = arm[k] * n
+                        if v > 0.0:
+                            c += v
+                    if c > q:
+                        f = q / c * SHRINK
+                        for k, n in axes:
+                            if arm[k] * n > 0.0:
+                                arm[k] *= f
+                    q = min(q, q_down)
+                    if turn:
+                        r = sqrt(rx * rx + ry * ry + rz * rz) if isfinite(rx + ry + rz) else math.inf
+                        qr = q * (lever / r if r > lever else 1.0)
+                        if qr < q_rot[i]:
+                            q_rot[i] = qr
+                    if 0 <= owner < n_arms and owner != i:
+                        # Another arm's hand or link: its motion closes the gap from the other side.
+                        other = poses[owner]
+                        c = 0.0
+                        for k, n in ((0, nx), (1, ny), (2, nz)):
+                            v = -other[k] * n
+                            if v > 0.0:
+                                c += v
+                        if c > q:
+                            f = q / c * SHRINK
+                            for k, n in ((0, nx), (1, ny), (2, nz)):
+                                if other[k] * n < 0.0:
+                                    other[k] *= f
+                        if turn and q < q_rot[owner]:
+                            q_rot[owner] = q
+            b: list[float] | None = None
+            notes: list[str] = []
+            for i, o in enumerate(offsets):
+                arm = poses[i]
+                qr = q_rot[i]
+                if qr < math.inf:
+                    for k in (3, 4, 5):
+                        v = arm[k]
+                        if abs(v) > qr:
+                            arm[k] = qr if v > 0.0 else -qr
+                if any(arm[j] != a[o + j] for j in range(6)):
+                    if b is None:
+                        b = list(a)
+                    b[o : o + 6] = arm
+                    notes.append(reasons[i])
+            if b is None:
+                return None
+            return b, notes[0] if len(notes) == 1 else "; ".join(notes)
+
+        def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
+            for arm in arms:
+                if getattr(arm, "near", ()):
+                    return slow(arms, a)
+            return None
+
+        return check
+
+    def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
+        return None

@@ -1,0 +1,361 @@
+"""Proximity: how close each hand, and whatever it touches, is to everything else in the scene, per step.
+
+A fixed Φ knows the fixed scene (tables, bin walls, pegs) but not where the movable objects are
+(cans, cubes, nuts, the object in the hand), and a rigid contact struck at speed reads hundreds
+of newtons within one control step. So the state governance reads can carry, per arm, the
+nearest points between the hand and its surroundings, measured by MuJoCo on the live
+simulator: :class:`ArmScene` is an :class:`~capevo.runtime.governance.pose.ArmPose` plus a
+tuple of :data:`Near` pairs, and ``contact_approach``
+(:mod:`capevo.runtime.governance.contact_approach`) slows the hand down along each pair's
+direction as the gap closes.
+
+:class:`ProximitySensor` is built once per MuJoCo model. Per arm it finds:
+
+* the hand: every collidable geom in the subtree of the arm's end-effector body (gripper
+  fingers and pads, a peg or a plate fixed to the hand);
+* the held set, per step: every movable object (a body on a free joint) that touches the hand,
+  with all its geoms; it moves with the hand, so it counts as part of it;
+* the others: every collidable geom that is neither the hand, nor held, nor a link of the
+  arm's own kinematic chain (those cannot be reached by the hand in a way the reach limit
+  does not already cover, and MuJoCo filters parent-child contacts anyway), nor a plane (the
+  ground lies far below the workspace box's floor).
+
+Each step, a broad phase on bounding spheres (``geom_rbound``) keeps the pairs whose spheres
+are within ``reach`` metres, and ``mujoco.mj_geomDistance`` gives each kept pair's signed
+distance and nearest points. A pair is reported when its distance is below ``reach``.
+
+Invariants:
+1. Every reported pair ``(dist, nx, ny, nz, rx, ry, rz, owner)`` has ``dist < reach``,
+   ``(nx, ny, nz)`` a unit vector pointing from the hand towards the other geom (for a
+   penetrating pair: the direction that deepens the penetration), ``(rx, ry, rz)`` the hand's
+   nearest point relative to the end-effector site, metres, world frame, and ``owner`` the
+   index of the arm whose motion moves the other geom (its hand or a link of its chain),
+   :data:`LOOSE` (-2) for a movable object (a free body), or :data:`FIXED` (-1) for the rest
+   of the scene.
+2. Pairs of a hand geom with a geom of its own hand, of what it holds, or of its own arm's
+   kinematic chain are never reported.
+3. ``near(i)`` reads the simulator's current ``MjData`` only (positions, contacts); it does not
+   step or modify the simulator.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from capevo.runtime.governance.pose import ArmPose
+from capevo.runtime.state import ArmState
+
+Near = tuple[float, float, float, float, float, float, float, int]
+"""One hand-to-scene pair: ``(dist, nx, ny, nz, rx, ry, rz, owner)``, see invariant 1."""
+
+FIXED = -1
+"""``owner`` of a pair whose other geom is part of the fixed scene (table, bin, peg, a robot's mount)."""
+LOOSE = -2
+"""``owner`` of a pair whose other geom belongs to a movable object (a body on a free joint)."""
+
+RETRY_MARGINS = (0.003, 0.01, 0.025, 0.05, 0.08)
+"""Margins (metres) of the follow-up queries for a pair whose first distance query failed."""
+
+DEFAULT_REACH = 0.11
+"""Metres: pairs farther apart than this are not reported (``contact_approach``'s default band is 0.105)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ArmScene(ArmPose):
+    """An arm pose plus the hand's nearest points to its surroundings."""
+
+    near: tuple[Near, ...] = ()
+    """Hand-to-scene pairs closer than the sensor's reach; see :mod:`capevo.runtime.governance.proximity`."""
+
+
+def near_of(arm: ArmState) -> tuple[Near, ...]:
+    """The proximity pairs of ``arm`` if it carries them (an :class:`ArmScene`), else ``()``."""
+    return getattr(arm, "near", ())
+
+
+def _subtree(model: Any, root: int) -> set[int]:
+    out = {root}
+    for b in range(root + 1, model.nbody):
+        if int(model.body_parentid[b]) in out:
+            out.add(b)
+    return out
+
+
+def _ancestors(model: Any, body: int) -> set[int]:
+    out: set[int] = set()
+    b = int(model.body_parentid[body])
+    while b > 0:
+        out.add(b)
+        b = int(model.body_parentid[b])
+    return out
+
+
+class ProximitySensor:
+    """Nearest hand-to-scene pairs per arm from a live MuJoCo model and data.
+
+    Geoms welded to the world (tables, bin walls, pegs, robot mounts) have their world boxes
+    computed once, on the first call of :meth:`near`.
+
+    Args:
+        model: ``MjModel``.
+        data: ``MjData`` of the model (read each call; keep the same object).
+        hand_bodies: Per arm, in action-layout order, the id of its end-effector body
+            (the root of the hand's subtree).
+        eef_sites: Per arm, the id of its end-effector site (where the action's rotation acts).
+        reach: Pairs farther apart than this many metres are not reported.
+    """
+
+    def __init__(
+        self,
+        model: Any,
+        data: Any,
+        hand_bodies: Sequence[int],
+        eef_sites: Sequence[int],
+        *,
+        reach: float = DEFAULT_REACH,
+    ) -> None:
+        import mujoco  # here, not at module level: governance itself does not need MuJoCo
+
+        self._mj = mujoco
+        self.model, self.data, self.reach = model, data, float(reach)
+        self._sites = tuple(int(s) for s in eef_sites)
+        ct, ca = model.geom_contype, model.geom_conaffinity
+        collidable = [g for g in range(model.ngeom) if ct[g] or ca[g]]
+        # Movable objects: bodies on a free joint, with every collidable geom of their subtree.
+        free = mujoco.mjtJoint.mjJNT_FREE
+        free_roots = sorted({int(model.jnt_bodyid[j]) for j in range(model.njnt) if model.jnt_type[j] == free})
+        self._object_of: dict[int, int] = {}
+        self._object_geoms: dict[int, tuple[int, ...]] = {}
+        for root in free_roots:
+            bodies = _subtree(model, root)
+            geoms = tuple(g for g in collidable if int(model.geom_bodyid[g]) in bodies)
+            self._object_geoms[root] = geoms
+            for g in geoms:
+                self._object_of[g] = root
+        aabb = np.asarray(model.geom_aabb, dtype=np.float64).reshape(-1, 6)
+        self._centre = aabb[:, :3].copy()
+        self._half = aabb[:, 3:].copy()
+        self._radius = np.linalg.norm(self._half, axis=1)
+        self._centre_l = self._centre.tolist()
+        self._half_l = self._half.tolist()
+        self._radius_l = self._radius.tolist()
+        self._is_box = [int(t) == mujoco.mjtGeom.mjGEOM_BOX for t in model.geom_type]
+        # Which arm moves each geom: its hand's subtree and its kinematic chain.
+        owner_of_body: dict[int, int] = {}
+        for i, body in enumerate(hand_bodies):
+            for b in _subtree(model, int(body)) | _ancestors(model, int(body)):
+                if int(model.body_weldid[b]) != 0:
+                    owner_of_body.setdefault(b, i)
+        self._owner = {
+            g: owner_of_body.get(int(model.geom_bodyid[g]), LOOSE if g in self._object_of else FIXED)
+            for g in collidable
+        }
+        arms = []
+        for body in hand_bodies:
+            hand_b = _subtree(model, int(body))
+            chain = _ancestors(model, int(body))
+            hand = tuple(g for g in collidable if int(model.geom_bodyid[g]) in hand_b)
+            others = [
+                g
+                for g in collidable
+                if int(model.geom_bodyid[g]) not in hand_b
+                and int(model.geom_bodyid[g]) not in chain
+                and int(model.geom_type[g]) != mujoco.mjtGeom.mjGEOM_PLANE
+            ]
+            static = [g for g in others if int(model.body_weldid[int(model.geom_bodyid[g])]) == 0]
+            moving = [g for g in others if g not in static]
+            arms.append((hand, np.asarray(static, dtype=np.int64), np.asarray(moving, dtype=np.int64)))
+        self._arms = tuple(arms)
+        # World boxes of the geoms welded to the world, per arm: filled on the first call, when
+        # the data has surely been through a forward pass.
+        self._static_boxes: list[tuple[np.ndarray, np.ndarray]] | None = None
+        self._hand_sets = tuple(frozenset(a[0]) for a in arms)
+        self._fromto = np.zeros(6)
+
+    @classmethod
+    def for_robots(
+        cls, model: Any, data: Any, robots: Sequence[Any], *, reach: float = DEFAULT_REACH
+    ) -> ProximitySensor:
+        """A sensor for every arm of robosuite ``robots`` (``env.robots``), in action-layout order."""
+        import mujoco
+
+        bodies, sites = [], []
+        for robot in robots:
+            for arm in robot.arms:
+                bodies.append(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, robot.robot_model.eef_name[arm]))
+                sites.append(int(robot.eef_site_id[arm]))
+        return cls(model, data, bodies, sites, reach=reach)
+
+    def _boxes(self, geoms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World axis-aligned boxes ``(low, high)`` of ``geoms``' bounding boxes, now."""
+        if geoms.size == 0:
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        d = self.data
+        rot = d.geom_xmat[geoms].reshape(-1, 3, 3)
+        centre = d.geom_xpos[geoms] + (rot * self._centre[geoms][:, None, :]).sum(axis=2)
+        half = (np.abs(rot) * self._half[geoms][:, None, :]).sum(axis=2)
+        return centre - half, centre + half
+
+    def _sphere_to_box(self, h: int, o: int) -> tuple[float, float, float, float, float, float, float] | None:
+        """``(dist, p1, p2)`` from a sphere around box ``h`` to box ``o``: a lower bound on their distance."""
+        d = self.data
+        # Plain floats: for one 3x3 rotation, numpy's per-call cost dominates.
+        rh, ro = d.geom_xmat[h].tolist(), d.geom_xmat[o].tolist()
+        ph, po = d.geom_xpos[h].tolist(), d.geom_xpos[o].tolist()
+        ch, co = self._centre_l[h], self._centre_l[o]
+        c = [ph[k] + rh[3 * k] * ch[0] + rh[3 * k + 1] * ch[1] + rh[3 * k + 2] * ch[2] for k in range(3)]
+        q = [po[k] + ro[3 * k] * co[0] + ro[3 * k + 1] * co[1] + ro[3 * k + 2] * co[2] for k in range(3)]
+        v = [c[0] - q[0], c[1] - q[1], c[2] - q[2]]
+        half = self._half_l[o]
+        # The sphere's centre in the other box's frame, clamped into the box, back to the world.
+        inner = []
+        for j in range(3):
+            x = ro[j] * v[0] + ro[3 + j] * v[1] + ro[6 + j] * v[2]
+            inner.append(-half[j] if x < -half[j] else half[j] if x > half[j] else x)
+        p2 = [q[k] + ro[3 * k] * inner[0] + ro[3 * k + 1] * inner[1] + ro[3 * k + 2] * inner[2] for k in range(3)]
+        w = [p2[0] - c[0], p2[1] - c[1], p2[2] - c[2]]
+        gap = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+        radius = self._radius_l[h]
+        if gap < 1e-9:
+            # The sphere's centre is inside the box: point at the box's centre instead.
+            w = [q[0] - c[0], q[1] - c[1], q[2] - c[2]]
+            n = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+            if n < 1e-9:
+                return None
+            return (-radius, *(c[k] + w[k] / n * radius for k in range(3)), *c)
+        t = min(radius, gap) / gap
+        return (gap - radius, *(c[k] + w[k] * t for k in range(3)), *p2)
+
+    def _touching(self, h: int, o: int) -> bool:
+        """Whether MuJoCo's own collision step found a contact between geoms ``h`` and ``o``."""
+        d = self.data
+        n = int(d.ncon)
+        if n == 0:
+            return False
+        return any((g1 == h and g2 == o) or (g1 == o and g2 == h) for g1, g2 in d.contact.geom[:n].tolist())
+
+    def _retry(self, h: int, o: int) -> tuple[float, float, float, float, float, float, float] | None:
+        """``(dist, p1, p2)`` for a pair whose full-margin query failed: the first clean answer
+        of queries with growing margins, or the largest margin known to be clear (a lower bound)."""
+        m, d, ft = self.model, self.data, self._fromto
+        clear = 0.0
+        for margin in RETRY_MARGINS:
+            if margin > self.reach:
+                break
+            dist = self._mj.mj_geomDistance(m, d, h, o, margin, ft)
+            if 0.0 < dist < margin:
+                return (dist, *ft.tolist())
+            if dist < margin:
+                break  # another zero: take what is known
+            clear = margin
+        if clear >= self.reach:
+            return None
+        # Direction: from the hand geom's centre towards the nearest point of the other's box.
+        box = self._sphere_to_box(h, o)
+        if box is None:
+            return None
+        _, p1x, p1y, p1z, p2x, p2y, p2z = box
+        return (clear, p1x, p1y, p1z, p2x, p2y, p2z)
+
+    def held(self, arm: int) -> tuple[int, ...]:
+        """Movable objects (free-body ids) touching ``arm``'s hand now."""
+        d = self.data
+        n = int(d.ncon)
+        if n == 0 or not self._object_of:
+            return ()
+        hand = self._hand_sets[arm]
+        out: list[int] = []
+        for g1, g2 in d.contact.geom[:n].tolist():
+            if g1 in hand and g2 in self._object_of:
+                obj = self._object_of[g2]
+            elif g2 in hand and g1 in self._object_of:
+                obj = self._object_of[g1]
+            else:
+                continue
+            if obj not in out:
+                out.append(obj)
+        return tuple(out)
+
+    def near(self, arm: int) -> tuple[Near, ...]:
+        """Pairs of ``arm``'s hand (and what it holds) with the rest of the scene closer than ``reach``."""
+        m, d, reach = self.model, self.data, self.reach
+        if self._static_boxes is None:
+            self._static_boxes = [self._boxes(static) for _, static, _ in self._arms]
+        hand, static, moving = self._arms[arm]
+        s_lo, s_hi = self._static_boxes[arm]
+        held = self.held(arm)
+        if held:
+            extra = [g for obj in held for g in self._object_geoms[obj]]
+            hand = hand + tuple(extra)
+            moving = moving[~np.isin(moving, extra)]
+        if not hand:
+            return ()
+        m_lo, m_hi = self._boxes(moving)
+        others = np.concatenate((static, moving))
+        if others.size == 0:
+            return ()
+        lo = np.concatenate((s_lo, m_lo))
+        hi = np.concatenate((s_hi, m_hi))
+        # Broad phase, per hand geom and other geom: the larger of two lower bounds on their
+        # distance, a sphere around the hand geom's box and its world box, each against the other's world box.
+        hand_ids = np.asarray(hand, dtype=np.int64)
+        rot = d.geom_xmat[hand_ids].reshape(-1, 3, 3)
+        centre = d.geom_xpos[hand_ids] + (rot * self._centre[hand_ids][:, None, :]).sum(axis=2)
+        half = (np.abs(rot) * self._half[hand_ids][:, None, :]).sum(axis=2)
+        c = centre[:, None, :]
+        h = half[:, None, :]
+        sep = np.maximum(np.maximum(lo[None] - c - h, c - h - hi[None]), 0.0)
+        box_gap = np.sqrt((sep * sep).sum(axis=2))
+        out_gap = np.clip(c, lo[None], hi[None]) - c
+        sphere_gap = np.sqrt((out_gap * out_gap).sum(axis=2)) - self._radius[hand_ids][:, None]
+        gap = np.maximum(box_gap, sphere_gap)
+        hi_idx, oi_idx = np.nonzero(gap < reach)
+        if hi_idx.size == 0:
+            return ()
+        site = d.site_xpos[self._sites[arm]].tolist()
+        ft = self._fromto
+        out: list[Near] = []
+        geom_distance = self._mj.mj_geomDistance
+        xpos = d.geom_xpos
+        owner = self._owner
+        boxes = self._is_box
+        for h, o in zip(hand_ids[hi_idx].tolist(), others[oi_idx].tolist(), strict=True):
+            if boxes[h] and boxes[o]:
+                # MuJoCo's box-box distance is unreliable with a margin this large (it reports 0
+                # for boxes centimetres apart), so bound it: a sphere around the hand's box.
+                pair = self._sphere_to_box(h, o)
+                if pair is None:
+                    continue
+                dist, p1x, p1y, p1z, p2x, p2y, p2z = pair
+            else:
+                dist = geom_distance(m, d, h, o, reach, ft)
+                if dist <= 0.0 and not self._touching(h, o):
+                    # A zero with no contact between the two: MuJoCo's convex distance with a
+                    # large margin can return 0 on failure. Re-ask with growing margins.
+                    pair = self._retry(h, o)
+                    if pair is None:
+                        continue
+                    dist, p1x, p1y, p1z, p2x, p2y, p2z = pair
+                else:
+                    p1x, p1y, p1z, p2x, p2y, p2z = ft.tolist()
+            if not dist < reach:
+                continue
+            vx, vy, vz = p2x - p1x, p2y - p1y, p2z - p1z
+            norm = math.sqrt(vx * vx + vy * vy + vz * vz)
+            if norm < 1e-9:
+                # Touching exactly: the nearest points coincide; point from the hand geom's centre.
+                cx, cy, cz = xpos[h].tolist()
+                vx, vy, vz = p2x - cx, p2y - cy, p2z - cz
+                norm = math.sqrt(vx * vx + vy * vy + vz * vz)
+                if norm < 1e-9:
+                    continue
+            elif dist < 0.0:
+                # Penetrating: the nearest points are swapped; deeper is from p2 towards p1.
+                vx, vy, vz = -vx, -vy, -vz
+            out.append((dist, vx / norm, vy / norm, vz / norm, p1x - site[0], p1y - site[1], p1z - site[2], owner[o]))
+        return tuple(out)
