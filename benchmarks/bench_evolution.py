@@ -15,7 +15,11 @@ CPU time much less).
 Usage::
 
     .venv/bin/python benchmarks/bench_evolution.py [--tasks T1 T2 T3] [--preset cpu-small] \\
-        [--iterations N] [--seed 0] [--work-dir DIR] [--no-perturbations]
+        [--iterations N] [--live-episodes N] [--updates-per-iteration K] [--parallel] [--seed 0] \\
+        [--work-dir DIR] [--no-perturbations]
+
+``--parallel`` starts every task's run at once (each run's CPU time is still its own, from
+``wait4``); the load average at the start and end of each run is recorded with it.
 
 Writes ``benchmarks/results/evolution.json`` and ``benchmarks/results/evolution.md`` after
 every task (so an interrupted run keeps what finished) and prints the markdown table.
@@ -26,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import shutil
 import subprocess
 import sys
@@ -50,12 +53,8 @@ def evolve_command() -> list[str]:
     return [sys.executable, "-m", "capevo", "evolve"] if registered else [sys.executable, "-m", "capevo.cli.evolve"]
 
 
-def _cpu_children() -> float:
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
-
-
-def run_task(task: str, args: argparse.Namespace, work: Path) -> dict[str, Any]:
+def start_task(task: str, args: argparse.Namespace, work: Path) -> dict[str, Any]:
+    """Start one task's ``capevo evolve`` run (output to files under ``work/task``)."""
     root, report = work / task / "data", work / task / "report"
     cmd = [
         *evolve_command(),
@@ -72,17 +71,36 @@ def run_task(task: str, args: argparse.Namespace, work: Path) -> dict[str, Any]:
         "--json",
         "--perturbations" if args.perturbations else "--no-perturbations",
     ]
-    if args.iterations is not None:
-        cmd += ["--iterations", str(args.iterations)]
+    for flag, value in (
+        ("--iterations", args.iterations),
+        ("--live-episodes", args.live_episodes),
+        ("--updates-per-iteration", args.updates_per_iteration),
+    ):
+        if value is not None:
+            cmd += [flag, str(value)]
     env = {k: v for k, v in os.environ.items() if not k.startswith("CAPEVO_")}
     print(f"[{task}] {' '.join(cmd[1:])}", flush=True)
-    cpu0, t0 = _cpu_children(), time.perf_counter()
-    done = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=work)
-    wall, cpu = time.perf_counter() - t0, _cpu_children() - cpu0
-    if done.returncode != 0:
-        print(done.stderr[-3000:], file=sys.stderr)
-        return {"task": task, "error": done.stderr.strip().splitlines()[-1:] or ["?"], "wall_s": wall, "cpu_s": cpu}
-    s = json.loads(done.stdout)
+    (work / task).mkdir(parents=True, exist_ok=True)
+    out_path, err_path = work / task / "stdout.json", work / task / "stderr.txt"
+    with open(out_path, "w") as out, open(err_path, "w") as err:
+        proc = subprocess.Popen(cmd, stdout=out, stderr=err, env=env, cwd=work)
+    return {"task": task, "proc": proc, "t0": time.perf_counter(), "load0": os.getloadavg(), "work": work}
+
+
+def finish_task(run: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
+    """Wait for a started run and read its results."""
+    task, work = run["task"], run["work"]
+    # wait4: this child's own CPU time, even while other runs are going
+    _, status, usage = os.wait4(run["proc"].pid, 0)
+    run["proc"].returncode = os.waitstatus_to_exitcode(status)
+    wall, cpu = time.perf_counter() - run["t0"], usage.ru_utime + usage.ru_stime
+    load = {"loadavg_start": list(run["load0"]), "loadavg_end": list(os.getloadavg())}
+    stderr = (work / task / "stderr.txt").read_text()
+    if run["proc"].returncode != 0:
+        print(stderr[-3000:], file=sys.stderr)
+        return {"task": task, "error": stderr.strip().splitlines()[-1:] or ["?"], "wall_s": wall, "cpu_s": cpu, **load}
+    report = work / task / "report"
+    s = json.loads((work / task / "stdout.json").read_text())
     rows = [json.loads(line) for line in (report / "metrics.jsonl").read_text().splitlines()]
     start, final = s["start"], s["final"]
     comparison = _comparison(report)
@@ -123,9 +141,13 @@ def run_task(task: str, args: argparse.Namespace, work: Path) -> dict[str, Any]:
         "learner_episodes": sum(r["learner_episodes"] for r in rows),
         "identity_hash": s["identity_hash"],
         "delta_pi": s["delta_pi"],
-        "wall_s": wall,
+        # the run's own wall time: with --parallel, a run may end before the one waited on first
+        "wall_s": float(s.get("wall_s") or wall),
+        "wall_waited_s": wall,
         "cpu_s": cpu,
+        **load,
         "iteration_wall_s": [r["wall_s"] for r in rows],
+        "chains": [[r.get("ecm_updated"), *(u.get("ecm") for u in r.get("further") or [])] for r in rows],
         "report": str(report / "report.md") if args.keep else None,
     }
     print(
@@ -167,6 +189,7 @@ def table(results: list[dict[str, Any]]) -> str:
         "learner episodes",
         "wall s",
         "CPU s",
+        "load avg (start-end)",
     ]
     rows = []
     for r in results:
@@ -184,6 +207,7 @@ def table(results: list[dict[str, Any]]) -> str:
                     "",
                     f"{r['wall_s']:.0f}",
                     f"{r['cpu_s']:.0f}",
+                    _load(r),
                 ]
             )
             continue
@@ -201,9 +225,15 @@ def table(results: list[dict[str, Any]]) -> str:
                 r["learner_episodes"],
                 f"{r['wall_s']:.0f}",
                 f"{r['cpu_s']:.0f}",
+                _load(r),
             ]
         )
     return markdown_table(headers, rows)
+
+
+def _load(r: dict[str, Any]) -> str:
+    a, b = r.get("loadavg_start"), r.get("loadavg_end")
+    return f"{a[0]:.1f}-{b[0]:.1f}" if a and b else "-"
 
 
 def main() -> None:
@@ -211,6 +241,10 @@ def main() -> None:
     parser.add_argument("--tasks", nargs="+", default=["T1", "T2", "T3"])
     parser.add_argument("--preset", default="cpu-small")
     parser.add_argument("--iterations", type=int, default=None)
+    parser.add_argument("--live-episodes", type=int, default=None, help="also the final evaluation's episodes")
+    parser.add_argument("--updates-per-iteration", type=int, default=None)
+    parser.add_argument("--parallel", action="store_true", help="run the tasks at the same time")
+    parser.add_argument("--name", default=NAME, help="results file name under benchmarks/results")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work-dir", type=Path, default=None, help="keep registries and reports here")
     parser.add_argument("--perturbations", action=argparse.BooleanOptionalAction, default=True)
@@ -223,15 +257,20 @@ def main() -> None:
         "tasks": args.tasks,
         "preset": args.preset,
         "iterations": args.iterations,
+        "live_episodes": args.live_episodes,
+        "updates_per_iteration": args.updates_per_iteration,
+        "parallel": args.parallel,
         "seed": args.seed,
         "perturbations": args.perturbations,
     }
     try:
-        for task in args.tasks:
-            results.append(run_task(task, args, work))
-            save_results(NAME, {"params": params, "results": results})
+        started = [start_task(t, args, work) for t in args.tasks] if args.parallel else []
+        for i, task in enumerate(args.tasks):
+            run = started[i] if args.parallel else start_task(task, args, work)
+            results.append(finish_task(run, args))
+            save_results(args.name, {"params": params, "results": results})
             md = table(results)
-            (RESULTS_DIR / f"{NAME}.md").write_text(
+            (RESULTS_DIR / f"{args.name}.md").write_text(
                 f"# capevo evolve, preset {args.preset}, perturbations {'on' if args.perturbations else 'off'}\n\n"
                 + md
                 + "\n"

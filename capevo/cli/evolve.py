@@ -51,6 +51,19 @@ def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
 @click.option("--iterations", type=click.IntRange(min=0), default=None, help="Iterations. [default: the preset's]")
 @click.option("--preset", type=click.Choice(PRESETS), default="cpu-small", show_default=True, help="Budget preset.")
 @click.option(
+    "--live-episodes",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Live episodes per iteration; iteration 0's seeds are also the final evaluation's. [default: the preset's]",
+)
+@click.option(
+    "--updates-per-iteration",
+    type=click.IntRange(min=0),
+    default=None,
+    help="ECMs one iteration may learn in sequence, each behind the previous ones' candidates (code and hybrid); "
+    "0: one per step of the task. [default: the preset's]",
+)
+@click.option(
     "--modality",
     type=click.Choice(MODALITIES),
     default="code",
@@ -143,6 +156,8 @@ def evolve(
     task: str,
     iterations: int | None,
     preset: str,
+    live_episodes: int | None,
+    updates_per_iteration: int | None,
     modality: str,
     root: str,
     connect: tuple[str, ...],
@@ -192,6 +207,8 @@ def evolve(
             task=task,
             iterations=iterations,
             preset=preset,
+            live_episodes=live_episodes,
+            updates_per_iteration=updates_per_iteration,
             modality=modality,
             root=root,
             connect=connect,
@@ -237,6 +254,8 @@ def _run(ctx: click.Context, **kw: Any) -> int:
             task=kw["task"],
             preset=kw["preset"],
             iterations=kw["iterations"],
+            live_episodes=kw["live_episodes"],
+            updates_per_iteration=kw["updates_per_iteration"],
             root=root_path if root_path is not None else Path(DEFAULT_ROOT),
             connect=endpoints,
             namespace=kw["namespace"],
@@ -304,7 +323,7 @@ def summary_dict(result: Any) -> dict[str, Any]:
         "start_versions": dict(rows[0].active_versions) if rows else None,
         "final": fstats.to_dict() if fstats else None,
         "final_versions": dict(final.final_versions) if final is not None else None,
-        "gate": [{"iteration": r.iteration, **r.gate.to_dict()} for r in rows if r.gate is not None],
+        "gate": [{"iteration": r.iteration, **g.to_dict()} for r in rows for g in r.gates],
         "rollbacks": [rb for r in rows for rb in r.rollbacks],
         "wall_s": result.wall_s,
         "files": [str(f) for f in result.report_files],

@@ -13,6 +13,9 @@ gate thresholds                    min_n 4,       GateConfig.     GateConfig.
 monitor (window / min episodes)    6 / 3          20 / 8          50 / 20
 CEM population / iterations        2 / 1          6 / 3           8 / 5
 CEM episodes per candidate         1              2               4
+CEM min iterations / validation    1 / none       2 / top 2 x 4   2 / top 3 x 16
+ECMs learned per iteration         2 (chain)      one per task    one per task
+                                                  step (chain)    step (chain)
 neural learner budget              learner        learner         learner
                                    preset tiny    preset          preset paper
                                                   cpu-small
@@ -21,8 +24,9 @@ final evaluation (v0 seeds again)  yes            yes             yes
 
 Every learner budget (SAC steps, BC epochs, the CEM population, iterations and episodes per
 candidate) is :mod:`capevo.learner.presets`' preset of the same name, so an in-process update
-and a ``capevo learner serve --preset P`` worker spend the same. A cpu-small T1 iteration costs
-about 6 + 36 + 2 x 10 = 62 episodes.
+and a ``capevo learner serve --preset P`` worker spend the same. One cpu-small CEM update costs at
+most 6 x 3 x 2 + 2 x 4 = 44 training episodes (at least 6 x 2 x 2 + 8 = 32); a chained iteration
+spends that per ECM learned plus 2 x 10 gate episodes per candidate.
 
 Invariants:
 1. :func:`make_config` returns the registered preset of that name, or raises :class:`Invalid`
@@ -38,11 +42,14 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from capevo.errors import Invalid
 from capevo.runtime.gate import GateConfig
 from capevo.runtime.monitor import MonitorConfig
+
+if TYPE_CHECKING:
+    from capevo.learner.search import CemConfig
 
 MODALITIES: tuple[str, ...] = ("code", "rl", "il", "hybrid")
 """How candidates are learned: CEM over a code skill's parameters, SAC, behaviour cloning, or an
@@ -66,6 +73,11 @@ class CemSettings:
         iterations: CEM iterations at most.
         episodes_per_candidate: Training episodes per candidate.
         sigma_init: Initial standard deviation, in units of each parameter's scale.
+        validate_top: How many of the last CEM iteration's best candidates are validated.
+        validation_episodes: Extra training episodes for each of them (0: no validation); the
+            candidate is the best on all its episodes, not the luckiest of one small batch.
+        min_iterations: CEM iterations run before a search may stop early (its best candidate
+            got every episode past the ECM): one lucky batch of 2 episodes is not evidence.
 
     Raises:
         Invalid: a value out of range.
@@ -76,29 +88,49 @@ class CemSettings:
     iterations: int = 3
     episodes_per_candidate: int = 4
     sigma_init: float = 1.0
+    validate_top: int = 2
+    validation_episodes: int = 0
+    min_iterations: int = 1
 
     def __post_init__(self) -> None:
-        _int("cem.population", self.population, low=2, high=10_000)
-        _int("cem.iterations", self.iterations, low=1, high=10_000)
-        _int("cem.episodes_per_candidate", self.episodes_per_candidate, low=1, high=10_000)
-        for name in ("elite_frac", "sigma_init"):
-            v = getattr(self, name)
-            if (
-                isinstance(v, bool)
-                or not isinstance(v, (int, float))
-                or not 0 < v <= (1.0 if name == "elite_frac" else 100)
-            ):
-                raise Invalid(f"cem.{name} out of range: {v!r}", details={"field": f"cem.{name}"})
+        # the search's own checks, reported under this config's field names
+        try:
+            self.search_config()
+        except Invalid as exc:
+            name = f"cem.{exc.details.get('field', '')}"
+            raise Invalid(f"cem.{exc.message}", details={"field": name}) from None
+
+    def search_config(self, *, seed: int = 0) -> CemConfig:
+        """The :class:`~capevo.learner.search.CemConfig` one update searches with (sampler ``seed``).
+
+        Raises:
+            Invalid: a value out of range.
+        """
+        from capevo.learner.search import CemConfig
+
+        return CemConfig(
+            population=self.population,
+            elite_frac=self.elite_frac,
+            iterations=self.iterations,
+            episodes_per_candidate=self.episodes_per_candidate,
+            sigma_init=self.sigma_init,
+            validate_top=self.validate_top,
+            validation_episodes=self.validation_episodes,
+            min_iterations=min(self.min_iterations, self.iterations),
+            seed=seed,
+        )
 
     @property
     def train_seeds_per_update(self) -> int:
-        """Training seeds one search uses (each CEM iteration takes a fresh slice)."""
-        return self.iterations * self.episodes_per_candidate
+        """Training seeds one search uses (each CEM iteration takes a fresh slice, validation
+        another)."""
+        return self.iterations * self.episodes_per_candidate + self.validation_episodes
 
     @property
     def episodes_per_update(self) -> int:
         """Training episodes one search runs at most."""
-        return self.population * self.train_seeds_per_update
+        search = self.population * self.iterations * self.episodes_per_candidate
+        return search + min(self.validate_top, self.population) * self.validation_episodes
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -107,6 +139,9 @@ class CemSettings:
             "iterations": self.iterations,
             "episodes_per_candidate": self.episodes_per_candidate,
             "sigma_init": self.sigma_init,
+            "validate_top": self.validate_top,
+            "validation_episodes": self.validation_episodes,
+            "min_iterations": self.min_iterations,
         }
 
     @classmethod
@@ -144,6 +179,10 @@ class EvolveConfig:
         learner_preset: Name of the neural learners' budget (:mod:`capevo.learner.presets`).
         final_evaluation: After the last iteration, run the final capability set on the first
             iteration's live seeds (a paired start-vs-final comparison).
+        updates_per_iteration: How many ECMs one iteration may learn in sequence (a chain:
+            each is learned behind the previous ones' candidates, on the ECM where the previous
+            candidate's own training episodes still fail); 0 means as many as the task's
+            decomposition has steps, 1 is one ECM per iteration. Code modalities only.
 
     Raises:
         Invalid: a value out of range.
@@ -160,9 +199,11 @@ class EvolveConfig:
     cem: CemSettings = field(default_factory=CemSettings)
     learner_preset: str = "paper"
     final_evaluation: bool = True
+    updates_per_iteration: int = 1
 
     def __post_init__(self) -> None:
         _int("iterations", self.iterations, low=0, high=100_000)
+        _int("updates_per_iteration", self.updates_per_iteration, low=0, high=10_000)
         _int("live_episodes", self.live_episodes, low=1, high=10_000)
         _int("gate_episodes", self.gate_episodes, low=1, high=10_000)
         if self.horizon is not None:
@@ -205,6 +246,7 @@ class EvolveConfig:
             "cem": self.cem.to_dict(),
             "learner_preset": self.learner_preset,
             "final_evaluation": self.final_evaluation,
+            "updates_per_iteration": self.updates_per_iteration,
         }
 
     @classmethod
@@ -227,6 +269,7 @@ class EvolveConfig:
                 cem=CemSettings.from_dict(d.get("cem") or {}),
                 learner_preset=d.get("learner_preset", "paper"),
                 final_evaluation=bool(d.get("final_evaluation", True)),
+                updates_per_iteration=d.get("updates_per_iteration", 1),
             )
         except (KeyError, TypeError) as exc:
             raise Invalid(f"bad evolve config: {exc}", details={"field": "config"}) from None
@@ -285,6 +328,7 @@ def _tiny() -> EvolveConfig:
         monitor=MonitorConfig(window=6, min_episodes=3, margin=0.1),
         cem=CemSettings.of_learner_preset("tiny", elite_frac=0.5),
         learner_preset="tiny",
+        updates_per_iteration=2,
     )
 
 
@@ -297,8 +341,9 @@ def _cpu_small() -> EvolveConfig:
         gate_episodes=10,
         gate=GateConfig.cpu_small(),
         monitor=MonitorConfig.cpu_small(),
-        cem=CemSettings.of_learner_preset("cpu-small", elite_frac=0.34),
+        cem=CemSettings.of_learner_preset("cpu-small", elite_frac=0.34, validation_episodes=4, min_iterations=2),
         learner_preset="cpu-small",
+        updates_per_iteration=0,
     )
 
 
@@ -311,8 +356,9 @@ def _paper() -> EvolveConfig:
         gate_episodes=30,
         gate=GateConfig.standard(),
         monitor=MonitorConfig(),
-        cem=CemSettings.of_learner_preset("paper"),
+        cem=CemSettings.of_learner_preset("paper", validate_top=3, validation_episodes=16, min_iterations=2),
         learner_preset="paper",
+        updates_per_iteration=0,
     )
 
 

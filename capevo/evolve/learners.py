@@ -4,7 +4,9 @@ learner workers that publish candidates to the registry themselves.
 Modalities (registered with :func:`register_modality`, built with :func:`make_updater`):
 
 * ``code``: CEM over the chosen code ECM's ``PARAMS`` (:class:`~capevo.learner.search.CemSearch`),
-  candidates run unpublished in a private scratch registry; origin ``clone``.
+  candidates run unpublished in a private scratch registry; origin ``clone``. It runs behind an
+  update request's companions (the loop's chain) and returns the winner's own training episodes
+  as the proposal's experience.
 * ``hybrid``: an LLM edit (``CAPEVO_LLM_BASE_URL``) then CEM (:class:`~capevo.learner.hybrid.HybridLearner`);
   without an endpoint it is CEM alone (the note says so).
 * ``rl``: SAC warm-started from the active version (:class:`~capevo.learner.rl.SacLearner`); origin ``rl``.
@@ -57,7 +59,20 @@ class UpdateRequest:
     outcomes: tuple[EpisodeOutcome, ...]
     plan: SeedPlan
     seed: int
-    """The run's seed; learners seed their samplers with ``seed + iteration``."""
+    """The run's seed; learners seed their samplers with ``seed + slot``."""
+    companions: Mapping[str, bytes] = field(default_factory=dict)
+    """Candidates of other ECMs learned earlier in this iteration's chain (unpublished
+    artifacts by ECM name): the learner evaluates behind them."""
+    source: str | None = None
+    """Start from this source (an earlier candidate of the same ECM in the chain) instead of
+    the active version's."""
+    slot: int | None = None
+    """Which stretch of training seeds (and sampler seed) this update uses; distinct updates
+    of one run get distinct slots. Default: ``iteration``."""
+
+    @property
+    def seed_slot(self) -> int:
+        return self.iteration if self.slot is None else self.slot
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -72,6 +87,8 @@ class Proposal:
     steps: int = 0
     """Learner steps: environment steps (SAC), epochs (BC) or candidates evaluated (CEM)."""
     notes: Mapping[str, Any] = field(default_factory=dict)
+    experience: tuple[EpisodeOutcome, ...] = ()
+    """The candidate's own training episodes (traced), when the learner kept them."""
 
     def __post_init__(self) -> None:
         if (self.candidate is None) == (self.record is None):
@@ -145,6 +162,9 @@ def make_updater(modality: str, context: UpdaterContext) -> Updater:
 class CemUpdater:
     """``code`` (and, with an LLM endpoint, ``hybrid``) updates through CEM in a scratch registry."""
 
+    supports_companions = True
+    """It evaluates behind :attr:`UpdateRequest.companions` (so the loop may chain updates)."""
+
     def __init__(self, context: UpdaterContext, *, hybrid: bool = False) -> None:
         from capevo.learner.scratch import ScratchRegistryEvaluator
         from capevo.runtime.evaluator import LocalEvaluator
@@ -174,9 +194,16 @@ class CemUpdater:
         from capevo.learner.search import CemSearch
 
         cem = self.context.config.cem
-        train = request.plan.train(cem.train_seeds_per_update, offset=request.iteration * cem.train_seeds_per_update)
+        slot = request.seed_slot
+        train = request.plan.train(cem.train_seeds_per_update, offset=slot * cem.train_seeds_per_update)
         learn_request = request_for(
-            self.context.registry, request.task, request.ecm, train_seeds=train, outcomes=request.outcomes
+            self.context.registry,
+            request.task,
+            request.ecm,
+            train_seeds=train,
+            outcomes=request.outcomes,
+            companions={k: v for k, v in request.companions.items() if k != request.ecm},
+            source=request.source,
         )
         progress.learner_started(total=cem.episodes_per_update, unit="CEM episodes")
         episodes = 0
@@ -186,16 +213,7 @@ class CemUpdater:
             episodes += len(event.seeds)
             progress.learner_advance(len(event.seeds))
 
-        search = CemSearch(
-            self.scratch,
-            population=cem.population,
-            elite_frac=cem.elite_frac,
-            iterations=cem.iterations,
-            episodes_per_candidate=cem.episodes_per_candidate,
-            sigma_init=cem.sigma_init,
-            seed=request.seed + request.iteration,
-            progress=on_event,
-        )
+        search = CemSearch.from_config(self.scratch, cem.search_config(seed=request.seed + slot), progress=on_event)
         learner: Any = search
         if self.hybrid:
             learner = _hybrid(search, self.scratch)
@@ -212,6 +230,7 @@ class CemUpdater:
                 "train_baseline": candidate.baseline.to_dict() if candidate.baseline else None,
                 **({"fallback": notes["fallback"]} if "fallback" in notes else {}),
             },
+            experience=tuple(candidate.experience),
         )
 
     def close(self) -> None:

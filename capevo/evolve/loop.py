@@ -15,6 +15,15 @@ persistent agent A = (π_A, M_id, M_ep) stays fixed. Iteration i:
 3. **Update**: :func:`~capevo.learner.experience.pick_ecm_to_update` names the ECM where
    failed episodes most often ended; the updater of the modality learns a candidate on
    training seeds only; it is published (origin, parent and provenance from the learner).
+   **Chains** (``updates_per_iteration`` ≠ 1, code modalities): a task fails until *every*
+   step works, so one iteration may learn several ECMs in sequence. After each candidate, the
+   ECM its own training episodes still blame most is learned next, with the chain's earlier
+   candidates in place (companions); an ECM that still hands over in fewer than half of its
+   episodes sends the chain to its predecessor (the fault may be in the state it is handed).
+   The chain stops when the last candidate's episodes all succeed, at the limit, or when a
+   learner finds nothing better. Its candidates are published, then gated one by one in plan
+   order, each exactly like a single candidate except that the chain's later candidates still
+   waiting run on *both* sides of the pair (recorded in the evidence's capability sets).
    A candidate already waiting in the registry (published by a learner worker, or left by an
    interrupted run) is gated instead of learning another.
 4. **Gate**: :class:`~capevo.runtime.gate.Gate` runs the active and the candidate version on
@@ -58,7 +67,7 @@ from capevo.agent import EpisodeRecord, PersistentAgent
 from capevo.errors import CapevoError, Conflict, IdentityViolation, NotFound, Unavailable
 from capevo.evolve.config import NEURAL_MODALITIES, EvolveConfig
 from capevo.evolve.learners import Proposal, Updater, UpdateRequest, waiting_candidates
-from capevo.evolve.metrics import GateSummary, IterationMetrics, MetricsLog, outcome_stats
+from capevo.evolve.metrics import ChainUpdate, GateSummary, IterationMetrics, MetricsLog, outcome_stats
 from capevo.evolve.progress import ProgressSink, RecordingProgress
 from capevo.evolve.state import Journal, RunManifest, load_manifest, save_manifest
 from capevo.registry.api import Registry
@@ -75,6 +84,9 @@ ACTOR = "evolve"
 GATE_ACTOR = "evolve-gate"
 MONITOR_ACTOR = "evolve-monitor"
 TRACE_PHASES = ("live", "gate", "final")
+UPSTREAM_BELOW = 0.5
+"""A chain learns the predecessor of an ECM whose new version still hands over in fewer than
+this fraction of its own training episodes."""
 
 
 # --- version 0 ----------------------------------------------------------------------------
@@ -172,9 +184,13 @@ class PhaseEvaluator:
         self.progress = progress
         self.wait_for_worker_s = wait_for_worker_s
         self.phase = "live"
+        self.overlay: dict[str, int] = {}
+        """Versions run in place of the active ones unless ``versions`` names the ECM: while a
+        chain is gated, the candidates after the gated one (both sides of the pair run them)."""
         self._local = hasattr(inner, "trace_dir") and hasattr(inner, "progress")
 
     def evaluate(self, task: str, versions: Mapping[str, int], seeds: Sequence[int]) -> list[EpisodeOutcome]:
+        versions = {**self.overlay, **versions}
         if self._local:
             if self.trace_root is not None:
                 directory = self.trace_root / self.phase
@@ -437,6 +453,7 @@ class EvolutionLoop:
             learner_episodes=update.episodes,
             learner_steps=update.steps,
             gate=update.gate,
+            further=tuple(u.summary() for u in update.further),
             update_note=update.note,
             rollbacks=rollbacks,
             wall_live_s=wall_live,
@@ -453,36 +470,39 @@ class EvolutionLoop:
         decided = self.journal.last(i, "decided")
         if decided is not None:
             # The interrupted attempt got as far as the decision: read it back, do not redo it.
-            return _Update(
-                ecm=decided.get("ecm"),
-                version=decided.get("version"),
-                learner=decided.get("learner"),
-                episodes=int(decided.get("learner_episodes") or 0),
-                steps=int(decided.get("learner_steps") or 0),
-                gate=GateSummary.from_dict(decided["gate"]) if decided.get("gate") else None,
-                note=str(decided.get("note") or ""),
-            )
+            update = _Update.from_journal(decided)
+            update.further = [_Update.from_journal(d) for d in decided.get("further") or []]
+            return update
+        chain = self.journal.last(i, "chain")
+        if chain is not None:
+            members = list(chain["members"])
+            records = [self.registry.get_version(m["ecm"], int(m["version"])) for m in members]
+            note = "resumed: gating the chain the interrupted attempt published"
+            return self._finish(i, self._decide_chain(i, records, members, note=note))
         cand = self.journal.last(i, "candidate")
         if cand is not None:
             record = self.registry.get_version(cand["ecm"], int(cand["version"]))
-            return self._decide(
+            note = (
+                "resumed: gating the candidate the interrupted attempt published"
+                if record.state is State.CANDIDATE
+                else "resumed"
+            )
+            update = self._gate_one(
                 i,
                 record,
                 learner=cand.get("learner"),
                 episodes=cand.get("episodes", 0),
                 steps=cand.get("steps", 0),
-                note="resumed: gating the candidate the interrupted attempt published"
-                if record.state is State.CANDIDATE
-                else "resumed",
+                note=note,
             )
+            return self._finish(i, update)
         waiting = waiting_candidates(self.registry, self.spec.ecm_names)
         if waiting:
             record = waiting[0]
             learner = record.provenance.learner_id or f"published by {record.created_by}"
             self.journal.write("candidate", i, ecm=record.name, version=record.version, learner=learner, adopted=True)
-            return self._decide(
-                i, record, learner=learner, note=f"gated a waiting candidate published by {record.created_by}"
-            )
+            note = f"gated a waiting candidate published by {record.created_by}"
+            return self._finish(i, self._gate_one(i, record, learner=learner, note=note))
         from capevo.learner.experience import pick_ecm_to_update
 
         ecm = pick_ecm_to_update(list(outcomes), self.spec.ecm_names)
@@ -496,7 +516,13 @@ class EvolutionLoop:
             pick_note = f"no readable traces of the failed episodes; updating the first step {ecm}"
         self.progress.message(f"  learn: {ecm} with {self.updater.name}")
         request = UpdateRequest(
-            task=self.task, ecm=ecm, iteration=i, outcomes=tuple(outcomes), plan=self.plan, seed=self.manifest.seed
+            task=self.task,
+            ecm=ecm,
+            iteration=i,
+            outcomes=tuple(outcomes),
+            plan=self.plan,
+            seed=self.manifest.seed,
+            slot=i * self._chain_limit(),
         )
         try:
             proposal = self.updater.propose(request, self.progress)
@@ -521,6 +547,12 @@ class EvolutionLoop:
                     "no candidate published",
                 ),
             )
+        note = pick_note
+        if proposal.notes.get("fallback"):
+            note = (note + "; " if note else "") + f"fallback: {proposal.notes['fallback']}"
+        chain, chain_note, spent = self._extend_chain(i, ecm, proposal, outcomes)
+        if len(chain) > 1:
+            return self._publish_chain(i, chain, note="; ".join(n for n in (note, chain_note) if n), spent=spent)
         record = self._publish(proposal)
         self.journal.write(
             "candidate",
@@ -528,15 +560,190 @@ class EvolutionLoop:
             ecm=record.name,
             version=record.version,
             learner=proposal.learner,
-            episodes=proposal.episodes,
-            steps=proposal.steps,
+            episodes=proposal.episodes + spent[0],
+            steps=proposal.steps + spent[1],
         )
-        note = pick_note
-        if proposal.notes.get("fallback"):
-            note = (note + "; " if note else "") + f"fallback: {proposal.notes['fallback']}"
-        return self._decide(
-            i, record, learner=proposal.learner, episodes=proposal.episodes, steps=proposal.steps, note=note
+        note = "; ".join(n for n in (note, chain_note) if n)
+        update = self._gate_one(
+            i,
+            record,
+            learner=proposal.learner,
+            episodes=proposal.episodes + spent[0],
+            steps=proposal.steps + spent[1],
+            note=note,
         )
+        return self._finish(i, update)
+
+    # --- chains: several ECMs learned in one iteration ---------------------------------------
+
+    def _chain_limit(self) -> int:
+        """Most updates one iteration may learn (1 unless the updater can chain)."""
+        if not getattr(self.updater, "supports_companions", False):
+            return 1
+        return self.config.updates_per_iteration or len(self.spec.ecm_names)
+
+    def _extend_chain(
+        self, i: int, ecm: str, first: Proposal, outcomes: Sequence[EpisodeOutcome]
+    ) -> tuple[list[tuple[str, Proposal]], str, tuple[int, int]]:
+        """Learn the ECMs the latest candidate's own training episodes still fail on.
+
+        Each next ECM is :func:`~capevo.learner.experience.pick_ecm_to_update` over the previous
+        candidate's training episodes, learned behind every candidate of the chain so far
+        (companions); an ECM already in the chain is learned again from its chain candidate.
+        Exceptions: an ECM that governance had to stop (unsafe steps) in those episodes is learned
+        next, once per chain, even if they succeeded (safety ranks first in the search); when the
+        ECM just learned still hands over in fewer than
+        :data:`UPSTREAM_BELOW` of its own episodes, the fault may lie in the state it is handed
+        (a lift that drops an object the grasp barely holds), so its predecessor in the
+        decomposition is learned next (once per ECM and chain); so is the predecessor of an ECM
+        for which the learner found nothing better (once). The chain stops when those episodes
+        all succeeded, the limit is reached, or a learner brings nothing better twice.
+
+        Returns:
+            ``(ecm, proposal)`` per ECM in decomposition order (one per ECM, its latest
+            candidate), a note on why the chain stopped, and the (episodes, steps) the learner
+            spent on candidates the chain dropped.
+        """
+        from capevo.learner.experience import handover_rate, pick_ecm_to_update, unsafe_ecm
+
+        names = list(self.spec.ecm_names)
+        limit = self._chain_limit()
+        members: dict[str, Proposal] = {ecm: first}
+        latest, latest_ecm = first, ecm
+        went_upstream: set[str] = set()
+        made_safe: set[str] = set()
+        forced: str | None = None
+        dropped = (0, 0)
+        why = ""
+        for k in range(1, limit):
+            experience = list(latest.experience)
+            if not experience:
+                break
+            index = names.index(latest_ecm)
+            unsafe = unsafe_ecm(experience, names)
+            nxt: str | None
+            if forced is not None:
+                nxt, forced = forced, None
+            elif unsafe is not None and unsafe not in made_safe:
+                # the gate rejects a version that is unsafe more often: make that step safe first
+                made_safe.add(unsafe)
+                nxt = unsafe
+            elif all(o.success for o in experience):
+                why = "chain: the last candidate succeeded on all its training episodes"
+                break
+            elif (
+                index > 0
+                and latest_ecm not in went_upstream
+                and handover_rate(experience, names, latest_ecm) < UPSTREAM_BELOW
+            ):
+                went_upstream.add(latest_ecm)
+                nxt = names[index - 1]
+            else:
+                nxt = pick_ecm_to_update(experience, names)
+            if nxt is None:
+                break
+            companions = {e: p.candidate.artifact for e, p in members.items() if e != nxt and p.candidate is not None}
+            start = members.get(nxt)
+            source = start.candidate.source if start is not None and start.candidate is not None else None
+            self.progress.message(f"  learn: {nxt} with {self.updater.name} (chain step {k + 1})")
+            request = UpdateRequest(
+                task=self.task,
+                ecm=nxt,
+                iteration=i,
+                outcomes=tuple(outcomes),
+                plan=self.plan,
+                seed=self.manifest.seed,
+                companions=companions,
+                source=source,
+                slot=i * limit + k,
+            )
+            try:
+                proposal = self.updater.propose(request, self.progress)
+            except (IdentityViolation, KeyboardInterrupt):
+                raise
+            except CapevoError as exc:
+                log.warning("chain learner for %s failed: %s", nxt, exc)
+                why = f"chain stopped: learner for {nxt} failed: {exc}"
+                break
+            cand = proposal.candidate if proposal is not None else None
+            if proposal is None or cand is None:
+                why = f"chain stopped: no candidate for {nxt}"
+                break
+            unchanged = source.encode() == cand.artifact if source is not None else self._same_as_parent(proposal)
+            if unchanged or not cand.improved:
+                dropped = (dropped[0] + proposal.episodes, dropped[1] + proposal.steps)
+                where = names.index(nxt)
+                if where > 0 and nxt not in went_upstream:
+                    # nothing better for this step: the fault may be in what it is handed
+                    went_upstream.add(nxt)
+                    forced = names[where - 1]
+                    why = f"chain: {proposal.learner} found nothing better for {nxt}; tried {forced}"
+                    continue
+                why = f"chain stopped: {proposal.learner} found nothing better for {nxt}"
+                break
+            members[nxt] = proposal
+            latest, latest_ecm = proposal, nxt
+        chain = sorted(members.items(), key=lambda kv: names.index(kv[0]))
+        return chain, why, dropped
+
+    def _publish_chain(
+        self, i: int, chain: Sequence[tuple[str, Proposal]], *, note: str, spent: tuple[int, int] = (0, 0)
+    ) -> _Update:
+        members = []
+        records = []
+        for _, proposal in chain:
+            record = self._publish(proposal)
+            records.append(record)
+            members.append(
+                {
+                    "ecm": record.name,
+                    "version": record.version,
+                    "learner": proposal.learner,
+                    "episodes": proposal.episodes + (spent[0] if not members else 0),
+                    "steps": proposal.steps + (spent[1] if not members else 0),
+                }
+            )
+        # one durable record of the whole chain: a redone iteration gates exactly these
+        self.journal.write("chain", i, members=members)
+        return self._finish(i, self._decide_chain(i, records, members, note=note))
+
+    def _decide_chain(
+        self, i: int, records: Sequence[EcmVersion], members: Sequence[Mapping[str, Any]], *, note: str
+    ) -> _Update:
+        """Gate a chain's candidates in decomposition order.
+
+        Each is gated like a single candidate (active vs candidate, same held-out seeds), with
+        the chain's *later* candidates that are still candidates run on both sides of the
+        pair: a step's new version is judged behind the earlier steps as they now are (promoted
+        or not) and in front of the later steps' new versions, which it was learned with.
+        """
+        updates: list[_Update] = []
+        for k, record in enumerate(records):
+            later: dict[str, int] = {}
+            for r in records[k + 1 :]:
+                if self.registry.get_version(r.name, r.version).state is State.CANDIDATE:
+                    later[r.name] = r.version
+            current = self.registry.get_version(record.name, record.version)
+            self.evaluator.overlay = later
+            try:
+                update = self._gate_one(
+                    i,
+                    current,
+                    learner=members[k].get("learner"),
+                    episodes=int(members[k].get("episodes") or 0),
+                    steps=int(members[k].get("steps") or 0),
+                    note=(f"gated behind chain candidates {_versions_text(later)}" if later else ""),
+                )
+            finally:
+                self.evaluator.overlay = {}
+            updates.append(update)
+        first = updates[0]
+        first.note = "; ".join(n for n in (note, first.note) if n)
+        first.further = updates[1:]
+        first.episodes = sum(u.episodes for u in updates)
+        first.steps = sum(u.steps for u in updates)
+        first.gate_s = sum(u.gate_s for u in updates)
+        return first
 
     def _same_as_parent(self, proposal: Proposal) -> bool:
         cand = proposal.candidate
@@ -558,7 +765,7 @@ class EvolutionLoop:
         except TypeError:
             return self.registry.publish(cand.ecm, cand.artifact, cand.spec)
 
-    def _decide(
+    def _gate_one(
         self,
         i: int,
         record: EcmVersion,
@@ -586,7 +793,7 @@ class EvolutionLoop:
                 update.note = (
                     update.note + "; " if update.note else ""
                 ) + f"{record.state.value} without gate evidence"
-            return self._finish(i, update)
+            return update
         seeds = self.plan.gate(self.config.gate_episodes, round=i)
         try:
             self.registry.get_version(record.name)
@@ -601,10 +808,10 @@ class EvolutionLoop:
         except Conflict as exc:
             update.gate_s = time.perf_counter() - t
             update.note = (update.note + "; " if update.note else "") + f"gate conflict: {exc.message}"
-            return self._finish(i, update)
+            return update
         update.gate_s = time.perf_counter() - t
         update.gate = GateSummary.from_evidence(decision.evidence, reason=decision.reason)
-        return self._finish(i, update)
+        return update
 
     def _finish(self, i: int, update: _Update) -> _Update:
         self.journal.write(
@@ -617,6 +824,7 @@ class EvolutionLoop:
             learner_steps=update.steps,
             gate=update.gate.to_dict() if update.gate is not None else None,
             note=update.note,
+            further=[u.journal_fields() for u in update.further],
         )
         return update
 
@@ -674,6 +882,38 @@ class _Update:
     gate: GateSummary | None = None
     note: str = ""
     gate_s: float = 0.0
+    further: list[_Update] = field(default_factory=list)
+    """The later updates of a chain (the first one is this)."""
+
+    def journal_fields(self) -> dict[str, Any]:
+        return {
+            "ecm": self.ecm,
+            "version": self.version,
+            "learner": self.learner,
+            "learner_episodes": self.episodes,
+            "learner_steps": self.steps,
+            "gate": self.gate.to_dict() if self.gate is not None else None,
+            "note": self.note,
+        }
+
+    @classmethod
+    def from_journal(cls, d: Mapping[str, Any]) -> _Update:
+        return cls(
+            ecm=d.get("ecm"),
+            version=d.get("version"),
+            learner=d.get("learner"),
+            episodes=int(d.get("learner_episodes") or 0),
+            steps=int(d.get("learner_steps") or 0),
+            gate=GateSummary.from_dict(d["gate"]) if d.get("gate") else None,
+            note=str(d.get("note") or ""),
+        )
+
+    def summary(self) -> ChainUpdate:
+        return ChainUpdate(ecm=self.ecm, version=self.version, learner=self.learner, gate=self.gate, note=self.note)
+
+
+def _versions_text(versions: Mapping[str, int]) -> str:
+    return ", ".join(f"{k} v{v}" for k, v in versions.items())
 
 
 def _fields(result: EvolveResult) -> dict[str, Any]:

@@ -265,6 +265,36 @@ class GateSummary:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class ChainUpdate:
+    """A later update of an iteration that learned several ECMs in sequence (a chain)."""
+
+    ecm: str | None
+    version: int | None = None
+    learner: str | None = None
+    gate: GateSummary | None = None
+    note: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "ecm": self.ecm,
+            "version": self.version,
+            "learner": self.learner,
+            "gate": self.gate.to_dict() if self.gate is not None else None,
+            "note": self.note,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> ChainUpdate:
+        return cls(
+            ecm=d.get("ecm"),
+            version=d.get("version"),
+            learner=d.get("learner"),
+            gate=GateSummary.from_dict(d["gate"]) if d.get("gate") else None,
+            note=str(d.get("note") or ""),
+        )
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class IterationMetrics:
     """One finished closed-loop iteration."""
 
@@ -286,6 +316,9 @@ class IterationMetrics:
     learner_episodes: int = 0
     learner_steps: int = 0
     gate: GateSummary | None = None
+    further: tuple[ChainUpdate, ...] = ()
+    """The chain's later updates, when the iteration learned several ECMs (``ecm_updated``,
+    ``candidate_version`` and ``gate`` are the first one's)."""
     update_note: str = ""
     """Why there was no candidate (no failures, learner error, ...), or where it came from."""
     rollbacks: tuple[Mapping[str, Any], ...] = ()
@@ -298,6 +331,12 @@ class IterationMetrics:
     @property
     def gate_decision(self) -> str:
         return self.gate.decision if self.gate is not None else "none"
+
+    @property
+    def gates(self) -> tuple[GateSummary, ...]:
+        """Every gate decision of the iteration, in order (the first update's, then the chain's)."""
+        first = (self.gate,) if self.gate is not None else ()
+        return first + tuple(u.gate for u in self.further if u.gate is not None)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -316,6 +355,7 @@ class IterationMetrics:
             "learner_episodes": self.learner_episodes,
             "learner_steps": self.learner_steps,
             "gate": self.gate.to_dict() if self.gate is not None else None,
+            "further": [u.to_dict() for u in self.further],
             "update_note": self.update_note,
             "rollbacks": [dict(r) for r in self.rollbacks],
             "wall_live_s": self.wall_live_s,
@@ -349,6 +389,7 @@ class IterationMetrics:
                 learner_episodes=int(d.get("learner_episodes") or 0),
                 learner_steps=int(d.get("learner_steps") or 0),
                 gate=GateSummary.from_dict(d["gate"]) if d.get("gate") else None,
+                further=tuple(ChainUpdate.from_dict(u) for u in d.get("further") or ()),
                 update_note=str(d.get("update_note") or ""),
                 rollbacks=tuple(dict(r) for r in d.get("rollbacks") or ()),
                 wall_live_s=float(d.get("wall_live_s") or 0.0),
@@ -577,6 +618,7 @@ def read_metrics(directory: str | os.PathLike[str]) -> list[IterationMetrics]:
 
 __all__ = [
     "CSV_COLUMNS",
+    "ChainUpdate",
     "GateSummary",
     "IterationMetrics",
     "MetricsLog",

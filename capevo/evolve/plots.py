@@ -99,7 +99,10 @@ def plot_progress(
         for r in rows:
             if r.gate is None:
                 continue
-            marker, color, label = _DECISION_STYLE.get(r.gate.decision, ("o", "gray", r.gate.decision))
+            # a chain's decisions share one marker: promoted if any of them was
+            decisions = [g.decision for g in r.gates]
+            decision = "promote" if "promote" in decisions else r.gate.decision
+            marker, color, label = _DECISION_STYLE.get(decision, ("o", "gray", decision))
             ax_s.scatter(
                 [r.iteration],
                 [1.07],
@@ -112,7 +115,8 @@ def plot_progress(
             )
             seen.add(label)
             ax_s.annotate(
-                f"{r.gate.ecm.split('.', 1)[-1]} v{r.gate.candidate_version}",
+                f"{r.gate.ecm.split('.', 1)[-1]} v{r.gate.candidate_version}"
+                + (f" +{len(r.further)}" if r.further else ""),
                 (r.iteration, 1.07),
                 textcoords="offset points",
                 xytext=(0, 7),

@@ -317,8 +317,8 @@ def _markdown(
                 "start's."
             )
         add("")
-        promoted = [r for r in rows if r.gate is not None and r.gate.decision == "promote"]
-        rejected = [r for r in rows if r.gate is not None and r.gate.decision == "reject"]
+        promoted = [g for r in rows for g in r.gates if g.decision == "promote"]
+        rejected = [g for r in rows for g in r.gates if g.decision == "reject"]
         rollbacks = [rb for r in rows for rb in r.rollbacks]
         add(
             f"Gate: {len(promoted)} promoted, {len(rejected)} rejected; monitor rollbacks: {len(rollbacks)}. "
@@ -350,12 +350,13 @@ def _markdown(
         add("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
         for r in rows:
             s = r.live
-            gate = r.gate.decision if r.gate else (r.update_note or "-")
+            gate = ", ".join(g.decision for g in r.gates) if r.gates else (r.update_note or "-")
             upd = (
                 f"`{r.ecm_updated}` v{r.candidate_version}"
                 if r.candidate_version is not None
                 else (f"`{r.ecm_updated}`" if r.ecm_updated else "-")
             )
+            upd += "".join(f", `{u.ecm}` v{u.version}" for u in r.further)
             add(
                 f"| {r.iteration} | {_versions(r.active_versions)} | {_rate(s)} | {s.reward_mean:.2f} | "
                 f"{s.reward_var:.2f} | {r.delta_pi:g} | {s.interventions} | {s.unsafe_steps} | {s.ecm_failures} | "
@@ -366,16 +367,14 @@ def _markdown(
         add("")
     add("## Gate decisions")
     add("")
-    gated = [r for r in rows if r.gate is not None]
+    gated = [(r, g) for r in rows for g in r.gates]
     if gated:
         add(
             "| it | candidate | vs | mode | N | candidate success | active success | difference | McNemar p "
             "| non-inferiority p | Wilcoxon p | decision | failed checks |"
         )
         add("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-        for r in gated:
-            gs = r.gate
-            assert gs is not None
+        for r, gs in gated:
             cand = f"{gs.candidate_successes}/{gs.n} {_ci(gs.candidate_low, gs.candidate_high)}"
             act = (
                 "-"

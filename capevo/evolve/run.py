@@ -53,6 +53,10 @@ class EvolveOptions:
         task: Task id or name (``T1``, ``pick``, ...).
         preset: Budget preset (:func:`capevo.evolve.config.make_config`).
         iterations: Overrides the preset's number of iterations.
+        live_episodes: Overrides the preset's live episodes per iteration (iteration 0's are
+            also the final evaluation's seeds).
+        updates_per_iteration: Overrides how many ECMs one iteration may learn in sequence
+            (0: one per decomposition step).
         root: Local registry directory (embedded mode).
         connect: Zenoh endpoints of a registry server (connect mode); overrides ``root``.
         namespace, user, password, timeout: Zenoh registry client settings.
@@ -71,6 +75,8 @@ class EvolveOptions:
     task: str
     preset: str = "cpu-small"
     iterations: int | None = None
+    live_episodes: int | None = None
+    updates_per_iteration: int | None = None
     root: Path = DEFAULT_ROOT
     connect: tuple[str, ...] = ()
     namespace: str = "capevo"
@@ -115,9 +121,15 @@ class EvolveOptions:
         return self.report_dir if self.report_dir is not None else DEFAULT_REPORTS / task_spec(self.task).name
 
     def resolved_config(self) -> EvolveConfig:
+        changes = {
+            "iterations": self.iterations,
+            "live_episodes": self.live_episodes,
+            "updates_per_iteration": self.updates_per_iteration,
+        }
+        changes = {k: v for k, v in changes.items() if v is not None}
         if self.config is not None:
-            return self.config if self.iterations is None else self.config.replace(iterations=self.iterations)
-        return make_config(self.preset, iterations=self.iterations)
+            return self.config.replace(**changes) if changes else self.config
+        return make_config(self.preset, **changes)
 
     def registry_where(self) -> str:
         return ",".join(self.connect) if self.connect else str(Path(self.root).resolve())

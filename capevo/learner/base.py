@@ -105,6 +105,9 @@ class LearnRequest:
         versions: Versions of the task's other ECMs to evaluate with (empty: active ones).
         train_seeds: Seeds learners may evaluate on; disjoint from gate and test seeds.
         outcomes: Recent episodes (with traces) that motivated the request.
+        companions: Unpublished artifacts of *other* ECMs of the task (by name) that every
+            evaluation runs in place of their versions: the candidates learned earlier in the
+            same update, so a later step is tuned behind the earlier steps' new versions.
     """
 
     task: str
@@ -114,6 +117,13 @@ class LearnRequest:
     versions: Mapping[str, int] = field(default_factory=dict)
     train_seeds: tuple[int, ...] = ()
     outcomes: tuple[EpisodeOutcome, ...] = ()
+    companions: Mapping[str, bytes] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.ecm in self.companions:
+            raise Invalid(
+                f"{self.ecm} is the ECM being learned; it cannot also be a companion", details={"field": "companions"}
+            )
 
     @property
     def decomposition(self) -> tuple[str, ...]:
@@ -128,8 +138,14 @@ def request_for(
     train_seeds: Sequence[int],
     outcomes: Sequence[EpisodeOutcome] = (),
     version: int | None = None,
+    companions: Mapping[str, bytes] | None = None,
+    source: str | None = None,
 ) -> LearnRequest:
     """A :class:`LearnRequest` for ``ecm`` at ``version`` (default: active) from ``registry``.
+
+    ``companions`` are other ECMs' unpublished artifacts to evaluate with (see
+    :class:`LearnRequest`); ``source`` replaces the parent's source as the starting point (an
+    earlier, unpublished candidate of the same ECM), the parent record staying ``version``.
 
     Raises:
         Invalid: ``ecm`` is not in the task's decomposition or is not a code ECM.
@@ -143,7 +159,8 @@ def request_for(
     record = registry.get_version(ecm, version)
     if record.kind is not Kind.CODE:
         raise Invalid(f"{ecm}@{record.version} is a {record.kind.value} ECM; code learners need code")
-    source = registry.get_artifact(ecm, record.version).decode("utf-8")
+    if source is None:
+        source = registry.get_artifact(ecm, record.version).decode("utf-8")
     return LearnRequest(
         task=spec.name,
         ecm=ecm,
@@ -151,6 +168,7 @@ def request_for(
         source=source,
         train_seeds=tuple(train_seeds),
         outcomes=tuple(outcomes),
+        companions=dict(companions or {}),
     )
 
 
@@ -165,6 +183,8 @@ class Candidate:
         score: Its score on the training seeds, when the learner evaluated it.
         baseline: The parent's score on the same seeds, when evaluated.
         notes: Learner-specific details (parameters found, LLM attempts, fallbacks).
+        experience: The training episodes (traced) the candidate itself ran, when the learner
+            kept them: where they still fail says which ECM to learn next.
     """
 
     ecm: str
@@ -173,6 +193,7 @@ class Candidate:
     score: Score | None = None
     baseline: Score | None = None
     notes: Mapping[str, Any] = field(default_factory=dict)
+    experience: tuple[EpisodeOutcome, ...] = ()
 
     @property
     def source(self) -> str:

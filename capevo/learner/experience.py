@@ -13,9 +13,14 @@ Invariants:
    trace; otherwise the ECM of the decomposition with the largest blame, ties going to the
    earliest step (fix upstream first). Each failed episode spreads a blame of 1 equally over
    its failed activations: those that did not hand over to a later step (re-planned back,
-   or still running when the episode ended).
+   or still running when the episode ended; at the horizon, a step that spent more than
+   HOG_SHARE of the episode in one activation instead of the last one).
 3. :func:`progress` is 1.0 for a successful episode and ``k / n`` otherwise, ``k`` the index
    of the furthest decomposition step the episode started (0 when none).
+5. ``EpisodeEnd.ecm_unsafe`` attributes each non-rescaling intervention to the ECM whose call
+   produced that step's action ("" when no call is traced for the step).
+4. :func:`handover_rate` counts an episode when it succeeded or its plan started a step after
+   the judged one; it is monotone in those episodes and in [0, 1].
 """
 
 from __future__ import annotations
@@ -30,10 +35,16 @@ from capevo.errors import CapevoError
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.traces import EcmInvocation, EpisodeSummary, PlanStep, TraceReader
 from capevo.runtime.traces import Outcome as CallOutcome
+from capevo.runtime.traces.records import Intervention
 
 MAX_ERRORS_KEPT = 5
+HOG_SHARE = 0.5
+"""An episode that ran out of time blames a step that spent more than this share of it."""
 """Error texts kept per episode (the first ones)."""
-_TOPICS = (PlanStep.TOPIC, EcmInvocation.TOPIC, EpisodeSummary.TOPIC)
+_TOPICS = (PlanStep.TOPIC, EcmInvocation.TOPIC, EpisodeSummary.TOPIC, Intervention.TOPIC)
+RESCALING_CONSTRAINTS = frozenset({"velocity_cap"})
+"""Governance constraints that only scale an action down (the step stays within Φ); every other
+intervention marks a step the envelope had to stop (contact force, workspace, ...)."""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -57,6 +68,11 @@ class EpisodeEnd:
     last_inputs: Mapping[str, tuple[float, ...]] = field(default_factory=dict)
     """Per ECM, the flat input state of its last call (a real observation for smoke runs)."""
     trace_path: str | None = None
+    ecm_steps: Mapping[str, int] = field(default_factory=dict)
+    """Per ECM, how many calls (environment steps) it made in the episode."""
+    ecm_unsafe: Mapping[str, int] = field(default_factory=dict)
+    """Per ECM, governance interventions (other than :data:`RESCALING_CONSTRAINTS`) on steps it
+    was running: where unsafe steps came from."""
 
 
 def read_episode_ends(path: str | os.PathLike[str]) -> list[EpisodeEnd]:
@@ -70,6 +86,9 @@ def read_episode_ends(path: str | os.PathLike[str]) -> list[EpisodeEnd]:
     budget: dict[int, list[str]] = {}
     errors: dict[int, list[str]] = {}
     inputs: dict[int, dict[str, tuple[float, ...]]] = {}
+    calls: dict[int, Counter[str]] = {}
+    step_ecm: dict[tuple[int, int], str] = {}
+    stops: dict[int, list[int]] = {}
     out: list[EpisodeEnd] = []
     reader = TraceReader(path, allow_incomplete=True)
     for rec in reader.records(_TOPICS):
@@ -81,12 +100,17 @@ def read_episode_ends(path: str | os.PathLike[str]) -> list[EpisodeEnd]:
                 ends[ep] = rec.reason
         elif isinstance(rec, EcmInvocation):
             inputs.setdefault(ep, {})[rec.ecm] = rec.input_state
+            calls.setdefault(ep, Counter())[rec.ecm] += 1
+            step_ecm[(ep, rec.step)] = rec.ecm
             if rec.outcome is CallOutcome.BUDGET_EXHAUSTED:
                 budget.setdefault(ep, []).append(rec.ecm)
-            elif rec.outcome is not CallOutcome.OK:
+            elif rec.outcome not in (CallOutcome.OK, CallOutcome.TERMINATED):
                 kept = errors.setdefault(ep, [])
                 if len(kept) < MAX_ERRORS_KEPT:
                     kept.append(f"{rec.ecm}: {rec.outcome.value}: {rec.error or ''}".strip())
+        elif isinstance(rec, Intervention):
+            if rec.constraint not in RESCALING_CONSTRAINTS:
+                stops.setdefault(ep, []).append(rec.step)
         elif isinstance(rec, EpisodeSummary):
             plan = tuple(plans.get(ep, ()))
             reason = ends.get(ep) or ("success" if rec.success else "horizon")
@@ -103,6 +127,8 @@ def read_episode_ends(path: str | os.PathLike[str]) -> list[EpisodeEnd]:
                     errors=tuple(errors.get(ep, ())),
                     last_inputs=dict(inputs.get(ep, {})),
                     trace_path=str(Path(path)),
+                    ecm_steps=dict(calls.get(ep, {})),
+                    ecm_unsafe=dict(Counter(step_ecm.get((ep, st), "") for st in stops.get(ep, ()))),
                 )
             )
     return out
@@ -153,6 +179,10 @@ def failed_activations(end: EpisodeEnd, decomposition: Sequence[str]) -> list[st
     A jump forward (later steps already done) is a hand-over. ECMs outside the decomposition
     are skipped (not judged, and not a hand-over). A failed episode that started no step
     blames the first step.
+
+    Out of time: when the episode ended at the horizon and one step, started once, spent more
+    than :data:`HOG_SHARE` of its steps, that step, not the one the clock happened to stop,
+    takes the last activation's blame (a slow reach leaves the lift no time).
     """
     steps = list(decomposition)
     if end.success or not steps:
@@ -162,6 +192,13 @@ def failed_activations(end: EpisodeEnd, decomposition: Sequence[str]) -> list[st
     for i, ecm in enumerate(plan):
         if i + 1 == len(plan) or steps.index(plan[i + 1]) <= steps.index(ecm):
             out.append(ecm)
+    spent = {k: v for k, v in end.ecm_steps.items() if k in steps}
+    if out and end.end_reason == "horizon" and spent and end.steps > 0:
+        hog = max(spent, key=lambda k: (spent[k], -steps.index(k)))
+        # one activation spent it: a step re-planned back to many times is slow because a
+        # later step keeps failing, which the plan rule already blames
+        if spent[hog] > HOG_SHARE * end.steps and plan.count(hog) == 1:
+            out[-1] = hog
     return out or [steps[0]]
 
 
@@ -199,6 +236,52 @@ def pick_ecm_to_update(
         return None
     order = list(decomposition)
     return max(weights, key=lambda name: (weights[name], -order.index(name)))
+
+
+def handover_rate(
+    outcomes: Sequence[EpisodeOutcome],
+    decomposition: Sequence[str],
+    ecm: str,
+    *,
+    ends: Sequence[EpisodeEnd] | None = None,
+) -> float:
+    """Fraction of ``outcomes`` that succeeded or started a step after ``ecm`` (see invariant 4).
+
+    Args:
+        outcomes: Episodes (their traces are read unless ``ends`` is given).
+        decomposition: The task's ECM names in plan order.
+        ecm: The step judged; outside the decomposition only successes count.
+        ends: Already-read episode ends of ``outcomes`` (matched by seed, in order).
+
+    Returns:
+        A rate in [0, 1]; 0.0 for no outcomes.
+    """
+    if not outcomes:
+        return 0.0
+    steps = list(decomposition)
+    later = set(steps[steps.index(ecm) + 1 :]) if ecm in steps else set()
+    by_seed: dict[int | None, list[EpisodeEnd]] = {}
+    for e in ends if ends is not None else episode_ends(outcomes):
+        by_seed.setdefault(e.seed, []).append(e)
+    n = 0
+    for o in outcomes:
+        matches = by_seed.get(o.seed)
+        end = matches.pop(0) if matches else None
+        if o.success or (end is not None and later.intersection(end.plan)):
+            n += 1
+    return n / len(outcomes)
+
+
+def unsafe_ecm(evidence: Sequence[EpisodeOutcome] | Sequence[EpisodeEnd], decomposition: Sequence[str]) -> str | None:
+    """The ECM of ``decomposition`` with unsafe (stopped) steps in the most episodes, ties to the
+    earliest step; None when no episode had one (see ``EpisodeEnd.ecm_unsafe``)."""
+    counts: Counter[str] = Counter()
+    for e in _ends(evidence):
+        counts.update(name for name, n in e.ecm_unsafe.items() if n > 0 and name in decomposition)
+    if not counts:
+        return None
+    order = list(decomposition)
+    return max(counts, key=lambda name: (counts[name], -order.index(name)))
 
 
 def progress(end: EpisodeEnd, decomposition: Sequence[str]) -> float:

@@ -55,6 +55,7 @@ class HybridLearner:
             score=cand.score,
             baseline=cand.baseline,
             notes={**cand.notes, "fallback": why},
+            experience=cand.experience,
         )
 
     def learn(self, request: LearnRequest) -> Candidate:
@@ -95,4 +96,5 @@ class HybridLearner:
                 "iterations_run": result.iterations_run,
                 "episodes_run": result.episodes_run,
             },
+            experience=result.experience,
         )

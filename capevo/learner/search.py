@@ -4,18 +4,26 @@ Given a :class:`~capevo.learner.base.LearnRequest`, :class:`CemSearch` keeps the
 and searches its numeric parameters θ: each iteration samples a population of θ from a
 diagonal Gaussian, runs every candidate (unpublished, through a
 :class:`~capevo.learner.base.CandidateEvaluator`) on the same few training seeds with the
-task's other ECMs at their versions, ranks them (success rate; then the fraction of episodes
-that got past the tuned ECM; then progress through the decomposition and reward per step, see
-:mod:`capevo.learner.base`), and refits the Gaussian (smoothed) to the elite fraction. It
-stops early once the best candidate gets every episode past the ECM. The last iteration's
+task's other ECMs at their versions (or, for the request's *companions*, the unpublished
+candidates learned before it in the same update), ranks them (safety: the fraction of
+episodes where governance stopped a step of the tuned ECM; then success rate; then the fraction
+of episodes that got past the tuned ECM; then progress through the decomposition; then speed,
+fewer steps spent in the tuned ECM, since a slow step leaves later steps short of the horizon;
+then reward per step), and refits the Gaussian (smoothed) to the elite fraction. It stops
+early, after ``min_iterations``, once the best candidate gets every episode past the ECM. The last iteration's
 best few are then validated on fresh training seeds and the best on all their episodes wins.
-The candidate is the parent's source with only the ``PARAMS`` literal rewritten
-(:func:`~capevo.runtime.ecm.code.with_params`).
+The candidate is the parent's source (or the request's starting source) with only the
+``PARAMS`` literal rewritten (:func:`~capevo.runtime.ecm.code.with_params`); its own episodes
+are kept as the candidate's ``experience`` (where they still fail says what to learn next).
 
-Search space: each parameter is searched in units of its *scale*, ``max(|v0|, floor)`` (v0
-its value in the parent), within ``v0 ± spread · scale``; a parameter whose parent value is
-positive stays ≥ 0 and a negative one ≤ 0 (gains, heights and widths keep their sign).
-Explicit ``bounds`` override this per parameter.
+Search space: a parameter the skill gives a plausible span in its ``PARAM_RANGES`` literal
+(``{name: (low, high)}``, or ``(low, high, "log")`` for gains and other positive factors,
+written by hand with the skill, read here without running it) is searched within that span in
+units of a quarter of its width (of its log width on a log scale). Any other parameter is searched
+in units of its *scale*, ``max(|v0|, floor)`` (v0 its value in the parent), within
+``v0 ± spread · scale``; a parameter whose parent value is positive stays ≥ 0 and a negative
+one ≤ 0 (gains, heights and widths keep their sign). Explicit ``bounds`` override both (the
+scale then stays the automatic one).
 
 Which ECM: :func:`~capevo.learner.experience.pick_ecm_to_update` reads recent traces and
 names the step that failed episodes blame most: the steps that did not hand over to a later
@@ -38,6 +46,7 @@ Invariants:
 
 from __future__ import annotations
 
+import ast
 import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
@@ -48,7 +57,7 @@ import numpy as np
 
 from capevo.errors import Invalid
 from capevo.learner.base import Candidate, CandidateEvaluator, LearnRequest, Score, config_hash, score_outcomes
-from capevo.learner.experience import EpisodeEnd, episode_ends, pick_ecm_to_update, trace_paths
+from capevo.learner.experience import EpisodeEnd, episode_ends, handover_rate, pick_ecm_to_update, trace_paths
 from capevo.registry.records import Origin, Provenance, PublishSpec
 from capevo.runtime.ecm.code import read_params, with_params
 
@@ -60,10 +69,12 @@ __all__ = [
     "CemEvent",
     "CemResult",
     "CemSearch",
+    "ParamRange",
     "ParamSpace",
     "cem_preset",
     "param_space",
     "pick_ecm_to_update",
+    "read_ranges",
 ]
 
 
@@ -210,13 +221,18 @@ def cem_preset(name: str) -> CemConfig:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ParamSpace:
-    """The searched parameters: θ = x0 + scale · z, clipped to [low, high]."""
+    """The searched parameters: u = x0 + scale · z, clipped to [low, high]; θ = u, or exp(u)
+    for a parameter searched on a log scale (x0, scale, low and high are then in log units)."""
 
     names: tuple[str, ...]
     x0: tuple[float, ...]
     scale: tuple[float, ...]
     low: tuple[float, ...]
     high: tuple[float, ...]
+    log: tuple[bool, ...] = ()
+    """Per parameter: searched on a log scale (empty: none is)."""
+    v0: tuple[float, ...] = ()
+    """θ at z = 0, exactly (exp(log v) need not round-trip); empty: x0."""
 
     @property
     def dim(self) -> int:
@@ -230,7 +246,83 @@ class ParamSpace:
     def params(self, z: np.ndarray) -> dict[str, float]:
         """θ for normalized point ``z`` (clipped into the box)."""
         theta = np.clip(np.array(self.x0) + np.array(self.scale) * np.asarray(z, dtype=np.float64), self.low, self.high)
+        if any(self.log):
+            theta = np.where(np.array(self.log), np.exp(theta), theta)
+            if self.v0:
+                theta = np.where(np.asarray(z, dtype=np.float64) == 0.0, np.array(self.v0), theta)
         return {n: float(v) for n, v in zip(self.names, theta.tolist(), strict=True)}
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ParamRange:
+    """A span a skill declares plausible for one parameter (``PARAM_RANGES``)."""
+
+    low: float
+    high: float
+    log: bool = False
+    """Search on a log scale (gains and other positive factors: doubling matters, not +1)."""
+
+
+RANGE_UNITS = 4.0
+"""A declared range is searched in units of its width / RANGE_UNITS."""
+RANGES_NAME = "PARAM_RANGES"
+
+
+def read_ranges(source: str, *, filename: str = "<skill>") -> dict[str, ParamRange]:
+    """The skill's ``PARAM_RANGES`` literal, read without running it.
+
+    Each entry is ``name: (low, high)`` or ``name: (low, high, "log")`` (searched on a log
+    scale; needs 0 < low).
+
+    Returns:
+        The ranges; empty when the skill declares none.
+
+    Raises:
+        Invalid: not valid Python, or ``PARAM_RANGES`` is not such a literal dict of finite
+            bounds with low < high.
+    """
+    try:
+        tree = ast.parse(source, filename=filename)
+    except SyntaxError as exc:
+        raise Invalid(f"{filename}: not valid Python: {exc.msg} (line {exc.lineno})") from None
+    node = next(
+        (
+            n
+            for n in tree.body
+            if isinstance(n, ast.Assign) and any(isinstance(t, ast.Name) and t.id == RANGES_NAME for t in n.targets)
+        ),
+        None,
+    )
+    if node is None:
+        return {}
+    try:
+        value = ast.literal_eval(node.value)
+    except (ValueError, TypeError, SyntaxError, RecursionError, MemoryError) as exc:
+        raise Invalid(f"{filename}: line {node.lineno}: {RANGES_NAME} must be a literal dict: {exc}") from None
+    out: dict[str, ParamRange] = {}
+    ok = isinstance(value, dict)
+    for k, v in value.items() if ok else ():
+        entry = tuple(v) if isinstance(v, (tuple, list)) else ()
+        pair, flag = entry[:2], entry[2:]
+        log = flag == ("log",)
+        if (
+            not isinstance(k, str)
+            or len(pair) != 2
+            or flag not in ((), ("log",))
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in pair)
+            or not pair[0] < pair[1]
+            or (log and pair[0] <= 0)
+        ):
+            ok = False
+            break
+        out[k] = ParamRange(low=float(pair[0]), high=float(pair[1]), log=log)
+    if not ok:
+        raise Invalid(
+            f"{filename}: line {node.lineno}: {RANGES_NAME} must map names to finite (low, high) or "
+            '(low, high, "log") with low < high (and 0 < low on a log scale)',
+            details={"field": RANGES_NAME},
+        )
+    return out
 
 
 def param_space(
@@ -240,6 +332,7 @@ def param_space(
     floor: float = 0.01,
     keys: Sequence[str] | None = None,
     bounds: Sequence[tuple[str, float, float]] = (),
+    ranges: Mapping[str, ParamRange] | None = None,
 ) -> ParamSpace:
     """The search box around ``params`` (see the module docstring).
 
@@ -255,11 +348,13 @@ def param_space(
     if not names:
         raise Invalid("nothing to search: the skill declares no PARAMS (or keys is empty)", details={"field": "keys"})
     explicit = {b[0]: (float(b[1]), float(b[2])) for b in bounds}
-    x0, scale, low, high = [], [], [], []
+    declared = dict(ranges or {})
+    x0, scale, low, high, log, v0 = [], [], [], [], [], []
     for n in names:
         v = float(params[n])
         s = max(abs(v), floor)
         lo, hi = v - spread * s, v + spread * s
+        on_log = False
         if v > 0:
             lo = max(lo, 0.0)
         elif v < 0:
@@ -267,11 +362,24 @@ def param_space(
         if n in explicit:
             lo, hi = explicit[n]
             v = min(max(v, lo), hi)
+        elif n in declared:
+            r = declared[n]
+            lo, hi, on_log = r.low, r.high, r.log
+            v = min(max(v, lo), hi)
+            if on_log:
+                v0.append(v)
+                lo, hi, v = math.log(lo), math.log(hi), math.log(v)
+            s = (hi - lo) / RANGE_UNITS
         x0.append(v)
         scale.append(s)
         low.append(lo)
         high.append(hi)
-    return ParamSpace(names=names, x0=tuple(x0), scale=tuple(scale), low=tuple(low), high=tuple(high))
+        log.append(on_log)
+        if not on_log:
+            v0.append(v)
+    return ParamSpace(
+        names=names, x0=tuple(x0), scale=tuple(scale), low=tuple(low), high=tuple(high), log=tuple(log), v0=tuple(v0)
+    )
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -310,6 +418,8 @@ class CemResult:
     iterations_run: int
     episodes_run: int
     history: tuple[CemEvent, ...] = field(default_factory=tuple)
+    experience: tuple[Any, ...] = ()
+    """The best candidate's own episodes (iteration and validation), with their traces."""
 
 
 @dataclass(slots=True)
@@ -322,10 +432,19 @@ class _Finalist:
     score: Score
     passed: float
 
-    def rank(self) -> tuple[float, float, float, float]:
-        """Success, then how often the tuned ECM handed over, then progress, then reward."""
+    steps: float = 0.0
+    """Mean environment steps per episode spent in the tuned ECM."""
+    unsafe: float = 0.0
+    """Fraction of episodes where governance had to stop a step of the tuned ECM."""
+
+    def rank(self) -> tuple[float, float, float, float, float, float]:
+        """Safety first (the gate rejects a version that is unsafe more often), then success,
+        then how often the tuned ECM handed over, then progress, then speed (fewer steps in the
+        tuned ECM: what it spends, later steps lack before the horizon; only among candidates
+        that handed over at all, a step that gives up early is not fast), then reward."""
         s = self.score
-        return (s.success_rate, self.passed, s.progress, s.reward_per_step)
+        speed = -self.steps if self.passed > 0 else 0.0
+        return (-self.unsafe, s.success_rate, self.passed, s.progress, speed, s.reward_per_step)
 
 
 def _validation_seeds(seeds: Sequence[int], cfg: CemConfig) -> tuple[int, ...]:
@@ -460,7 +579,14 @@ class CemSearch:
         cfg = self.config
         src = source if source is not None else request.source
         start = read_params(src, filename=f"<{request.ecm}>")
-        space = param_space(start, spread=cfg.spread, floor=cfg.floor, keys=cfg.keys, bounds=cfg.bounds)
+        space = param_space(
+            start,
+            spread=cfg.spread,
+            floor=cfg.floor,
+            keys=cfg.keys,
+            bounds=cfg.bounds,
+            ranges={k: r for k, r in read_ranges(src, filename=f"<{request.ecm}>").items() if k in start},
+        )
         zlo, zhi = space.z_bounds()
         rng = np.random.default_rng(cfg.seed)
         mean = np.clip(np.zeros(space.dim), zlo, zhi)
@@ -481,7 +607,7 @@ class CemSearch:
                 request.task,
                 request.versions,
                 list(seeds),
-                overrides={request.ecm: cand.encode()},
+                overrides={**request.companions, request.ecm: cand.encode()},
                 override_origin=evaluation_origin or self.origin,
             )
             episodes += len(outcomes)
@@ -500,7 +626,15 @@ class CemSearch:
                 passed = _passed(outcomes, ends, decomposition, ecm_index)
                 scored.append(
                     _Finalist(
-                        index=i, theta=theta, source=cand, outcomes=outcomes, ends=ends, score=score, passed=passed
+                        index=i,
+                        theta=theta,
+                        source=cand,
+                        outcomes=outcomes,
+                        ends=ends,
+                        score=score,
+                        passed=passed,
+                        steps=_steps_in(ends, request.ecm),
+                        unsafe=_unsafe_in(ends, request.ecm),
                     )
                 )
                 event = CemEvent(iteration=it, index=i, params=theta, score=score, seeds=seeds, passed=passed)
@@ -551,6 +685,8 @@ class CemSearch:
                         ends=all_ends,
                         score=score_outcomes(all_out, decomposition, ends=all_ends),
                         passed=_passed(all_out, all_ends, decomposition, ecm_index),
+                        steps=_steps_in(all_ends, request.ecm),
+                        unsafe=_unsafe_in(all_ends, request.ecm),
                     )
                 )
             judged.sort(key=lambda f: (f.rank(), -f.index), reverse=True)
@@ -563,6 +699,7 @@ class CemSearch:
             iterations_run=iterations_run,
             episodes_run=episodes,
             history=tuple(history),
+            experience=tuple(best.outcomes),
         )
 
     # --- the learner -----------------------------------------------------------------
@@ -601,6 +738,7 @@ class CemSearch:
                 "iterations_run": result.iterations_run,
                 "episodes_run": result.episodes_run,
             },
+            experience=result.experience,
         )
 
 
@@ -620,18 +758,19 @@ def candidate_spec(request: LearnRequest, *, origin: Origin, provenance: Provena
 
 def _passed(outcomes: Sequence[Any], ends: Sequence[Any], decomposition: Sequence[str], ecm_index: int) -> float:
     """Fraction of episodes that succeeded or started a step after the tuned one."""
-    if not outcomes:
+    ecm = decomposition[ecm_index] if ecm_index >= 0 else ""
+    return handover_rate(outcomes, decomposition, ecm, ends=ends)
+
+
+def _steps_in(ends: Sequence[EpisodeEnd], ecm: str) -> float:
+    """Mean environment steps per traced episode spent in ``ecm`` (0 without traces)."""
+    if not ends:
         return 0.0
-    if ecm_index < 0:
-        return sum(o.success for o in outcomes) / len(outcomes)
-    later = set(decomposition[ecm_index + 1 :])
-    by_seed: dict[Any, list[Any]] = {}
-    for e in ends:
-        by_seed.setdefault(e.seed, []).append(e)
-    n = 0
-    for o in outcomes:
-        matches = by_seed.get(o.seed)
-        end = matches.pop(0) if matches else None
-        if o.success or (end is not None and later.intersection(end.plan)):
-            n += 1
-    return n / len(outcomes)
+    return sum(e.ecm_steps.get(ecm, 0) for e in ends) / len(ends)
+
+
+def _unsafe_in(ends: Sequence[EpisodeEnd], ecm: str) -> float:
+    """Fraction of traced episodes with an unsafe (stopped) step of ``ecm``."""
+    if not ends:
+        return 0.0
+    return sum(1 for e in ends if e.ecm_unsafe.get(ecm, 0) > 0) / len(ends)

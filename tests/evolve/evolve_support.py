@@ -7,6 +7,9 @@ Fakes (no simulator) of the loop's narrow dependencies, for the fast loop tests:
   active versions like the real one does.
 * :class:`ParamUpdater`: an updater that proposes the active code skill with one parameter
   changed (a real code artifact, published for real).
+* :class:`ChainUpdater`: a :class:`ParamUpdater` that accepts companions (so the loop chains
+  updates) and returns, as the candidate's training experience, real MCAP traces of episodes
+  whose plans say which step they stalled in.
 
 Everything else in these tests is real: the on-disk registry, the gate and its statistics,
 the degradation monitor, the persistent agent and its episodic memory, the metrics files.
@@ -32,12 +35,15 @@ from capevo.evolve.progress import ProgressSink, RecordingProgress
 from capevo.evolve.state import RunManifest
 from capevo.learner.base import Candidate
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Origin, Provenance, PublishSpec
+from capevo.registry.records import CapabilitySet, Origin, Provenance, PublishSpec
 from capevo.runtime.ecm.code import read_params, with_params
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.gate import GateConfig, SeedPlan
 from capevo.runtime.monitor import MonitorConfig
 from capevo.runtime.tasks import task_spec
+from capevo.runtime.traces import EcmInvocation, EpisodeSummary, PlanStep, TraceMetadata, TraceWriter
+from capevo.runtime.traces import Outcome as CallOutcome
+from capevo.runtime.traces.records import Intervention
 
 TASK = "pick"
 NAMES = task_spec(TASK).ecm_names
@@ -150,6 +156,127 @@ class ParamUpdater:
 
     def close(self) -> None:
         self.closed = True
+
+
+def write_trace(
+    path: Path, episodes: Sequence[tuple[int, bool, Sequence[str]]], *, unsafe: str | None = None
+) -> list[EpisodeOutcome]:
+    """A real MCAP trace of ``(seed, success, plan)`` episodes (one invocation per plan entry),
+    and their outcomes pointing at it; ``unsafe``: every step of that ECM gets a contact-force
+    intervention."""
+    meta = TraceMetadata.collect(
+        run_id="chain",
+        task=TASK,
+        capability_set=CapabilitySet(revision=1, active=dict.fromkeys(NAMES, 0)),
+        phi_hash="phi",
+        agent_identity_hash="agent",
+    )
+    out = []
+    with TraceWriter(path, meta) as w:
+        for i, (seed, success, plan) in enumerate(episodes):
+            for j, ecm in enumerate(plan):
+                w.write_plan_step(PlanStep(episode=i, step=j, ecm=ecm, version=0, reason="next"))
+                w.write_invocation(
+                    EcmInvocation(
+                        episode=i,
+                        step=j,
+                        ecm=ecm,
+                        version=0,
+                        input_state=(0.0,),
+                        output=None,
+                        duration_s=0.001,
+                        outcome=CallOutcome.OK,
+                    )
+                )
+                if ecm == unsafe:
+                    w.write_intervention(
+                        Intervention(
+                            episode=i,
+                            step=j,
+                            constraint="contact_force",
+                            original_action=(0.0,) * 7,
+                            result_action=(0.0,) * 7,
+                            reason="contact force above 20 N",
+                        )
+                    )
+            if not success:
+                w.write_plan_step(PlanStep(episode=i, step=len(plan), ecm="", version=0, reason="stalled"))
+            summary = EpisodeSummary(
+                episode=i,
+                seed=seed,
+                success=success,
+                total_reward=1.0,
+                steps=len(plan),
+                interventions=0,
+                unsafe_steps=0,
+                capability_set=dict.fromkeys(NAMES, 0),
+                duration_s=0.01,
+            )
+            w.write_episode_summary(summary)
+            out.append(
+                EpisodeOutcome(
+                    seed=seed,
+                    success=success,
+                    reward=1.0,
+                    steps=len(plan),
+                    duration_s=0.01,
+                    interventions=0,
+                    unsafe_steps=0,
+                    ecm_failures=0,
+                    capability_set=dict.fromkeys(NAMES, 0),
+                    trace_path=str(path),
+                )
+            )
+    return out
+
+
+class ChainUpdater(ParamUpdater):
+    """A :class:`ParamUpdater` the loop may chain: it takes companions and reports experience.
+
+    Args:
+        trace_dir: Where the experience traces go.
+        stalls: Per learned ECM, the plan its candidate's training episodes stall with (None:
+            they all succeed); an ECM not listed succeeds.
+        improved: Whether candidates claim to beat their parent on the training seeds.
+        unsafe: Per learned ECM, the ECM governance stops in its candidate's episodes.
+    """
+
+    supports_companions = True
+
+    def __init__(
+        self,
+        registry: Any,
+        trace_dir: Path,
+        stalls: Mapping[str, Sequence[str] | None],
+        *,
+        improved: bool = True,
+        unsafe: Mapping[str, str] | None = None,
+    ) -> None:
+        super().__init__(registry)
+        self.unsafe = dict(unsafe or {})
+        self.trace_dir = trace_dir
+        self.stalls = dict(stalls)
+        self.improved = improved
+
+    def propose(self, request: UpdateRequest, progress: ProgressSink) -> Proposal | None:
+        from capevo.learner.base import Score
+
+        proposal = super().propose(request, progress)
+        assert proposal is not None and proposal.candidate is not None
+        plan = self.stalls.get(request.ecm)
+        path = self.trace_dir / f"exp-{len(self.requests)}.mcap"
+        episodes = [(s, plan is None, plan or list(NAMES)) for s in (1, 2, 3)]
+        experience = write_trace(path, episodes, unsafe=self.unsafe.get(request.ecm))
+        good = Score(success_rate=0.0, progress=0.5 if self.improved else 0.0, reward_per_step=0.0, episodes=3)
+        base = Score(success_rate=0.0, progress=0.0, reward_per_step=0.0, episodes=3)
+        cand = Candidate(
+            ecm=request.ecm,
+            artifact=proposal.candidate.artifact,
+            spec=proposal.candidate.spec,
+            score=good,
+            baseline=base,
+        )
+        return Proposal(learner=self.name, candidate=cand, episodes=4, experience=tuple(experience))
 
 
 def fake_config(**changes: Any) -> EvolveConfig:

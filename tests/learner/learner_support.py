@@ -57,20 +57,25 @@ class SyntheticEvaluator:
         for s in seeds:
             radius = 0.25 + 0.1 * ((s * 7919) % 10) / 10
             steps = 50
-            out.append(
-                EpisodeOutcome(
-                    seed=s,
-                    success=d < radius,
-                    reward=(1.0 - d) * steps,
-                    steps=steps,
-                    duration_s=0.0,
-                    interventions=0,
-                    unsafe_steps=0,
-                    ecm_failures=0,
-                    capability_set=dict(versions),
-                )
-            )
+            out.append(outcome(s, versions, success=d < radius, reward=(1.0 - d) * steps, steps=steps))
         return out
+
+
+def outcome(
+    seed: int, versions: Mapping[str, int], *, success: bool = False, reward: float = 0.0, steps: int = 1
+) -> EpisodeOutcome:
+    """One evaluated episode of a fake evaluator: no interventions, unsafe steps or failures."""
+    return EpisodeOutcome(
+        seed=seed,
+        success=success,
+        reward=reward,
+        steps=steps,
+        duration_s=0.0,
+        interventions=0,
+        unsafe_steps=0,
+        ecm_failures=0,
+        capability_set=dict(versions),
+    )
 
 
 class ChatServer:

@@ -3,12 +3,14 @@ evaluator that runs unpublished candidates."""
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 import pytest
-from learner_support import TARGET, SyntheticEvaluator
+from learner_support import TARGET, SyntheticEvaluator, outcome
 
 from capevo.agent.identity import IdentityMemory
 from capevo.agent.policy import DecompositionPolicy
@@ -20,12 +22,13 @@ from capevo.learner.experience import (
     failed_activations,
     failure_summary,
     failure_weights,
+    handover_rate,
     pick_ecm_to_update,
     progress,
     read_episode_ends,
 )
 from capevo.learner.scratch import ScratchRegistryEvaluator
-from capevo.learner.search import CemConfig, CemSearch, cem_preset, param_space
+from capevo.learner.search import RANGE_UNITS, CemConfig, CemSearch, ParamRange, cem_preset, param_space, read_ranges
 from capevo.learner.skills import seed_registry, seed_source
 from capevo.registry.local import LocalRegistry
 from capevo.registry.records import CapabilitySet, Origin
@@ -104,9 +107,11 @@ def test_every_sample_lies_within_the_bounds(registry) -> None:
     base = read_params(request.source)
     fake = SyntheticEvaluator("pick.reach", base, TARGET)
     CemSearch(fake, population=12, iterations=3, seed=5, sigma_init=5.0, stop_when_passed=False).search(request)
-    space = param_space(base)
+    space = param_space(base, ranges=read_ranges(request.source))
     for call in fake.calls:
-        for name, lo, hi in zip(space.names, space.low, space.high, strict=True):
+        for name, lo, hi, log in zip(space.names, space.low, space.high, space.log, strict=True):
+            if log:
+                lo, hi = math.exp(lo) * (1 - 1e-9), math.exp(hi) * (1 + 1e-9)
             assert lo <= call["params"][name] <= hi
 
 
@@ -391,20 +396,7 @@ class _RecordingEvaluator:
         arts = {n: self.registry.get_artifact(n, v) for n, v in versions.items()}
         origins = {n: self.registry.get_version(n, v).origin for n, v in versions.items()}
         self.calls.append((dict(versions), arts, origins))
-        return [
-            EpisodeOutcome(
-                seed=s,
-                success=False,
-                reward=0.0,
-                steps=1,
-                duration_s=0.0,
-                interventions=0,
-                unsafe_steps=0,
-                ecm_failures=0,
-                capability_set=dict(versions),
-            )
-            for s in seeds
-        ]
+        return [outcome(s, versions, reward=0.0, steps=1) for s in seeds]
 
 
 def test_scratch_evaluator_mirrors_and_overrides_without_touching_the_source(tmp_path, registry) -> None:
@@ -474,3 +466,208 @@ def test_outcomes_whose_trace_is_missing_give_no_evidence(tmp_path) -> None:
     assert episode_ends([lost]) == []
     assert pick_ecm_to_update([lost], STACK) is None
     assert score_outcomes([lost], STACK) == Score(success_rate=0.0, progress=0.0, reward_per_step=0.5, episodes=1)
+
+
+def test_declared_ranges_set_the_search_box_and_scale() -> None:
+    source = seed_source("pick", "pick.reach")
+    ranges = read_ranges(source)
+    params = read_params(source)
+    assert set(ranges) <= set(params)
+    assert ranges["gain"] == ParamRange(low=1.0, high=20.0, log=True)
+    assert ranges["dig"].log is False
+    space = param_space(params, ranges=ranges, bounds=[("hover", 0.05, 0.06)])
+    # a log-scale gain: searched in log units, a quarter of the log width per unit
+    i = space.names.index("gain")
+    assert space.log[i] and (space.low[i], space.high[i]) == (0.0, pytest.approx(math.log(20.0)))
+    assert space.scale[i] == pytest.approx(math.log(20.0) / RANGE_UNITS)
+    assert space.params(np.zeros(space.dim))["gain"] == pytest.approx(params["gain"])
+    assert space.params(np.full(space.dim, 1.0))["gain"] == pytest.approx(params["gain"] * 20.0**0.25)
+    assert space.params(np.full(space.dim, 100.0))["gain"] == pytest.approx(20.0)
+    # a linear range
+    j = space.names.index("grasp_dz")
+    r = ranges["grasp_dz"]
+    assert not space.log[j] and (space.low[j], space.high[j]) == (r.low, r.high)
+    assert space.scale[j] == pytest.approx((r.high - r.low) / RANGE_UNITS)
+    # explicit bounds still win
+    k = space.names.index("hover")
+    assert (space.low[k], space.high[k]) == (0.05, 0.06)
+    # without ranges, the automatic box around v0
+    plain = param_space(params)
+    assert plain.high[i] == pytest.approx(params["gain"] * 4) and not any(plain.log)
+    assert read_ranges("PARAMS = {'a': 1.0}\n") == {}
+
+
+@pytest.mark.parametrize(
+    "literal",
+    [
+        "{'a': (1.0,)}",
+        "{'a': (2.0, 1.0)}",
+        "{'a': (0.0, float('inf'))}",
+        "[1, 2]",
+        "{'a': ('x', 1.0)}",
+        "{'a': (0.0, 1.0, 'log')}",
+        "{'a': (1.0, 2.0, 'exp')}",
+    ],
+)
+def test_bad_ranges_are_invalid(literal: str) -> None:
+    with pytest.raises(Invalid) as info:
+        read_ranges(f"PARAMS = {{'a': 1.0}}\nPARAM_RANGES = {literal}\n")
+    assert info.value.code is ErrorCode.INVALID and "PARAM_RANGES" in info.value.message
+
+
+class _Recorder:
+    """A CandidateEvaluator fake that records the overrides it was given."""
+
+    def __init__(self) -> None:
+        self.overrides: list[dict[str, bytes]] = []
+
+    def evaluate(self, task, versions, seeds, *, overrides=None, override_origin=None):  # type: ignore[no-untyped-def]
+        self.overrides.append(dict(overrides or {}))
+        return [outcome(s, versions, reward=1.0, steps=10) for s in seeds]
+
+
+def test_companions_run_with_every_candidate_and_start_source_is_used(registry) -> None:
+    grasp = seed_source("pick", "pick.grasp").encode()
+    start = read_params(seed_source("pick", "pick.reach"))
+    source = seed_source("pick", "pick.reach").replace("'gain': 3.0", "'gain': 7.0")
+    request = request_for(
+        registry, "pick", "pick.reach", train_seeds=[1, 2], companions={"pick.grasp": grasp}, source=source
+    )
+    fake = _Recorder()
+    cand = CemSearch(fake, population=2, iterations=1, episodes_per_candidate=1, seed=1).learn(request)
+    assert all(o["pick.grasp"] == grasp and "pick.reach" in o for o in fake.overrides)
+    # the first candidate is the given start source's θ, not the parent's
+    assert read_params(fake.overrides[0]["pick.reach"].decode())["gain"] == 7.0 != start["gain"]
+    assert len(cand.experience) == 1
+    with pytest.raises(Invalid):
+        request_for(registry, "pick", "pick.reach", train_seeds=[1], companions={"pick.reach": grasp})
+
+
+def test_handover_rate_and_steps_per_ecm_come_from_traces(tmp_path) -> None:
+    path = tmp_path / "h.mcap"
+    lower = ["stack.reach", "stack.grasp", "stack.lift", "stack.align", "stack.lower"]
+    _write_trace(path, [(1, False, lower, "x"), (2, True, list(STACK), ""), (3, False, ["stack.reach"] * 3, "x")])
+    ends = read_episode_ends(path)
+    assert ends[2].ecm_steps == {"stack.reach": 3} and ends[0].ecm_steps["stack.lower"] == 1
+    outcomes = [
+        EpisodeOutcome(
+            seed=e.seed or 0,
+            success=e.success,
+            reward=1.0,
+            steps=100,
+            duration_s=1.0,
+            interventions=0,
+            unsafe_steps=0,
+            ecm_failures=0,
+            capability_set={},
+            trace_path=str(path),
+        )
+        for e in ends
+    ]
+    assert handover_rate(outcomes, STACK, "stack.reach") == pytest.approx(2 / 3)
+    assert handover_rate(outcomes, STACK, "stack.lower") == pytest.approx(1 / 3)  # only the success
+    assert handover_rate(outcomes, STACK, "stack.release") == pytest.approx(1 / 3)
+    assert handover_rate([], STACK, "stack.reach") == 0.0
+
+
+def test_unsafe_steps_are_attributed_to_the_ecm_that_ran_them(tmp_path) -> None:
+    from capevo.learner.experience import RESCALING_CONSTRAINTS, unsafe_ecm
+    from capevo.runtime.traces.records import Intervention
+
+    path = tmp_path / "u.mcap"
+    meta = TraceMetadata.collect(
+        run_id="u",
+        task="stack",
+        capability_set=CapabilitySet(revision=1, active=dict.fromkeys(STACK, 0)),
+        phi_hash="phi",
+        agent_identity_hash="agent",
+    )
+    plan = ["stack.reach", "stack.align", "stack.align", "stack.lower"]
+    with TraceWriter(path, meta) as w:
+        for ep in range(2):
+            for step, ecm in enumerate(plan):
+                w.write_invocation(
+                    EcmInvocation(
+                        episode=ep,
+                        step=step,
+                        ecm=ecm,
+                        version=0,
+                        input_state=(0.0,),
+                        output=None,
+                        duration_s=0.0,
+                        outcome=CallOutcome.OK,
+                    )
+                )
+            # episode 0: a contact stop in align (twice) and a mere rescale in reach; episode 1: a stop in lower
+            stops = [(1, "contact_force"), (2, "contact_force"), (0, next(iter(RESCALING_CONSTRAINTS)))]
+            for step, constraint in stops if ep == 0 else [(3, "contact_force")]:
+                w.write_intervention(
+                    Intervention(
+                        episode=ep,
+                        step=step,
+                        constraint=constraint,
+                        original_action=(0.0,) * 7,
+                        result_action=(0.0,) * 7,
+                        reason="x",
+                    )
+                )
+            w.write_episode_summary(
+                EpisodeSummary(
+                    episode=ep,
+                    seed=ep,
+                    success=True,
+                    total_reward=1.0,
+                    steps=4,
+                    interventions=1,
+                    unsafe_steps=1,
+                    capability_set=dict.fromkeys(STACK, 0),
+                    duration_s=0.1,
+                )
+            )
+    ends = read_episode_ends(path)
+    assert ends[0].ecm_unsafe == {"stack.align": 2} and ends[1].ecm_unsafe == {"stack.lower": 1}
+    assert ends[0].ecm_steps == {"stack.reach": 1, "stack.align": 2, "stack.lower": 1}
+    # ties go to the earlier step; no stops: None
+    assert unsafe_ecm(ends, STACK) == "stack.align"
+    assert unsafe_ecm([ends[1]], STACK) == "stack.lower"
+    assert unsafe_ecm([_end(["stack.reach"])], STACK) is None
+
+
+def test_candidates_rank_safety_then_success_then_handover_then_speed() -> None:
+    from capevo.learner.search import _Finalist
+
+    def f(*, success: float = 0.0, passed: float = 0.0, steps: float = 0.0, unsafe: float = 0.0) -> _Finalist:
+        score = Score(success_rate=success, progress=0.5, reward_per_step=0.1, episodes=2)
+        return _Finalist(
+            index=0, theta={}, source="", outcomes=[], ends=[], score=score, passed=passed, steps=steps, unsafe=unsafe
+        )
+
+    # an unsafe success ranks below a safe failure (the gate would reject it)
+    assert f(unsafe=0.0).rank() > f(success=1.0, passed=1.0, unsafe=0.5).rank()
+    assert f(success=0.5, passed=0.5).rank() > f(passed=1.0).rank()
+    # fewer steps in the ECM wins among those that hand over...
+    assert f(passed=1.0, steps=40).rank() > f(passed=1.0, steps=90).rank()
+    # ...but giving up early is not speed
+    assert f(passed=0.0, steps=10).rank() == f(passed=0.0, steps=200).rank()
+
+
+def test_an_episode_out_of_time_blames_the_step_that_spent_it() -> None:
+    import dataclasses
+
+    from capevo.learner.experience import HOG_SHARE
+
+    plan = ["stack.reach", "stack.grasp", "stack.lift"]
+    slow_reach = dataclasses.replace(
+        _end(plan), steps=150, ecm_steps={"stack.reach": 124, "stack.grasp": 6, "stack.lift": 20}
+    )
+    assert HOG_SHARE * 150 < 124
+    assert failed_activations(slow_reach, STACK) == ["stack.reach"]
+    # no step spent most of the time: the step the clock stopped keeps the blame
+    even = dataclasses.replace(slow_reach, ecm_steps={"stack.reach": 60, "stack.grasp": 30, "stack.lift": 60})
+    assert failed_activations(even, STACK) == ["stack.lift"]
+    # a step that took long because it was re-planned back to is not the time hog
+    retried = dataclasses.replace(slow_reach, plan=("stack.reach", "stack.grasp", "stack.reach", "stack.grasp"))
+    assert failed_activations(retried, STACK) == ["stack.grasp", "stack.grasp"]
+    # an episode the policy ended (not the horizon) is judged by its plan alone
+    gave_up = dataclasses.replace(slow_reach, end_reason="policy: stack.lift reached its attempt limit")
+    assert failed_activations(gave_up, STACK) == ["stack.lift"]

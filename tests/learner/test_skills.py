@@ -11,6 +11,7 @@ import pytest
 from capevo.agent.identity import IdentityMemory
 from capevo.agent.policy import DecompositionPolicy
 from capevo.errors import ErrorCode, Invalid
+from capevo.learner.search import read_ranges
 from capevo.learner.skills import (
     OBS_SHAPES,
     seed_params,
@@ -91,6 +92,9 @@ def test_sources_validate_and_act_within_bounds(task: str) -> None:
         validate_source(source, filename=name)
         params = read_params(source)
         assert params == seed_params(task, name)
+        # declared search ranges name real parameters and bracket their v0 values
+        for key, r in read_ranges(source).items():
+            assert r.low < r.high and r.low <= params[key] <= r.high, (name, key)
         skill = CodeSkill(source, filename=name)
         obs = _neutral_obs(publish)
         action = skill.act(obs)

@@ -8,7 +8,8 @@ in per task by :func:`render`.
 
 Invariants:
 1. :func:`render` output passes the sandbox validator and its ``PARAMS`` literal equals the
-   template's ``params`` (same keys, same order, values as floats).
+   template's ``params`` (same keys, same order, values as floats); its ``PARAM_RANGES``
+   literal (when the template has ranges) equals ``ranges`` and brackets every v0 value.
 2. :func:`publish_spec` declares exactly the step's observation keys as inputs (shapes from
    :data:`OBS_SHAPES`), one ``action`` output of the task's action dimension bounded to
    [-1, 1], and the step's descriptor (description, applicability, termination) unchanged.
@@ -98,6 +99,15 @@ def blend(direct, difference, weight):
 '''
 """Helpers pasted into every single-arm skill (the contract forbids importing shared code)."""
 
+GAIN_RANGE = (1.0, 20.0, "log")
+"""Plausible position gains (action per metre of error): 1 crawls, 20 is full speed 5 cm away."""
+GRASP_DZ_RANGE = (-0.04, 0.06)
+"""Grasp point above an object origin: within a few centimetres of it."""
+DIG_RANGE = (-0.02, 0.04)
+"""How far below a target a servo may aim (negative: above) to settle on it despite noise."""
+SPEED_RANGE = (0.05, 1.0)
+"""Fractions of full speed."""
+
 OBS_SHAPES: Mapping[str, tuple[int, ...]] = {
     **{f"robot{i}_{k}": (7,) for i in (0, 1) for k in ("joint_pos_cos", "joint_pos_sin", "joint_vel")},
     **{f"robot{i}_eef_pos": (3,) for i in (0, 1)},
@@ -142,12 +152,26 @@ class SkillTemplate:
     prelude: str = PRELUDE
     keys: Mapping[str, str] = field(default_factory=dict)
     """Default placeholder values."""
+    ranges: Mapping[str, tuple[float, float] | tuple[float, float, str]] = field(default_factory=dict)
+    """``PARAM_RANGES``: for some parameters, the span a person writing the skill considers
+    physically plausible (written down with the guesses, not tuned); learners search there."""
 
 
 def format_params(params: Mapping[str, float]) -> str:
     """The ``PARAMS = {...}`` block, one key per line."""
     lines = "".join(f"    {k!r}: {float(v)!r},\n" for k, v in params.items())
     return "PARAMS = {\n" + lines + "}\n"
+
+
+def format_ranges(ranges: Mapping[str, tuple[float, float] | tuple[float, float, str]]) -> str:
+    """The ``PARAM_RANGES = {...}`` block (empty text when there are none)."""
+    if not ranges:
+        return ""
+    lines = "".join(
+        f"    {k!r}: ({float(r[0])!r}, {float(r[1])!r}{''.join(f', {x!r}' for x in r[2:])}),\n"
+        for k, r in ranges.items()
+    )
+    return "PARAM_RANGES = {\n" + lines + "}\n"
 
 
 def render(template: SkillTemplate, **keys: str) -> str:
@@ -170,7 +194,8 @@ def render(template: SkillTemplate, **keys: str) -> str:
     except KeyError as exc:
         raise Invalid(f"skill template needs a value for placeholder {exc.args[0]!r}") from None
     head = f'"""{doc.strip()}\n"""\n'
-    return head + template.prelude + "\n\n" + format_params(template.params) + "\n" + body.strip() + "\n"
+    params = format_params(template.params) + format_ranges(template.ranges)
+    return head + template.prelude + "\n\n" + params + "\n" + body.strip() + "\n"
 
 
 def interface_for(step: EcmStep, spec: TaskSpec) -> Interface:

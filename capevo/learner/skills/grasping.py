@@ -20,7 +20,7 @@ Invariants:
 
 from __future__ import annotations
 
-from capevo.learner.skills._lib import SkillTemplate
+from capevo.learner.skills._lib import DIG_RANGE, GAIN_RANGE, GRASP_DZ_RANGE, SPEED_RANGE, SkillTemplate
 
 REACH = SkillTemplate(
     doc="""Bring the open gripper around ${what}, fingers straddling its grasp point.
@@ -37,6 +37,13 @@ v0 is untuned (manual): ``grasp_dz`` aims 3 cm above the origin and the gain is 
         "grasp_dz": 0.03,
         "descend_xy": 0.02,
         "dig": 0.0,
+    },
+    ranges={
+        "gain": GAIN_RANGE,
+        "hover": (0.03, 0.2),
+        "grasp_dz": GRASP_DZ_RANGE,
+        "descend_xy": (0.005, 0.05),
+        "dig": DIG_RANGE,
     },
     body='''
 def grasp_error(obs, params):
@@ -84,6 +91,7 @@ v0 is untuned (manual): same too-high ``grasp_dz`` as reach, low gain, closes la
         "dig": 0.0,
         "close_above": 0.01,
     },
+    ranges={"gain": GAIN_RANGE, "grasp_dz": GRASP_DZ_RANGE, "dig": DIG_RANGE, "close_above": (0.0, 0.08)},
     body="""
 def act(obs, params):
     goal = vec(obs, "${obj}_pos") + np.array([0.0, 0.0, params["grasp_dz"]])
@@ -109,6 +117,7 @@ v0 is untuned (manual): slow.
     params={
         "lift_speed": 0.2,
     },
+    ranges={"lift_speed": SPEED_RANGE},
     body="""
 def act(obs, params):
     a = pose_action(np.zeros(3), CLOSE, 0.0, rot_error(obs["robot0_eef_quat"]))
@@ -120,3 +129,25 @@ def done(obs, params):
     return opening(obs) < MISSED_WIDTH
 """,
 )
+
+
+LET_GO = SkillTemplate(
+    doc="""Open the gripper and leave ${what} ${where}.
+
+Opens without moving; once the finger gap exceeds RELEASED_WIDTH the hand rises at
+``retreat_speed``.
+""",
+    params={
+        "retreat_speed": 0.3,
+    },
+    ranges={"retreat_speed": SPEED_RANGE},
+    body="""
+def act(obs, params):
+    a = pose_action(np.zeros(3), OPEN, 0.0, rot_error(obs["robot0_eef_quat"]))
+    if opening(obs) > RELEASED_WIDTH:
+        a[2] = min(max(params["retreat_speed"], -1.0), 1.0)
+    return a
+""",
+)
+"""The last step of stacking-like tasks: let go where the object is, then back off upward
+(placeholder ``where``: how the object is left)."""

@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from capevo.learner.skills._lib import SkillTemplate
-from capevo.learner.skills.grasping import LIFT
+from capevo.learner.skills.grasping import LET_GO, LIFT
 from capevo.runtime.tasks.spec import TaskSpec
 
 _NUT = '''
@@ -177,31 +177,17 @@ def done(obs, params):
 """,
 )
 
-RELEASE = SkillTemplate(
-    doc="""Open the gripper and leave the nut on the peg, backing off upward once open.
-""",
-    params={
-        "retreat_speed": 0.3,
-    },
-    body="""
-def act(obs, params):
-    a = pose_action(np.zeros(3), OPEN, 0.0, rot_error(obs["robot0_eef_quat"]))
-    if opening(obs) > RELEASED_WIDTH:
-        a[2] = min(max(params["retreat_speed"], -1.0), 1.0)
-    return a
-""",
-)
-
 _BY_STEP: Mapping[str, SkillTemplate] = {
     "reach": REACH,
     "grasp": GRASP,
     "lift": LIFT,
     "align": ALIGN,
     "insert": INSERT,
-    "release": RELEASE,
+    "release": LET_GO,
 }
 
 
 def templates(spec: TaskSpec) -> dict[str, tuple[SkillTemplate, dict[str, str]]]:
     """Template and placeholder values for every ECM of T4."""
-    return {ecm: (_BY_STEP[ecm.split(".")[-1]], {"obj": "SquareNut", "what": "the nut"}) for ecm in spec.ecm_names}
+    keys = {"obj": "SquareNut", "what": "the nut", "where": "on the peg"}
+    return {ecm: (_BY_STEP[ecm.split(".")[-1]], keys) for ecm in spec.ecm_names}

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from capevo.learner.skills._lib import SkillTemplate
+from capevo.learner.skills._lib import GAIN_RANGE, SPEED_RANGE, SkillTemplate
 from capevo.learner.skills.grasping import GRASP, LIFT, REACH
 from capevo.runtime.tasks.spec import TaskSpec
 
@@ -33,6 +33,7 @@ v0 is untuned (manual): carries too low for the rims, low gain.
         "carry_dz": 0.05,
         "climb_margin": 0.05,
     },
+    ranges={"gain": GAIN_RANGE, "carry_dz": (0.0, 0.3), "climb_margin": (0.0, 0.15)},
     body="""
 def act(obs, params):
     obj = vec(obs, "${obj}_pos")
@@ -63,6 +64,7 @@ v0 is untuned (manual): lets go from 10 cm, low gain.
         "release_dz": 0.1,
         "retreat_speed": 0.3,
     },
+    ranges={"gain": GAIN_RANGE, "release_dz": (0.0, 0.2), "retreat_speed": SPEED_RANGE},
     body="""
 def act(obs, params):
     obj = vec(obs, "${obj}_pos")

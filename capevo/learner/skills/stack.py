@@ -19,9 +19,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from capevo.learner.skills._lib import SkillTemplate
-from capevo.learner.skills.grasping import GRASP, LIFT, REACH
+from capevo.learner.skills._lib import DIG_RANGE, GAIN_RANGE, SkillTemplate
+from capevo.learner.skills.grasping import GRASP, LET_GO, LIFT, REACH
 from capevo.runtime.tasks.spec import TaskSpec
+
+STACK_DZ_RANGE = (0.02, 0.08)
+"""Cube A's origin above cube B's when stacked: somewhere between touching half sizes."""
 
 _TO_STACKED = '''
 def to_stacked(obs, params):
@@ -45,6 +48,13 @@ v0 is untuned (manual): high carry, low gain, direct A-to-B observation mostly i
         "climb_margin": 0.02,
         "stack_dz": 0.045,
         "rel_weight": 0.2,
+    },
+    ranges={
+        "gain": GAIN_RANGE,
+        "carry_dz": (0.0, 0.2),
+        "climb_margin": (0.0, 0.1),
+        "stack_dz": STACK_DZ_RANGE,
+        "rel_weight": (0.0, 1.0),
     },
     body=_TO_STACKED
     + """
@@ -76,6 +86,7 @@ v0 is untuned (manual): aims 1 cm too high, low gain.
         "rel_weight": 0.2,
         "dig": 0.0,
     },
+    ranges={"gain": GAIN_RANGE, "stack_dz": STACK_DZ_RANGE, "rel_weight": (0.0, 1.0), "dig": DIG_RANGE},
     body=_TO_STACKED
     + """
 
@@ -90,34 +101,17 @@ def done(obs, params):
 """,
 )
 
-RELEASE = SkillTemplate(
-    doc="""Open the gripper and leave cube A resting on cube B.
-
-Opens without moving; once the finger gap exceeds RELEASED_WIDTH the hand rises at
-``retreat_speed``.
-""",
-    params={
-        "retreat_speed": 0.3,
-    },
-    body="""
-def act(obs, params):
-    a = pose_action(np.zeros(3), OPEN, 0.0, rot_error(obs["robot0_eef_quat"]))
-    if opening(obs) > RELEASED_WIDTH:
-        a[2] = min(max(params["retreat_speed"], -1.0), 1.0)
-    return a
-""",
-)
-
 _BY_STEP: Mapping[str, SkillTemplate] = {
     "reach": REACH,
     "grasp": GRASP,
     "lift": LIFT,
     "align": ALIGN,
     "lower": LOWER,
-    "release": RELEASE,
+    "release": LET_GO,
 }
 
 
 def templates(spec: TaskSpec) -> dict[str, tuple[SkillTemplate, dict[str, str]]]:
     """Template and placeholder values for every ECM of T3."""
-    return {ecm: (_BY_STEP[ecm.split(".")[-1]], {"obj": "cubeA", "what": "cube A"}) for ecm in spec.ecm_names}
+    keys = {"obj": "cubeA", "what": "cube A", "where": "resting on cube B"}
+    return {ecm: (_BY_STEP[ecm.split(".")[-1]], keys) for ecm in spec.ecm_names}

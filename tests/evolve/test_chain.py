@@ -1,0 +1,197 @@
+"""Chains: one iteration learning several ECMs in sequence, each behind the previous candidates,
+then gating them in plan order with the later candidates in place on both sides of each pair.
+
+Fakes of the evaluator and learner (no simulator); the registry, gate, journal, metrics and the
+experience traces (MCAP files) are real.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from evolve_support import (
+    NAMES,
+    ChainUpdater,
+    Crash,
+    ScriptedEvaluator,
+    fake_config,
+    make_loop,
+    seeded_registry,
+)
+
+from capevo.evolve.config import EvolveConfig, make_config
+from capevo.evolve.loop import UPSTREAM_BELOW
+from capevo.evolve.metrics import read_metrics
+from capevo.evolve.state import Journal
+from capevo.registry.records import State
+
+REACH, GRASP, LIFT = NAMES
+
+
+def _needs(*names: str):
+    return lambda versions, seed: all(versions[n] >= 1 for n in names)
+
+
+def test_a_chain_learns_the_next_stalled_step_behind_the_first_and_gates_both(tmp_path: Path) -> None:
+    registry = seeded_registry(tmp_path)
+    evaluator = ScriptedEvaluator(registry, _needs(REACH, GRASP))
+    # reach's candidate hands over but its episodes stall in grasp; grasp's candidate succeeds
+    updater = ChainUpdater(registry, tmp_path, {REACH: [REACH, GRASP], GRASP: None})
+    loop = make_loop(
+        tmp_path,
+        registry=registry,
+        evaluator=evaluator,
+        updater=updater,
+        config=fake_config(iterations=1, updates_per_iteration=0),
+    )
+    result = loop.run()
+    row = result.rows[0]
+    assert [r.ecm for r in updater.requests] == [REACH, GRASP]
+    # grasp was learned behind reach's (unpublished) candidate, on its own seed slot
+    assert set(updater.requests[1].companions) == {REACH}
+    assert updater.requests[0].seed_slot != updater.requests[1].seed_slot
+    assert row.ecm_updated == REACH and [u.ecm for u in row.further] == [GRASP]
+    assert [g.decision for g in row.gates] == ["promote", "promote"]
+    # reach was gated with grasp's candidate on both sides of the pair; grasp behind reach v1
+    reach_ev = registry.get_version(REACH, 1).gate_evidence
+    assert reach_ev["capability_set"]["candidate"][GRASP] == 1
+    assert reach_ev["capability_set"]["active"] == {REACH: 0, GRASP: 1, LIFT: 0}
+    assert reach_ev["candidate"]["successes"] == 8 and reach_ev["active"]["successes"] == 0
+    grasp_ev = registry.get_version(GRASP, 1).gate_evidence
+    assert grasp_ev["capability_set"]["active"] == {REACH: 1, GRASP: 0, LIFT: 0}
+    assert row.active_after == {REACH: 1, GRASP: 1, LIFT: 0}
+    assert "succeeded on all its training episodes" in row.update_note
+    assert result.final is not None and all(o.success for o in result.final.final)
+    # the metrics row keeps the chain across a round trip
+    assert [u.ecm for u in read_metrics(tmp_path / "report")[0].further] == [GRASP]
+    assert Journal(tmp_path / "report").last(0, "chain")["members"][1]["ecm"] == GRASP
+
+
+def test_a_step_that_still_fails_to_hand_over_sends_the_chain_upstream(tmp_path: Path) -> None:
+    assert 0.0 < UPSTREAM_BELOW <= 1.0
+    registry = seeded_registry(tmp_path)
+    evaluator = ScriptedEvaluator(registry, _needs(REACH, GRASP))
+    # reach's episodes stall in lift; lift's candidate stalls in lift too (it never hands
+    # over): the chain learns lift's predecessor, grasp, next
+    updater = ChainUpdater(registry, tmp_path, {REACH: [REACH, GRASP, LIFT], LIFT: [REACH, GRASP, LIFT], GRASP: None})
+    row = (
+        make_loop(
+            tmp_path,
+            registry=registry,
+            evaluator=evaluator,
+            updater=updater,
+            config=fake_config(iterations=1, updates_per_iteration=0),
+        )
+        .run()
+        .rows[0]
+    )
+    assert [r.ecm for r in updater.requests] == [REACH, LIFT, GRASP]
+    assert set(updater.requests[2].companions) == {REACH, LIFT}
+    # gated in plan order
+    assert [g.ecm for g in row.gates] == [REACH, GRASP, LIFT]
+    assert row.active_after[REACH] == 1 and row.active_after[GRASP] == 1
+
+
+def test_a_step_governance_had_to_stop_is_learned_next_even_after_success(tmp_path: Path) -> None:
+    registry = seeded_registry(tmp_path)
+    evaluator = ScriptedEvaluator(registry, _needs(REACH))
+    # reach's candidate succeeds, but governance stopped lift's steps in its episodes: the chain
+    # goes on to lift (once), whose candidate is clean
+    updater = ChainUpdater(registry, tmp_path, {REACH: None, LIFT: None}, unsafe={REACH: LIFT})
+    row = (
+        make_loop(
+            tmp_path,
+            registry=registry,
+            evaluator=evaluator,
+            updater=updater,
+            config=fake_config(iterations=1, updates_per_iteration=0),
+        )
+        .run()
+        .rows[0]
+    )
+    assert [r.ecm for r in updater.requests] == [REACH, LIFT]
+    assert [g.ecm for g in row.gates] == [REACH, LIFT]
+    assert "succeeded on all its training episodes" in row.update_note
+
+
+@pytest.mark.parametrize("limit", [1, 2])
+def test_the_chain_respects_its_limit_and_stops_without_improvement(tmp_path: Path, limit: int) -> None:
+    registry = seeded_registry(tmp_path)
+    evaluator = ScriptedEvaluator(registry, _needs(REACH, GRASP, LIFT))
+    stalls = {REACH: [REACH, GRASP], GRASP: [REACH, GRASP, LIFT], LIFT: None}
+    updater = ChainUpdater(registry, tmp_path, stalls)
+    row = (
+        make_loop(
+            tmp_path,
+            registry=registry,
+            evaluator=evaluator,
+            updater=updater,
+            config=fake_config(iterations=1, updates_per_iteration=limit),
+        )
+        .run()
+        .rows[0]
+    )
+    assert [r.ecm for r in updater.requests] == [REACH, GRASP][:limit]
+    assert len(row.gates) == limit
+    # a learner that brings nothing better ends the chain after the first update
+    registry2 = seeded_registry(tmp_path / "b")
+    updater2 = ChainUpdater(registry2, tmp_path / "b", stalls, improved=False)
+    row2 = (
+        make_loop(
+            tmp_path / "b",
+            registry=registry2,
+            evaluator=ScriptedEvaluator(registry2, _needs(REACH)),
+            updater=updater2,
+            config=fake_config(iterations=1, updates_per_iteration=0),
+        )
+        .run()
+        .rows[0]
+    )
+    # (after nothing better for grasp, its predecessor is tried once more)
+    assert [r.ecm for r in updater2.requests] == [REACH, GRASP, REACH] and row2.further == ()
+    assert "found nothing better" in row2.update_note
+
+
+def test_resume_gates_the_rest_of_a_chain_an_interrupted_attempt_published(tmp_path: Path) -> None:
+    registry = seeded_registry(tmp_path)
+    stalls = {REACH: [REACH, GRASP], GRASP: None}
+    # calls: 1 live, 2-3 reach's gate, 4 grasp's gate (active) -> the process "dies"
+    crashing = ScriptedEvaluator(registry, _needs(REACH, GRASP), crash_on_call=4)
+    config = fake_config(iterations=1, updates_per_iteration=0)
+    loop = make_loop(
+        tmp_path, registry=registry, evaluator=crashing, updater=ChainUpdater(registry, tmp_path, stalls), config=config
+    )
+    with pytest.raises(Crash):
+        loop.run()
+    loop.agent.episodic_memory.close()
+    assert registry.get_version(REACH, 1).state is State.ACTIVE
+    assert registry.get_version(GRASP, 1).state is State.CANDIDATE
+
+    updater = ChainUpdater(registry, tmp_path, stalls)
+    row = (
+        make_loop(
+            tmp_path,
+            registry=registry,
+            evaluator=ScriptedEvaluator(registry, _needs(REACH, GRASP)),
+            updater=updater,
+            config=config,
+        )
+        .run()
+        .rows[0]
+    )
+    assert updater.requests == []  # nothing learned again
+    assert [(g.ecm, g.decision) for g in row.gates] == [(REACH, "promote"), (GRASP, "promote")]
+    assert "resumed" in row.update_note
+    assert [v.version for v in registry.get_ecm(GRASP).versions] == [0, 1]
+
+
+def test_presets_chain_code_updates_and_round_trip() -> None:
+    assert make_config("cpu-small").updates_per_iteration == 0
+    assert make_config("tiny").updates_per_iteration == 2
+    c = make_config("cpu-small", updates_per_iteration=3, live_episodes=10)
+    assert EvolveConfig.from_dict(c.to_dict()) == c
+    assert c.cem.train_seeds_per_update == c.cem.iterations * c.cem.episodes_per_candidate + 4
+    # an old config without the field resumes as one update per iteration
+    old = {k: v for k, v in c.to_dict().items() if k != "updates_per_iteration"}
+    assert EvolveConfig.from_dict(old).updates_per_iteration == 1
