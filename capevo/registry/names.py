@@ -27,9 +27,7 @@ def validate_name(name: object) -> str:
     if not isinstance(name, str):
         raise Invalid(f"ECM name must be a string, got {type(name).__name__}", details={"field": "name"})
     if len(name) > MAX_NAME_LENGTH:
-        raise Invalid(
-            f"ECM name is {len(name)} characters; the limit is {MAX_NAME_LENGTH}", details={"field": "name"}
-        )
+        raise Invalid(f"ECM name is {len(name)} characters; the limit is {MAX_NAME_LENGTH}", details={"field": "name"})
     if not NAME_PATTERN.fullmatch(name) or ".." in name:
         raise Invalid(
             f"ECM name {name!r} is not a slug: use lowercase letters, digits, '.', '_' and '-', "
