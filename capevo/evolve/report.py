@@ -270,7 +270,10 @@ def _markdown(
     g = cfg.gate
     add(
         f"| gate | min N {g.min_n}, α {g.alpha}, non-inferiority δ {g.delta}, max slowdown "
-        f"{g.max_slowdown if g.max_slowdown is not None else 'off'}, first-version floor {g.first_min_success} |"
+        f"{g.max_slowdown if g.max_slowdown is not None else 'off'}, first-version floor {g.first_min_success}, "
+        f"safety sign test {g.safety_alpha if g.safety_alpha is not None else 'off'}"
+        + (f", unsafe-episode ceiling {g.max_unsafe_rate}" if g.max_unsafe_rate is not None else "")
+        + " |"
     )
     add("")
     add("## What version 0 is")
