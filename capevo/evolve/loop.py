@@ -515,15 +515,7 @@ class EvolutionLoop:
             ecm = self.spec.ecm_names[0]
             pick_note = f"no readable traces of the failed episodes; updating the first step {ecm}"
         self.progress.message(f"  learn: {ecm} with {self.updater.name}")
-        request = UpdateRequest(
-            task=self.task,
-            ecm=ecm,
-            iteration=i,
-            outcomes=tuple(outcomes),
-            plan=self.plan,
-            seed=self.manifest.seed,
-            slot=i * self._chain_limit(),
-        )
+        request = self._update_request(i, ecm, outcomes, slot=i * self._chain_limit())
         try:
             proposal = self.updater.propose(request, self.progress)
         except (IdentityViolation, KeyboardInterrupt):
@@ -646,17 +638,7 @@ class EvolutionLoop:
             start = members.get(nxt)
             source = start.candidate.source if start is not None and start.candidate is not None else None
             self.progress.message(f"  learn: {nxt} with {self.updater.name} (chain step {k + 1})")
-            request = UpdateRequest(
-                task=self.task,
-                ecm=nxt,
-                iteration=i,
-                outcomes=tuple(outcomes),
-                plan=self.plan,
-                seed=self.manifest.seed,
-                companions=companions,
-                source=source,
-                slot=i * limit + k,
-            )
+            request = self._update_request(i, nxt, outcomes, slot=i * limit + k, companions=companions, source=source)
             try:
                 proposal = self.updater.propose(request, self.progress)
             except (IdentityViolation, KeyboardInterrupt):
@@ -685,6 +667,28 @@ class EvolutionLoop:
             latest, latest_ecm = proposal, nxt
         chain = sorted(members.items(), key=lambda kv: names.index(kv[0]))
         return chain, why, dropped
+
+    def _update_request(
+        self,
+        i: int,
+        ecm: str,
+        outcomes: Sequence[EpisodeOutcome],
+        *,
+        slot: int,
+        companions: Mapping[str, bytes] | None = None,
+        source: str | None = None,
+    ) -> UpdateRequest:
+        return UpdateRequest(
+            task=self.task,
+            ecm=ecm,
+            iteration=i,
+            outcomes=tuple(outcomes),
+            plan=self.plan,
+            seed=self.manifest.seed,
+            companions=dict(companions or {}),
+            source=source,
+            slot=slot,
+        )
 
     def _publish_chain(
         self, i: int, chain: Sequence[tuple[str, Proposal]], *, note: str, spent: tuple[int, int] = (0, 0)
