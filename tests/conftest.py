@@ -1,8 +1,16 @@
 from __future__ import annotations
 
+import os
 import socket
 
 import pytest
+from hypothesis import settings
+
+# CI runs the property tests derandomized (`.ci/run` sets CAPEVO_HYPOTHESIS_PROFILE=ci): the same
+# examples every run, so a landing never fails on an example no earlier run tried. Local runs keep
+# hypothesis' random exploration, which is how new edge cases get found.
+settings.register_profile("ci", derandomize=True, print_blob=True)
+settings.load_profile(os.environ.get("CAPEVO_HYPOTHESIS_PROFILE", "default"))
 
 
 def free_tcp_port() -> int:

@@ -100,6 +100,13 @@ def learner() -> None:
     "--poll", type=click.FloatRange(min=0.01), default=5.0, show_default=True, help="Seconds between trace scans."
 )
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seeds the learner.")
+@click.option(
+    "--seed-plan",
+    type=click.IntRange(min=0),
+    default=0,
+    show_default=True,
+    help="The run's seed plan (capevo evolve --seed): train only on its training seeds, never its gate seeds.",
+)
 @click.option("--no-perturbations", is_flag=True, help="Train on the clean task (no jitter, noise or dropped actions).")
 @click.option(
     "--progress/--no-progress",
@@ -144,6 +151,7 @@ def serve_cmd(
     margin: float,
     poll: float,
     seed: int,
+    seed_plan: int,
     no_perturbations: bool,
     progress: bool | None,
     torch_threads: int,
@@ -185,6 +193,7 @@ def serve_cmd(
         poll_interval_s=poll,
         perturbations=Perturbations.none() if no_perturbations else Perturbations(),
         seed=seed,
+        seed_plan=seed_plan,
         progress_bar=sys.stderr.isatty() if progress is None else progress,
         torch_threads=torch_threads,
     )

@@ -37,11 +37,14 @@ Invariants:
 3. In watch mode an update happens only when the trigger fires, and at most one update per
    firing; episodes are counted once each.
 4. After ``stop`` is set nothing more is published.
+5. Every training episode (code learners' seeds and neural learners' task seeds) lies in the
+   training block of the worker's seed plan, never in its gate or live blocks.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import tempfile
 import threading
@@ -54,11 +57,12 @@ from typing import Any
 from capevo.errors import CapevoError, Invalid, NotFound, Timeout, Unavailable
 from capevo.learner.base import Candidate, LearnRequest
 from capevo.learner.bc import default_learner_id
-from capevo.learner.presets import TRAIN_SEED_BASE, Preset, make_preset
+from capevo.learner.presets import Preset, make_preset
 from capevo.learner.trigger import TriggerConfig, UpdateTrigger
 from capevo.registry.api import Registry
 from capevo.registry.records import AuditEvent, EcmVersion, Kind
 from capevo.runtime.evaluation import EpisodeOutcome
+from capevo.runtime.gate import SeedPlan
 from capevo.runtime.tasks import Perturbations, task_spec
 from capevo.shutdown import stop_on_signals
 
@@ -69,6 +73,20 @@ MAX_OUTCOMES = 200
 """Recent episodes handed to a learner (the newest)."""
 TRAIN_SEEDS = 16
 """Training seeds offered to code learners."""
+WORKER_TRAIN_OFFSET = 50_000
+"""Learner workers train in the second half of their seed plan's training block (``capevo
+evolve``'s in-process learners start at its beginning); never in its gate or live blocks."""
+
+
+def worker_training_seeds(plan: SeedPlan, seed: int) -> tuple[int, ...]:
+    """The code learners' training seeds of a worker seeded ``seed``: inside ``plan``'s training block.
+
+    Workers with different seeds get different slices (cycling within the block's second half),
+    and no slice ever reaches the plan's held-out gate seeds.
+    """
+    half = plan.block - WORKER_TRAIN_OFFSET
+    offset = WORKER_TRAIN_OFFSET + (seed * TRAIN_SEEDS) % max(half - TRAIN_SEEDS, 1)
+    return tuple(plan.train(TRAIN_SEEDS, offset=offset))
 
 
 # --- configuration -----------------------------------------------------------------------
@@ -106,6 +124,9 @@ class LearnerConfig:
         poll_interval_s: How often trace files are re-read in watch mode.
         perturbations: Task perturbations for training; default all on.
         seed: Seeds the learners (and offsets training episodes).
+        seed_plan: Which :class:`~capevo.runtime.gate.SeedPlan` the run uses (``capevo evolve
+            --seed``): training episodes come from its training block only, so they never
+            replay the gate's held-out seeds.
         progress_bar: Show training progress bars (stderr).
         torch_threads: CPU threads for torch (None: torch's default).
 
@@ -125,6 +146,7 @@ class LearnerConfig:
     poll_interval_s: float = 5.0
     perturbations: Perturbations = field(default_factory=Perturbations)
     seed: int = 0
+    seed_plan: int = 0
     progress_bar: bool = False
     torch_threads: int | None = 1
 
@@ -148,6 +170,10 @@ class LearnerConfig:
             raise Invalid(f"poll_interval_s must be positive, got {p!r}", details={"field": "poll_interval_s"})
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise Invalid(f"seed must be a non-negative integer, got {self.seed!r}", details={"field": "seed"})
+        try:
+            SeedPlan(base_seed=self.seed_plan)
+        except Invalid as exc:
+            raise Invalid(f"seed_plan: {exc.message}", details={"field": "seed_plan"}) from None
 
     @property
     def task_name(self) -> str:
@@ -419,7 +445,14 @@ class LearnerWorker:
         self.config = config
         self.task = config.task_name
         self.learner_id = config.learner_id or default_learner_id(config.modality)
-        self.preset = make_preset(config.preset).with_perturbations(config.perturbations).with_seed(config.seed)
+        self.seed_plan = SeedPlan(base_seed=config.seed_plan)
+        preset = make_preset(config.preset).with_perturbations(config.perturbations).with_seed(config.seed)
+        # Neural training episodes run task seeds seed_base + seed + k: keep them in the plan's training block.
+        train = self.seed_plan.range("train")
+        env = dataclasses.replace(
+            preset.env, seed_base=train.start + WORKER_TRAIN_OFFSET, seed=config.seed % (WORKER_TRAIN_OFFSET // 2)
+        )
+        self.preset = dataclasses.replace(preset, env=env)
         self._open_registry = open_registry
         self._emit_fn = emit
         self._wake = threading.Event()
@@ -488,7 +521,7 @@ class LearnerWorker:
                 f"{self.config.modality!r} improves code ECMs (use rl or il)",
                 details={"field": "modality"},
             )
-        seeds = tuple(TRAIN_SEED_BASE + 10_000 * (1 + self.config.seed) + i for i in range(TRAIN_SEEDS))
+        seeds = worker_training_seeds(self.seed_plan, self.config.seed)
         return LearnRequest(
             task=self.task,
             ecm=self.config.ecm,

@@ -19,6 +19,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from neural_support import (
     REPO,
     Proc,
@@ -270,6 +272,10 @@ def test_watch_counts_only_the_active_versions_episodes_and_resets_on_promotion(
             "task 'pick' has no ECM 'pick.fly'; valid: pick.reach, pick.grasp, pick.lift",
         ),
         ({"ecm": ECM, "modality": "rl", "preset": "huge"}, "unknown preset 'huge'; valid: tiny, cpu-small, paper"),
+        (
+            {"ecm": ECM, "modality": "code", "seed_plan": 10**6},
+            "seed_plan: seed plan 1000000 with block 100000 reaches past 2147483647",
+        ),
     ],
 )
 def test_bad_learner_configs_are_refused(kwargs: dict[str, Any], text: str) -> None:
@@ -280,3 +286,30 @@ def test_bad_learner_configs_are_refused(kwargs: dict[str, Any], text: str) -> N
         LearnerConfig(**kwargs)
     assert info.value.code is ErrorCode.INVALID
     assert info.value.message == text
+
+
+@settings(max_examples=200, deadline=None)
+@given(plan=st.integers(0, 7000), seed=st.integers(0, 10**9))
+def test_worker_training_seeds_stay_in_the_plans_training_block(plan: int, seed: int) -> None:
+    from capevo.learner.worker import TRAIN_SEEDS, worker_training_seeds
+    from capevo.runtime.gate import SeedPlan
+
+    p = SeedPlan(base_seed=plan)
+    seeds = worker_training_seeds(p, seed)
+    assert len(set(seeds)) == TRAIN_SEEDS
+    assert all(p.purpose_of(s) == "train" for s in seeds)
+    # In particular never the seeds any plan's gate uses: those of this plan are the only ones here.
+    assert not set(seeds) & set(p.range("gate"))
+
+
+def test_neural_training_episodes_run_in_the_plans_training_block() -> None:
+    from capevo.learner.worker import LearnerConfig, LearnerWorker
+    from capevo.runtime.gate import SeedPlan
+
+    plan = SeedPlan(base_seed=3)
+    for seed in (0, 7, 123_456):
+        config = LearnerConfig(ecm=ECM, modality="rl", seed=seed, seed_plan=3)
+        worker = LearnerWorker(config, open_registry=lambda: pytest.fail("no registry is needed"))
+        env = worker.preset.env
+        first, last = env.seed_base + env.seed, env.seed_base + env.seed + 10_000  # 10k episodes: beyond paper budget
+        assert plan.purpose_of(first) == plan.purpose_of(last) == "train"

@@ -45,6 +45,9 @@ FORCE = st.one_of(
 )
 ACTION_COMPONENT = st.one_of(SMALL, FINITE, st.sampled_from([0.0, 1.0, -1.0, 1.5, -0.0]))
 
+NEGLIGIBLE = 1e-12
+"""A vector component this small relative to the vector's length is rounding, not a direction."""
+
 
 def vec3(elem: st.SearchStrategy[float]) -> st.SearchStrategy[tuple[float, float, float]]:
     return st.tuples(elem, elem, elem)
@@ -184,6 +187,10 @@ def violations(
                         q = max(q, c.creep)
                     bound = q * r / sum(abs(x) for x in v)
                     for k in range(3):
+                        # A component that is pure rounding (reach_limit halves v against overflow,
+                        # so a subnormal one becomes 0) sets no direction.
+                        if abs(v[k]) <= NEGLIGIBLE * r:
+                            continue
                         if a[o + k] * v[k] > 0 and abs(a[o + k]) > bound + tol:
                             out.append(f"{c.label}: arm {i} moves out {a[o + k]} > {bound} along {k} at r={r}")
                 d = rho - c.min_radius
@@ -192,6 +199,8 @@ def violations(
                     q = max(0.0, (d - c.margin) / c.brake) if c.brake > 0 else 0.0
                     bound = q * rho / (abs(h[0]) + abs(h[1]))
                     for k in range(2):
+                        if abs(h[k]) <= NEGLIGIBLE * rho:
+                            continue
                         if a[o + k] * h[k] < 0 and abs(a[o + k]) > bound + tol:
                             out.append(f"{c.label}: arm {i} moves towards its column {a[o + k]} > {bound}")
             elif isinstance(c, ObstacleApproach):
