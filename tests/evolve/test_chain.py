@@ -8,6 +8,7 @@ experience traces (MCAP files) are real.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import pytest
 from evolve_support import (
@@ -31,6 +32,18 @@ REACH, GRASP, LIFT = NAMES
 
 def _needs(*names: str):
     return lambda versions, seed: all(versions[n] >= 1 for n in names)
+
+
+def one_iteration(tmp_path: Path, registry: Any, evaluator: Any, updater: Any, *, updates: int = 0) -> Any:
+    """Run one evolve iteration with chains of up to ``updates`` ECMs (0: one per step); its metrics row."""
+    loop = make_loop(
+        tmp_path,
+        registry=registry,
+        evaluator=evaluator,
+        updater=updater,
+        config=fake_config(iterations=1, updates_per_iteration=updates),
+    )
+    return loop.run().rows[0]
 
 
 def test_a_chain_learns_the_next_stalled_step_behind_the_first_and_gates_both(tmp_path: Path) -> None:
@@ -75,17 +88,7 @@ def test_a_step_that_still_fails_to_hand_over_sends_the_chain_upstream(tmp_path:
     # reach's episodes stall in lift; lift's candidate stalls in lift too (it never hands
     # over): the chain learns lift's predecessor, grasp, next
     updater = ChainUpdater(registry, tmp_path, {REACH: [REACH, GRASP, LIFT], LIFT: [REACH, GRASP, LIFT], GRASP: None})
-    row = (
-        make_loop(
-            tmp_path,
-            registry=registry,
-            evaluator=evaluator,
-            updater=updater,
-            config=fake_config(iterations=1, updates_per_iteration=0),
-        )
-        .run()
-        .rows[0]
-    )
+    row = one_iteration(tmp_path, registry, evaluator, updater, updates=0)
     assert [r.ecm for r in updater.requests] == [REACH, LIFT, GRASP]
     assert set(updater.requests[2].companions) == {REACH, LIFT}
     # gated in plan order
@@ -99,17 +102,7 @@ def test_a_step_governance_had_to_stop_is_learned_next_even_after_success(tmp_pa
     # reach's candidate succeeds, but governance stopped lift's steps in its episodes: the chain
     # goes on to lift (once), whose candidate is clean
     updater = ChainUpdater(registry, tmp_path, {REACH: None, LIFT: None}, unsafe={REACH: LIFT})
-    row = (
-        make_loop(
-            tmp_path,
-            registry=registry,
-            evaluator=evaluator,
-            updater=updater,
-            config=fake_config(iterations=1, updates_per_iteration=0),
-        )
-        .run()
-        .rows[0]
-    )
+    row = one_iteration(tmp_path, registry, evaluator, updater, updates=0)
     assert [r.ecm for r in updater.requests] == [REACH, LIFT]
     assert [g.ecm for g in row.gates] == [REACH, LIFT]
     assert "succeeded on all its training episodes" in row.update_note
@@ -121,17 +114,7 @@ def test_the_chain_respects_its_limit_and_stops_without_improvement(tmp_path: Pa
     evaluator = ScriptedEvaluator(registry, _needs(REACH, GRASP, LIFT))
     stalls = {REACH: [REACH, GRASP], GRASP: [REACH, GRASP, LIFT], LIFT: None}
     updater = ChainUpdater(registry, tmp_path, stalls)
-    row = (
-        make_loop(
-            tmp_path,
-            registry=registry,
-            evaluator=evaluator,
-            updater=updater,
-            config=fake_config(iterations=1, updates_per_iteration=limit),
-        )
-        .run()
-        .rows[0]
-    )
+    row = one_iteration(tmp_path, registry, evaluator, updater, updates=limit)
     assert [r.ecm for r in updater.requests] == [REACH, GRASP][:limit]
     assert len(row.gates) == limit
     # a learner that brings nothing better ends the chain after the first update
