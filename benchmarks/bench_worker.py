@@ -11,8 +11,9 @@ each seed's executed actions. Then, every round, for every seed, three runs go b
   reset and the timed steps an untimed ``TaskEnv.reset(seed)`` puts the episode's scene in
   place, so the steps replay the very episode the worker ran. Even steps run robosuite as
   shipped (``robosuite_stock``: the floor); odd steps run it the way capevo's TaskEnv does,
-  without robosuite's per-substep observable sampling (``robosuite_lean``: capevo recomputes
-  every observable from the final state after each step, so those samples are never read).
+  without the work of robosuite's step that capevo never reads (``robosuite_lean``; see
+  ``capevo.runtime.tasks.lean_stepping``: per-substep observable sampling, each robot's action
+  size recomputed every substep, and robosuite's reward for a task that has its own, as T1).
   Each is extrapolated to the whole episode from its own steps;
 * ``task_env``: ``TaskEnv.reset(seed)`` and ``TaskEnv.step(a)`` (capevo's task wrapper:
   exact observations, observation noise, dropped actions, task reward, signals, success);
@@ -62,7 +63,7 @@ from capevo.registry.local import LocalRegistry
 from capevo.runtime.capabilities import LoadedCapabilitySet
 from capevo.runtime.episode import make_governor, run_episode
 from capevo.runtime.governance import Phi
-from capevo.runtime.tasks import make_task
+from capevo.runtime.tasks import lean_stepping, make_task
 from capevo.runtime.traces import MemoryTraceSink, TraceMetadata, TraceWriter
 
 TARGET_OVERHEAD_PCT = 3.0
@@ -241,27 +242,19 @@ def main(argv: list[str] | None = None) -> int:
         actions[seed] = [np.asarray(s.action, dtype=np.float64) for s in sink.env_steps]
     steps_per_round = sum(len(a) for a in actions.values())
 
-    # TaskEnv may replace robosuite's per-substep observable update with its own (an instance
-    # attribute); the replay switches between robosuite's and the lean one step by step.
-    capevo_update = rs.__dict__.get("_update_observables")
-    stock_update = type(rs)._update_observables.__get__(rs)
+    # TaskEnv switches off work of robosuite's step that it never reads (instance attributes,
+    # capevo.runtime.tasks.lean_stepping); the replay switches them off and on step by step.
+    overrides = env.robosuite_overrides
 
-    def lean_update(force: bool = False) -> None:
-        if force:
-            stock_update(force=True)
-
-    def use_update(fn: Callable[..., Any] | None) -> None:
-        if fn is None:
-            rs.__dict__.pop("_update_observables", None)
-        else:
-            rs._update_observables = fn
+    def use_lean(lean: bool) -> None:
+        (lean_stepping.install if lean else lean_stepping.remove)(rs, overrides)
 
     Times = dict[str, tuple[float, float]]  # variant -> (wall, cpu) seconds of one episode
 
     def run_robosuite(seed: int, _episode: int, _writer: Any) -> Times:
         """robosuite reset + the recorded steps, odd steps lean, even steps stock."""
         acts = actions[seed]
-        use_update(stock_update)
+        use_lean(False)
         try:
             w0, c0 = _now()
             rs.reset()
@@ -270,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
             spent = {"stock": [0.0, 0.0, 0], "lean": [0.0, 0.0, 0]}
             for i, a in enumerate(acts):
                 mode = "lean" if i % 2 else "stock"
-                use_update(lean_update if i % 2 else stock_update)
+                use_lean(bool(i % 2))
                 s0, p0 = _now()
                 rs.step(a)
                 s1, p1 = _now()
@@ -279,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
                 acc[1] += p1 - p0
                 acc[2] += 1
         finally:
-            use_update(capevo_update)
+            use_lean(True)
         n = len(acts)
         out: Times = {}
         for mode, (wall, cpu, k) in spent.items():

@@ -25,9 +25,11 @@ Invariants:
 4. Stepping after the episode ended, or before the first reset, raises :class:`Invalid`.
 5. Every observation is of the final simulator state of the step: after each step every
    robosuite observable equals robosuite's forced two-pass refresh (``_raw_observations``),
-   computed in one pass in dependency order (:mod:`.observables`). robosuite's own sampling
-   at each physics substep is switched off in the wrapped environment: those samples are
-   taken early in the step and nothing reads them.
+   computed in one pass in dependency order (:mod:`.observables`).
+6. The wrapped environment skips the work of robosuite's ``step`` that nothing reads
+   (:mod:`.lean_stepping`: per-substep sampling, recomputed action sizes, and robosuite's
+   reward where :attr:`TaskEnv.reads_robosuite_reward` is False); :attr:`TaskEnv.robosuite_overrides`
+   lists what was switched off.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from capevo.errors import Invalid
 from capevo.runtime.governance.proximity import ArmScene, ProximitySensor
 from capevo.runtime.governance.robosuite_state import force_sensor, sensor_contact_force
 from capevo.runtime.state import RobotState
+from capevo.runtime.tasks import lean_stepping
 from capevo.runtime.tasks.observables import ObservablePlan, plan_observables
 from capevo.runtime.tasks.perturbations import EpisodeRngs, Perturbations
 from capevo.runtime.tasks.spec import TaskSpec
@@ -120,6 +123,9 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
     task_spec: ClassVar[TaskSpec]
+    reads_robosuite_reward: ClassVar[bool] = True
+    """False for a task whose :meth:`_reward` ignores robosuite's: the wrapped environment then
+    does not compute it (it is 0.0)."""
 
     def __init__(
         self,
@@ -173,7 +179,9 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
                 self._env = self._build(kwargs)
             except TypeError as e:
                 raise Invalid(f"{spec.name}: bad robosuite argument: {e}", details={"field": "env_kwargs"}) from e
-        _skip_sampling_in_step(self._env)
+        self.robosuite_overrides = lean_stepping.lean_overrides(self._env, reads_reward=self.reads_robosuite_reward)
+        """The instance overrides (:mod:`.lean_stepping`) installed on the robosuite environment."""
+        lean_stepping.install(self._env, self.robosuite_overrides)
         self._sim = self._env.sim
         self._model = self._sim.model._model
         self._data = self._sim.data._data
@@ -488,22 +496,6 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
             if (c.geom1 in geom_ids or c.geom2 in geom_ids) and -c.dist > worst:
                 worst = -float(c.dist)
         return worst
-
-
-def _skip_sampling_in_step(env: Any) -> None:
-    """Stop robosuite sampling observables at every physics substep of ``step``.
-
-    Those samples are taken early in the control step and capevo never reads them: after each
-    step :meth:`TaskEnv._fresh_observations` recomputes every observable from the final state.
-    Forced refreshes (reset, ``_get_observations(force_update=True)``) still run.
-    """
-    update = env._update_observables
-
-    def update_observables(force: bool = False) -> None:
-        if force:
-            update(force=True)
-
-    env._update_observables = update_observables
 
 
 def _check_seed(seed: object) -> int | None:

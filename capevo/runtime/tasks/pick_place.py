@@ -130,6 +130,9 @@ PICK_SIGNALS: tuple[SignalSpec, ...] = (*c.REACH_SIGNALS, c.SUCCESS_SIGNAL)
 class PickTask(_PickPlaceBase):
     """T1: lift the can more than 5 cm."""
 
+    # T1's reward is its own (reach, grasp, lift); robosuite's PickPlace reward is about bins.
+    reads_robosuite_reward = False
+
     task_spec = TaskSpec(
         id="T1",
         name="pick",
