@@ -7,8 +7,6 @@ everything the episode exposes, plus the raw simulator state.
 
 from __future__ import annotations
 
-import logging
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -20,15 +18,6 @@ from capevo.runtime.tasks import TaskEnv, lean_stepping, make_task
 pytestmark = pytest.mark.slow
 
 STEPS = 25
-
-
-@pytest.fixture(scope="module")
-def quiet() -> Iterator[None]:
-    logger = logging.getLogger("robosuite_logs")
-    level = logger.level
-    logger.setLevel(logging.ERROR)
-    yield
-    logger.setLevel(level)
 
 
 def _episode(env: TaskEnv, seed: int) -> tuple[str, str]:

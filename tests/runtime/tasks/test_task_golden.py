@@ -10,9 +10,6 @@ regenerate them from a known-good commit with ``golden_support.task_episode_dige
 
 from __future__ import annotations
 
-import logging
-from collections.abc import Iterator
-
 import pytest
 from golden_support import task_episode_digest
 
@@ -47,15 +44,6 @@ GOLDEN: dict[str, tuple[str, str]] = {
         "1431e2cf2e8640f3bd37efede9e1626fdb17f67235b555a53e9bd614016e4bff",
     ),
 }
-
-
-@pytest.fixture(scope="module")
-def quiet() -> Iterator[None]:
-    logger = logging.getLogger("robosuite_logs")
-    level = logger.level
-    logger.setLevel(logging.ERROR)
-    yield
-    logger.setLevel(level)
 
 
 @pytest.mark.parametrize("task", sorted(GOLDEN))
