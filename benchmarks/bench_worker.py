@@ -206,6 +206,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=8)
     parser.add_argument("--horizon", type=int, default=150)
     parser.add_argument("--task", default="T1")
+    parser.add_argument(
+        "--phi",
+        choices=("paper", "task"),
+        default="paper",
+        help="the governing envelope: the paper's (the runtime default) or Phi.for_task (proximity sensing on)",
+    )
     parser.add_argument("--label", default="", help="free text stored with the results (e.g. the code state)")
     parser.add_argument("--out", default="bench_worker", help="results file name under benchmarks/results/")
     args = parser.parse_args(argv)
@@ -220,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
     shapes = {k: tuple(v.shape) for k, v in env.obs_dict.items()}
     caps = LoadedCapabilitySet(registry, args.task, observation_shapes=shapes)
     policy = DecompositionPolicy(identity=IdentityMemory.default())
-    phi = Phi.default()
+    phi = Phi.default() if args.phi == "paper" else Phi.for_task(args.task)
     governor = make_governor(env, phi)
     seeds = list(range(args.seeds))
 
@@ -354,6 +360,8 @@ def main(argv: list[str] | None = None) -> int:
 
     results: dict[str, Any] = {
         "task": args.task,
+        "phi": args.phi,
+        "phi_hash": phi.hash,
         "label": args.label,
         "seeds": args.seeds,
         "horizon": args.horizon,
@@ -414,8 +422,8 @@ def main(argv: list[str] | None = None) -> int:
 
     print()
     print(
-        f"{args.task}, {args.seeds} seeds, {steps_per_round} steps per variant per round, {args.rounds} rounds, "
-        f"load {min(loads):.1f}–{max(loads):.1f}"
+        f"{args.task}, Φ {args.phi}, {args.seeds} seeds, {steps_per_round} steps per variant per round, "
+        f"{args.rounds} rounds, load {min(loads):.1f}–{max(loads):.1f}"
     )
     print("\ninterleaved episodes (robosuite_stock / robosuite_lean: alternate steps of the same replays):")
     print(
