@@ -12,9 +12,12 @@ Per arm and pair ``(dist, n, r, owner)`` with ``q < 1``, where
 ``q = t + (1 − t) · clip((dist − clearance) / b, 0, 1)`` (``t``, ``b``: ``touch_loose`` and
 ``brake_loose`` for a movable object, ``touch`` and ``brake`` otherwise):
 
-* translation: the approaching components (``a_k · n_k > 0``) are scaled down by one factor
-  so that their closing speed ``Σ_{a_k n_k > 0} a_k · n_k`` is at most ``q`` (receding
-  components are left out of the sum: a later edit may shrink them, never the other way);
+* translation: the approaching components (``a_k · n_k > 0``) are shrunk so that their
+  closing speed ``Σ_{a_k n_k > 0} a_k · n_k`` is at most ``q`` (receding components are left
+  out of the sum: a later edit may shrink them, never the other way), by the smallest change
+  that does it: each approaching component loses ``λ · n_k`` (clamped at 0, never flipped), so
+  the motion along ``n`` is what is braked and the motion past the geom (a hand descending
+  beside an object, whose pair points mostly sideways) keeps its speed;
   for a movable object below the hand (``n_z < 0``) whose bound is looser than the fixed
   scene's, the sum runs over x and y only, and the downward part ``a_z · n_z`` gets the fixed
   scene's bound (``touch``, ``brake``) on its own: pushed sideways such an object slides,
@@ -39,7 +42,8 @@ Invariants (per arm, after the check):
 3. For a pair whose ``owner`` is another arm ``j`` of the layout, arm ``j`` has
    ``Σ_{k: a_k n_k < 0} −a_k · n_k <= q(dist)`` and (with ``rotation``) ``|ω_k| <= q`` for its rotation components.
 4. Only those components change, by clamping towards 0 (sign kept); arms no pair concerns
-   are untouched; an action no rule touches is allowed (None) and never copied.
+   are untouched; an action no rule touches is allowed (None) and never copied. Per pair, each
+   approaching component loses ``λ · |n_k|`` or, if that is more, all of itself, one ``λ`` for all.
 5. A non-finite pair is ⊥ with a reason.
 6. No hard limit of its own (:meth:`ContactApproach.unsafe` is None).
 """
@@ -52,6 +56,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.brake import brake_along
 from capevo.runtime.governance.cap import SHRINK
 from capevo.runtime.governance.proximity import FIXED, LOOSE
 from capevo.runtime.state import ActionLayout, ArmState
@@ -156,16 +161,7 @@ class ContactApproach:
                         axes = ((0, nx), (1, ny), (2, nz))
                     # Closing speed of the approaching components alone: later edits only shrink
                     # components, which can lower this sum but never raise it.
-                    c = 0.0
-                    for k, n in axes:
-                        v = arm[k] * n
-                        if v > 0.0:
-                            c += v
-                    if c > q:
-                        f = q / c * SHRINK
-                        for k, n in axes:
-                            if arm[k] * n > 0.0:
-                                arm[k] *= f
+                    brake_along(arm, axes, q)
                     q = min(q, q_down)
                     if turn:
                         r = sqrt(rx * rx + ry * ry + rz * rz) if isfinite(rx + ry + rz) else math.inf
@@ -174,17 +170,7 @@ class ContactApproach:
                             q_rot[i] = qr
                     if 0 <= owner < n_arms and owner != i:
                         # Another arm's hand or link: its motion closes the gap from the other side.
-                        other = poses[owner]
-                        c = 0.0
-                        for k, n in ((0, nx), (1, ny), (2, nz)):
-                            v = -other[k] * n
-                            if v > 0.0:
-                                c += v
-                        if c > q:
-                            f = q / c * SHRINK
-                            for k, n in ((0, nx), (1, ny), (2, nz)):
-                                if other[k] * n < 0.0:
-                                    other[k] *= f
+                        brake_along(poses[owner], ((0, nx), (1, ny), (2, nz)), q, sign=-1.0)
                         if turn and q < q_rot[owner]:
                             q_rot[owner] = q
             b: list[float] | None = None

@@ -31,7 +31,10 @@ Invariants:
    nearest point relative to the end-effector site, metres, world frame, and ``owner`` the
    index of the arm whose motion moves the other geom (its hand or a link of its chain),
    :data:`LOOSE` (-2) for a movable object (a free body), or :data:`FIXED` (-1) for the rest
-   of the scene.
+   of the scene. For two boxes (MuJoCo's own box-box distance is unreliable at this margin)
+   ``dist`` is a lower bound on the distance instead, and ``n`` the direction it is measured
+   along: the larger of a sphere around the hand's box and the separation along a face normal
+   of either box (:meth:`ProximitySensor._box_to_box`).
 2. Pairs of a hand geom with a geom of its own hand, of what it holds, or of its own arm's
    kinematic chain are never reported.
 3. ``near(i)`` reads the simulator's current ``MjData`` only (positions, contacts); it does not
@@ -231,6 +234,57 @@ class ProximitySensor:
         t = min(radius, gap) / gap
         return (gap - radius, *(c[k] + w[k] * t for k in range(3)), *p2)
 
+    def _box_to_box(self, h: int, o: int) -> tuple[float, float, float, float, float, float, float] | None:
+        """``(dist, p1, p2)`` for boxes ``h`` and ``o``: the larger of two lower bounds on their distance.
+
+        One is :meth:`_sphere_to_box`; the other is the separating-axis bound: along each face
+        normal ``s`` of either box the two are at least ``|(c_o − c_h)·s| − e_h(s) − e_o(s)``
+        apart (``e(s)`` a box's half extent along ``s``), exactly so for faces that face each
+        other. The sphere is up to ``√3`` times a thin box's half size fatter than the box, and
+        beside a box's edge it points diagonally across it; the face bound is exact for a finger
+        pad beside a cube's face or a held cube above another, and points along the face normal,
+        so motion parallel to that face does not count as closing on it. ``p1`` is the hand
+        box's corner farthest along the direction (for the rotation lever) and ``p2 − p1`` the
+        bound along it.
+        """
+        sphere = self._sphere_to_box(h, o)
+        d = self.data
+        rh, ro = d.geom_xmat[h].tolist(), d.geom_xmat[o].tolist()
+        ph, po = d.geom_xpos[h].tolist(), d.geom_xpos[o].tolist()
+        ch, co = self._centre_l[h], self._centre_l[o]
+        hh, ho = self._half_l[h], self._half_l[o]
+        c1 = [ph[k] + rh[3 * k] * ch[0] + rh[3 * k + 1] * ch[1] + rh[3 * k + 2] * ch[2] for k in range(3)]
+        c2 = [po[k] + ro[3 * k] * co[0] + ro[3 * k + 1] * co[1] + ro[3 * k + 2] * co[2] for k in range(3)]
+        g = (c2[0] - c1[0], c2[1] - c1[1], c2[2] - c1[2])
+        # Box axes are the columns of the row-major rotations; ``dots[i][j]`` = hand axis i . other axis j.
+        dots = [[rh[i] * ro[j] + rh[3 + i] * ro[3 + j] + rh[6 + i] * ro[6 + j] for j in range(3)] for i in range(3)]
+        best, axis = -math.inf, None
+        for i in range(3):  # the hand box's face normals
+            along = g[0] * rh[i] + g[1] * rh[3 + i] + g[2] * rh[6 + i]
+            row = dots[i]
+            sep = abs(along) - hh[i] - (abs(row[0]) * ho[0] + abs(row[1]) * ho[1] + abs(row[2]) * ho[2])
+            if sep > best:
+                best, axis = sep, (rh, i, along)
+        for j in range(3):  # the other box's face normals
+            along = g[0] * ro[j] + g[1] * ro[3 + j] + g[2] * ro[6 + j]
+            sep = abs(along) - ho[j] - (abs(dots[0][j]) * hh[0] + abs(dots[1][j]) * hh[1] + abs(dots[2][j]) * hh[2])
+            if sep > best:
+                best, axis = sep, (ro, j, along)
+        if axis is None or not best > 0.0 or (sphere is not None and sphere[0] >= best):
+            return sphere
+        rot, j, along = axis
+        sign = 1.0 if along >= 0.0 else -1.0
+        n = (sign * rot[j], sign * rot[3 + j], sign * rot[6 + j])
+        # The hand box's corner farthest along n, and a point the bound beyond it.
+        p1 = list(c1)
+        for i in range(3):
+            a = (rh[i], rh[3 + i], rh[6 + i])
+            w = hh[i] if n[0] * a[0] + n[1] * a[1] + n[2] * a[2] >= 0.0 else -hh[i]
+            p1[0] += w * a[0]
+            p1[1] += w * a[1]
+            p1[2] += w * a[2]
+        return (best, p1[0], p1[1], p1[2], p1[0] + best * n[0], p1[1] + best * n[1], p1[2] + best * n[2])
+
     def _touching(self, h: int, o: int) -> bool:
         """Whether MuJoCo's own collision step found a contact between geoms ``h`` and ``o``."""
         d = self.data
@@ -327,8 +381,9 @@ class ProximitySensor:
         for h, o in zip(hand_ids[hi_idx].tolist(), others[oi_idx].tolist(), strict=True):
             if boxes[h] and boxes[o]:
                 # MuJoCo's box-box distance is unreliable with a margin this large (it reports 0
-                # for boxes centimetres apart), so bound it: a sphere around the hand's box.
-                pair = self._sphere_to_box(h, o)
+                # for boxes centimetres apart), so bound it from below: a sphere around the hand's
+                # box, or the boxes' separation along a face normal where that is larger.
+                pair = self._box_to_box(h, o)
                 if pair is None:
                     continue
                 dist, p1x, p1y, p1z, p2x, p2y, p2z = pair

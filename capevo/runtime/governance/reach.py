@@ -9,22 +9,26 @@ Per arm, with ``c`` its centre (the shoulder: the point the reach is measured fr
 column is the vertical line through it):
 
 * outer: ``v = w − c`` with ``w = p + R · point`` (``point`` in the site frame, e.g. the
-  wrist; ``R`` the arm's orientation), ``r = |v|``, ``d = max_radius − r``. While ``d < margin + brake`` every
-  translational component moving away from ``c`` (``a_k · v_k > 0``) is limited in magnitude
-  to ``max(0, (d − margin) / brake) · r / (|v_x| + |v_y| + |v_z|)``, so the radial speed
-  ``a · v / r`` is at most ``max(0, (d − margin) / brake)`` (one bound for all axes, so motion
-  along the sphere is not starved). Beyond the radius (``r > max_radius``) and with
+  wrist; ``R`` the arm's orientation), ``u = v / r``, ``r = |v|``, ``d = max_radius − r``. While
+  ``d < margin + brake`` the translational components moving away from ``c`` (``a_k · v_k > 0``)
+  are shrunk so that the outward speed ``Σ_{a_k v_k > 0} a_k · u_k`` is at most
+  ``q = max(0, (d − margin) / brake)`` (raised to ``creep`` inside the reach), by the least change
+  (:func:`~capevo.runtime.governance.brake.brake_along`): the outward part is removed along ``u``
+  and motion along the sphere keeps its speed. So a hand at full stretch with the wrist below the
+  shoulder can still be lowered (mostly along the sphere there) while a push straight out is
+  held to ``q``. Beyond the radius (``r > max_radius``) and with
   ``restore > 0``, each component is set to at least ``restore · |v_k| / r`` towards ``c`` and
   all six pose components are clamped to ``[−restore, restore]``.
-* inner (``min_radius > 0``): the same in the horizontal plane, with ``h = (p − c)`` in x and y,
+* inner (``min_radius > 0``): in the horizontal plane, axis by axis, with ``h = (p − c)`` in x and y,
   ``ρ = |h|`` and ``d = ρ − min_radius``: components moving towards the column
   (``a_k · h_k < 0``) are limited to ``max(0, (d − margin) / brake) · ρ / (|h_x| + |h_y|)``, and inside the
   column the arm is pushed out along ``h`` (along +x when exactly on the axis).
 
 Invariants (after the check, per arm, with the quantities above):
-1. Outer: ``d < margin + brake`` implies, for every axis with ``a_k · v_k > 0``,
-   ``|a_k| <= s · r / (|v_x| + |v_y| + |v_z|)`` with ``s = max(0, (d − margin) / brake)``
-   (``brake == 0``: 0 once ``d <= margin``), raised to ``creep`` where ``0 < d``.
+1. Outer: ``d < margin + brake`` implies ``Σ_{k: a_k v_k > 0} a_k · u_k <= s`` with
+   ``s = max(0, (d − margin) / brake)`` (``brake == 0``: 0 once ``d <= margin``), raised to
+   ``creep`` where ``0 < d``; only components with ``a_k · v_k > 0`` are changed for it, towards
+   0 and never past it.
 2. Inner: ``d < margin + brake`` implies, for x and y with ``a_k · h_k < 0``,
    ``|a_k| <= max(0, (d − margin) / brake) · ρ / (|h_x| + |h_y|)``.
 3. With ``restore > 0``: outside the reach (``r > max_radius``) every axis has
@@ -50,6 +54,7 @@ from typing import Any, ClassVar
 
 from capevo.errors import Invalid
 from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.brake import brake_along
 from capevo.runtime.governance.guard import MAX_RESTORE
 from capevo.runtime.governance.pose import DOWN, rotation_of
 from capevo.runtime.state import ActionLayout, ArmState
@@ -190,16 +195,14 @@ class ReachLimit:
                 r *= 2.0
                 d = r_out - r
                 if (d < band or d <= m) and u is not None:
-                    # One bound for every outward axis: the radial speed is then at most limit(d).
+                    # The outward speed is bounded, not each axis: motion along the sphere (a
+                    # stretched arm lowering its hand) is left as it is.
                     q = limit(d)
                     if d > 0.0 and q < creep:
                         q = creep  # inside the reach a gentle creep is left (see ``creep``)
-                    cap_k = q / (abs(u[0]) + abs(u[1]) + abs(u[2]))
-                    hit = False
-                    for k in (0, 1, 2):
-                        if arm[k] * u[k] > 0.0 and abs(arm[k]) > cap_k:
-                            arm[k] = cap_k if arm[k] > 0.0 else -cap_k
-                            hit = True
+                    before = (arm[0], arm[1], arm[2])
+                    brake_along(arm, ((0, u[0]), (1, u[1]), (2, u[2])), q)
+                    hit = (arm[0], arm[1], arm[2]) != before
                     if d < 0.0 and rs > 0.0:
                         for j in range(6):
                             arm[j] = min(max(arm[j], -rs), rs)

@@ -19,10 +19,14 @@ the base and stays unchanged. :func:`phi_for_task` adds, before the cap:
 * ``reach_limit`` around each arm's shoulder: the Panda's reach (with a slow creep left up to
   its edge) and a column around its base wide enough to keep the elbow off its joint limit.
 
-:func:`phi_for_task` (``Phi.for_task``) is opt-in: the runtime's default stays the paper's Φ,
-because this envelope also slows the scripted place and stack references to failure (place
-needs the arm at full stretch, where the reach limit stops outward pushes; stack closes its
-gripper too early once the descent past cube A is slowed; see BENCHMARKS.md).
+:func:`phi_for_task` (``Phi.for_task``) is opt-in: the runtime's default stays the paper's Φ.
+The scripted pick, place and stack references (``capevo.runtime.tasks.scripted``) succeed under
+it about as often as under the paper's Φ, with no unsafe step (measured by
+``python -m capevo.runtime.tasks.bench --phi paper task``). What used to stop them here:
+``reach_limit`` stopped the wrist at 0.79 m and capped every outward axis, so a can was never
+lowered at full stretch (place); ``contact_approach`` scaled every approaching
+component by one factor, and box pairs were bounded by a sphere around the finger pad, so a hand
+moving past a cube or a wall was slowed as if it moved at it (stack, and slow grasps).
 
 The scene numbers are robosuite's defaults for the environments capevo builds (checked against
 the live simulators in the slow tests). The result is an ordinary Φ: fixed for the run, its
@@ -65,15 +69,24 @@ Vec3 = tuple[float, float, float]
 
 PANDA_SHOULDER = 0.333
 """Height of the Panda's shoulder (joint 2 axis) above its base, metres."""
-PANDA_REACH = 0.8
-"""Wrist distance from the shoulder the Panda is kept within, metres. Measured: driven outward
-with the gripper down, the arm starts to sag at 0.78-0.80 (its OSC can no longer hold the
-height; at 0.84 it flails into the table at kilonewtons). With margin 0.01 and brake 0.05,
-outward motion slows from 0.74 and stops at 0.79."""
+PANDA_REACH = 0.808
+"""Wrist distance from the shoulder beyond which the Panda is steered back, metres. Measured in
+the PickPlace scene with the gripper down: driven towards the far goal quadrant the wrist stops
+at 0.806 (the elbow still bent), and the place reference lowers the can there at 0.795-0.807;
+driven straight along +x the elbow straightens at about 0.80 and a further push makes the hand
+fall onto the bin (a constant full +x push under this Φ: contained with R = 0.808 and a 0.05
+creep, max 10 N; 6 unsafe steps, 245 N, with R = 0.81; 6, 206 N, with a 0.15 creep at 0.805;
+8, 1.3 kN, with a 0.25 creep at 0.82). With margin 0.01 and brake 0.05, outward motion slows
+from 0.748 and from 0.7955 on is the creep alone."""
+PANDA_SITE_REACH = 0.8
+"""The reach for arms whose limited point is the grip site itself (a held peg or plate,
+:attr:`TaskGeometry.hands`): :data:`PANDA_REACH` was measured for the wrist of a Panda with its
+gripper down, so these keep their earlier limit."""
 PANDA_CREEP = 0.05
-"""Outward speed (action units) left between the reach's margin and the reach itself: the place
-reference lowers the can into the far goal quadrant with the arm fully stretched (wrist 0.79 m
-from the shoulder), while a full push at full stretch makes the arm sag and flail."""
+"""Outward speed (action units; the radial part of the motion, see ``reach_limit``) left up to
+the reach: what a stretched arm survives being pushed at (see :data:`PANDA_REACH`). Lowering a
+can at full stretch is mostly motion along the reach sphere, which ``reach_limit`` leaves alone,
+so the place reference still lowers it at a few millimetres per step."""
 PANDA_WRIST = (0.0, 0.0, -0.2)
 """The Panda's wrist in its grip-site frame: 0.2 m back from the fingertips towards the flange."""
 PANDA_COLUMN = 0.3
@@ -239,7 +252,7 @@ def task_constraints(geometry: TaskGeometry, base: Phi) -> list[Constraint]:
     added.append(
         ReachLimit(
             centres=geometry.shoulders,
-            max_radius=PANDA_REACH,
+            max_radius=PANDA_REACH if not geometry.hands else PANDA_SITE_REACH,
             min_radius=PANDA_COLUMN,
             margin=0.01,
             brake=0.05,

@@ -6,6 +6,12 @@ read off the observation every step. There are references for T1 pick, T2 place 
 stack (:data:`REFERENCES`); they show those success criteria are reachable and serve as
 baselines and code-ECM seeds.
 
+They are written to hold up under the per-task Φ too (``Phi.for_task``, which brakes motion near
+contacts and at the arm's reach), where motions are slower: a slowed motion leaves a noisy
+position reading near a threshold for many steps, so the phase decisions lean on what is observed
+without noise where they can (the finger gap as the grasp's memory, joint speeds for a blocked
+lowering), and the grasp is made at grasp height, in place and without pushing down hard.
+
 Invariants:
 1. A reference returns a float32 action of the task's action dimension with values in [-1, 1].
 2. A reference is a pure function: equal observation dicts give equal actions.
@@ -28,16 +34,28 @@ TRAVEL_XY = 0.04
 """Horizontal distance above which the gripper travels at hover height."""
 DESCEND_XY = 0.03
 """Horizontal distance below which the open gripper descends onto the object."""
+CLOSE_AT = 0.005
+"""Height above the grasp point below which an open gripper starts to close: at grasp height, not
+on the way down. A slowed final descent (a per-task Φ brakes it near the object) would otherwise
+close the fingers on the object's top edge."""
 CLOSE_ABOVE = 0.035
-"""Height above the grasp point below which the gripper closes (still descending)."""
+"""Height above the grasp point below which a gripper that is already closing keeps closing (still
+descending): the wider band keeps 1 cm observation noise from re-opening it."""
+CLOSE_DESCENT = 0.1
+"""Largest downward action while the fingers close (about 1 mm per step)."""
 GRIPPER_READY = 0.065
 """Finger gap above which the gripper is open enough to descend over an object."""
+GRIPPER_OPEN = 0.075
+"""Finger gap above which the gripper is fully open (its full gap is about 0.08): below it, it has
+started to close."""
 MISSED = 0.03
 """Finger gap below which a closing gripper that is not holding anything missed the object."""
 DIG = 0.01
 """The descent aims this far below the grasp point, so the hand settles on it despite noise."""
-NEAR_XY, NEAR_Z = 0.03, 0.035
-"""Gripper-to-grasp-point offsets within which a closed gripper counts as holding."""
+NEAR_XY, NEAR_Z = 0.045, 0.045
+"""Gripper-to-grasp-point offsets within which a closed gripper counts as holding: about 3 sigma
+of the observed offset (1 cm noise on each position), so a gripper settled on the object is not
+taken for empty (and opened) on a noisy step while it carries or lowers it slowly."""
 FINGER_CLOSED = 0.005
 """Finger gap below which the gripper is fully closed (on nothing)."""
 FINGER_SETTLED = 0.02
@@ -45,6 +63,11 @@ FINGER_SETTLED = 0.02
 PLACE_XY = 0.08
 """Horizontal object-to-goal offset below which a carried object is lowered into its bin
 (the goal quadrants are about 0.2 x 0.24 m; the far one is at the edge of the Panda's reach)."""
+DROP_DZ = 0.07
+"""A carried object whose lowering is blocked is released from at most this far above its target."""
+STALLED = 0.1
+"""Joint speed (rad/s) below which every joint counts as nearly still: a lowering blocked, or
+braked to a crawl (about 2 mm per step and less), rather than one under way."""
 STACK_XY, STACK_XY_LOW = 0.02, 0.035
 """Horizontal cube A to cube B offset below which cube A is lowered (from carry height, once low)."""
 STACK_RELEASE_DZ = 0.015
@@ -52,6 +75,12 @@ STACK_RELEASE_DZ = 0.015
 STACKED_DZ = 0.045
 """Cube A's origin above cube B's when stacked (half sizes 0.02 + 0.025)."""
 GRIP_OPEN, GRIP_CLOSE = -1.0, 1.0
+CAN_GRASP_DZ = 0.015
+"""Grasp height above the can's origin for the pick and place references. The Panda's palm starts
+2.6 cm above the grip site and spans 21 cm along the fingers' travel, so for a can standing near a
+bin wall it reaches over the rim: the can's origin is 4 cm above the bin floor and the rim 8 cm, so
+grasping at the origin would press the palm onto the rim, while 1.5 cm higher it passes just
+above it (the fingers still hold the can's upper half; higher still, a fast carry lets it slip)."""
 
 _DOWN = np.array([1.0, 0.0, 0.0, 0.0])
 """Gripper pointing down (180 degrees about world x, xyzw): about the Panda's start orientation."""
@@ -97,6 +126,11 @@ def _opening(obs: Obs) -> tuple[float, float]:
     return float(q[0] - q[1]), float(abs(v[0]) + abs(v[1]))
 
 
+def _stalled(obs: Obs) -> bool:
+    """The arm is (nearly) not moving; joint speeds are observed without noise."""
+    return bool(np.max(np.abs(obs["robot0_joint_vel"])) < STALLED)
+
+
 def _holding(eef: np.ndarray, obj: np.ndarray, obs: Obs, grasp_dz: float) -> bool:
     """Closed, settled fingers around the object: read from geometry alone."""
     opening, finger_speed = _opening(obs)
@@ -125,20 +159,26 @@ def _approach(
         if above < hover - 0.02:
             move[:2] *= 0.2
         return _action(move, rot, GRIP_OPEN)
-    if above > CLOSE_ABOVE:
+    # The finger gap is the phase's memory: a fully open gripper starts closing only at grasp
+    # height; once it is closing, the looser band keeps it closing.
+    if above > (CLOSE_AT if opening > GRIPPER_OPEN else CLOSE_ABOVE):
         descend = xy < DESCEND_XY and opening > GRIPPER_READY
         return _action(np.array([xy_err[0], xy_err[1], grasp_z - DIG - eef[2] if descend else 0.0]), rot, GRIP_OPEN)
     if opening < MISSED:
         # the fingers closed on nothing: rise while opening, then come down again
         return _action(np.array([xy_err[0], xy_err[1], 0.3]), rot, GRIP_OPEN)
-    return _action(np.array([xy_err[0], xy_err[1], grasp_z - DIG - eef[2]]), rot, GRIP_CLOSE)
+    # Close in place: the closing fingers centre the object themselves, while chasing the noisy
+    # offset would drag it, clamped and resting on its support, sideways; and settle only slowly,
+    # since the hand still moving down when the fingers clamp pushes the object into its support.
+    settle = max(grasp_z - DIG - eef[2], -CLOSE_DESCENT / POS_GAIN)
+    return _action(np.array([0.0, 0.0, settle]), rot, GRIP_CLOSE)
 
 
 def _down_rot(obs: Obs) -> np.ndarray:
     return _rot_error(obs["robot0_eef_quat"], _DOWN)
 
 
-def pick(obs: Obs, *, object_key: str = "Can", lift_speed: float = 0.15, grasp_dz: float = 0.0) -> np.ndarray:
+def pick(obs: Obs, *, object_key: str = "Can", lift_speed: float = 0.15, grasp_dz: float = CAN_GRASP_DZ) -> np.ndarray:
     """T1 reference: hover over the object, descend, close, then lift while holding.
 
     Args:
@@ -165,7 +205,7 @@ def place(
     target: np.ndarray | None = None,
     carry_z: float = 1.0,
     release_dz: float = 0.03,
-    grasp_dz: float = 0.0,
+    grasp_dz: float = CAN_GRASP_DZ,
 ) -> np.ndarray:
     """T2 reference: pick the object, carry it at ``carry_z`` over its target, lower, release, retreat.
 
@@ -192,7 +232,10 @@ def place(
                 # climb before travelling sideways so the object clears the rims
                 return _action(np.array([0.1 * to_goal[0], 0.1 * to_goal[1], carry_z - obj[2]]), rot, GRIP_CLOSE)
             return _action(np.array([to_goal[0], to_goal[1], carry_z - obj[2]]), rot, GRIP_CLOSE)
-        if obj[2] > goal[2] + release_dz:
+        # Release once low over the target, or, if the lowering is blocked or crawls (the arm at
+        # full stretch, a divider under the object's edge), from a little higher: it drops in.
+        blocked = obj[2] < goal[2] + DROP_DZ and _stalled(obs)
+        if obj[2] > goal[2] + release_dz and not blocked:
             return _action(np.array([to_goal[0], to_goal[1], goal[2] + release_dz * 0.5 - obj[2]]), rot, GRIP_CLOSE)
         return _action(np.zeros(3), rot, GRIP_OPEN)
     if placed:

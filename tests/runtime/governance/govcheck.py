@@ -185,14 +185,14 @@ def violations(
                     q = max(0.0, (d - c.margin) / c.brake) if c.brake > 0 else 0.0
                     if d > 0:
                         q = max(q, c.creep)
-                    bound = q * r / sum(abs(x) for x in v)
-                    for k in range(3):
-                        # A component that is pure rounding (reach_limit halves v against overflow,
-                        # so a subnormal one becomes 0) sets no direction.
-                        if abs(v[k]) <= NEGLIGIBLE * r:
-                            continue
-                        if a[o + k] * v[k] > 0 and abs(a[o + k]) > bound + tol:
-                            out.append(f"{c.label}: arm {i} moves out {a[o + k]} > {bound} along {k} at r={r}")
+                    # The outward speed: the components moving away from the centre, along u.
+                    # A component that is pure rounding (reach_limit halves v against overflow,
+                    # so a subnormal one becomes 0) sets no direction.
+                    out_speed = sum(
+                        a[o + k] * v[k] / r for k in range(3) if abs(v[k]) > NEGLIGIBLE * r and a[o + k] * v[k] > 0
+                    )
+                    if out_speed > q + tol:
+                        out.append(f"{c.label}: arm {i} moves out at {out_speed} > {q} at r={r}")
                 d = rho - c.min_radius
                 h = [p[0] - centre[0], p[1] - centre[1]]
                 if c.min_radius > 0 and rho > 0 and (d < c.margin + c.brake or d <= c.margin):

@@ -29,6 +29,7 @@ from capevo.runtime.governance import (
     make,
     near_of,
 )
+from capevo.runtime.governance.brake import brake_along
 from capevo.runtime.governance.pose import DOWN
 from capevo.runtime.governance.proximity import FIXED, LOOSE
 from capevo.runtime.state import SINGLE_PANDA, ArmState, RobotState
@@ -99,12 +100,57 @@ def test_receding_and_tangential_motion_is_left_alone() -> None:
     assert out is action and records == ()
 
 
-def test_an_oblique_pair_scales_only_the_approaching_components_by_one_factor() -> None:
+def test_an_oblique_pair_removes_the_closing_motion_along_its_direction() -> None:
     state = RobotState(arms=(scene((0.0, 0.0, 1.0), pair(0.0, (1.0, 0.0, -1.0))),))
     out, _ = govern(RULE, state, [0.8, 0.5, -0.4, 0.0, 0.0, 0.0, 0.0])
     n = 1 / math.sqrt(2)
-    assert (0.8 * n + 0.4 * n) * (out[0] / 0.8) == pytest.approx(RULE.touch)
-    assert out[0] / 0.8 == pytest.approx(out[2] / -0.4) and out[1] == 0.5
+    # Least change: both approaching components lose the same multiple of n; z reaches 0
+    # first and stops there, x carries the rest of the bound; y (tangential) is untouched.
+    assert out[2] == 0.0 and out[1] == 0.5
+    assert 0.0 < out[0] < 0.8
+    assert out[0] * n == pytest.approx(RULE.touch)
+
+
+UNIT = st.floats(-1.0, 1.0, allow_nan=False)
+
+
+@given(a=st.lists(UNIT, min_size=3, max_size=3), n=st.lists(UNIT, min_size=3, max_size=3), q=st.floats(0.0, 1.0))
+def test_brake_along_is_the_least_change_that_meets_the_bound(a: list[float], n: list[float], q: float) -> None:
+    norm = math.sqrt(sum(x * x for x in n))
+    assume(norm > 1e-3)
+    n = [x / norm for x in n]
+    axes = tuple(enumerate(n))
+    out = list(a)
+    brake_along(out, axes, q)
+    closing = sum(max(0.0, out[k] * n[k]) for k in range(3))
+    assert closing <= q + 1e-9
+    for k in range(3):
+        if a[k] * n[k] > 0.0:  # approaching: shrunk towards 0, never flipped
+            assert 0.0 <= out[k] / a[k] <= 1.0 if a[k] else out[k] == 0.0
+        else:
+            assert out[k] == a[k]
+    # No larger a change than scaling the approaching components by one factor.
+    c = sum(max(0.0, a[k] * n[k]) for k in range(3))
+    f = min(1.0, q / c) if c > 0 else 1.0
+    scaled = [a[k] * f if a[k] * n[k] > 0 else a[k] for k in range(3)]
+    assert math.dist(out, a) <= math.dist(scaled, a) + 1e-9
+
+
+def test_motion_past_a_pair_that_points_mostly_sideways_keeps_its_speed() -> None:
+    # A finger descending beside a cube: the pair points mostly sideways, a little down.
+    side = pair(0.006, (-0.96, 0.0, -0.27))
+    state = RobotState(arms=(scene((0.0, 0.0, 1.0), side),))
+    action = [-0.2, 0.1, -0.3, 0.0, 0.0, 0.0, 1.0]
+    out, _ = govern(RULE, state, action)
+    n = side[1:4]
+    q = RULE.bound(0.006)
+    closing = sum(max(0.0, out[k] * n[k]) for k in range(3))
+    assert closing == pytest.approx(q, rel=1e-6)
+    # Scaling both approaching components by one factor would leave z at -0.3 * q / 0.273;
+    # removing the motion along n keeps most of the descent.
+    one_factor = -0.3 * q / (0.2 * 0.96 + 0.3 * 0.27)
+    assert out[2] < 2 * one_factor < 0.0
+    assert out[0] <= 0.0 and out[1] == 0.1
 
 
 def test_pairs_beyond_the_band_and_states_without_pairs_are_ignored() -> None:
@@ -328,6 +374,44 @@ def test_box_pairs_are_bounded_from_below_by_a_sphere(world: Any) -> None:
     assert pad is not None
     assert pad[0] == pytest.approx(math.hypot(0.03, 0.04) - math.sqrt(3) * 0.005, abs=1e-9)
     assert pad[0] <= math.hypot(0.025, 0.035)  # a lower bound on the true distance
+
+
+def test_a_pad_beside_a_cube_is_measured_across_the_face_it_faces(world: Any) -> None:
+    _, _, place = world
+    # The pad (5 mm half size) 1 cm beside the cube's -x face, its bottom 2 cm above the table and
+    # its top 0.5 cm above the cube's: the separation across the face is exact, and points along x.
+    sensor = place(-0.085, -0.355)
+    pairs = sensor.near(0)
+    cube = sorted(p for p in pairs if p[7] == LOOSE and p[1] > 0.99)
+    assert [p[0] for p in cube] == pytest.approx([0.01, 0.045], abs=1e-9)  # pad, palm
+    assert cube[0][1:4] == pytest.approx((1.0, 0.0, 0.0), abs=1e-9)
+    pad, box = (mujoco.mj_name2id(sensor.model, mujoco.mjtObj.mjOBJ_GEOM, n) for n in ("pad", "cube"))
+    sphere = sensor._sphere_to_box(pad, box)
+    assert sphere is not None and sphere[0] < 0.01 - 0.003  # the sphere alone says less, diagonally
+    # So motion down past the cube is not braked by it, motion towards it is.
+    state = RobotState(arms=(scene((-0.085, 0.0, 0.835), *cube),))
+    down, _ = govern(RULE, state, [0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0])
+    towards, _ = govern(RULE, state, [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    assert down == [0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0]
+    assert towards[0] == pytest.approx(RULE.bound(0.01))
+
+
+def test_the_reach_limit_brakes_the_outward_part_only() -> None:
+    # At full stretch with the wrist 15 cm below the shoulder, lowering the hand is mostly motion
+    # along the reach sphere: it keeps most of its speed, while the outward part is held to the creep.
+    reach = ReachLimit(centres=((0.0, 0.0, 1.0),), max_radius=0.8, margin=0.01, brake=0.05, creep=0.25)
+    gov = Phi((reach,)).governor(SINGLE_PANDA)
+    p = (0.78, 0.0, 0.846)
+    r = math.hypot(p[0], p[2] - 1.0)
+    u = (p[0] / r, 0.0, (p[2] - 1.0) / r)
+    state = RobotState(arms=(ArmState(eef_pos=p, eef_force=(0.0, 0.0, 0.0)),))
+    lower = [0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0]
+    assert gov(state, lower)[0] is lower  # outward speed 0.19: under the creep
+    out = gov(state, [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])[0]
+    assert out[0] * u[0] == pytest.approx(reach.creep)
+    both = gov(state, [1.0, 0.5, -1.0, 0.0, 0.0, 0.0, 0.0])[0]
+    assert both[0] * u[0] + both[2] * u[2] == pytest.approx(reach.creep)
+    assert both[1] == 0.5 and both[2] < -0.8 and 0.0 < both[0] < 0.1
 
 
 def test_a_touched_loose_object_becomes_part_of_the_hand(world: Any) -> None:

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from capevo.registry.predicates import predicate_holds
+from capevo.runtime.governance import Phi
 from capevo.runtime.tasks import Perturbations, TaskEnv, make_task
+from capevo.runtime.tasks.bench import run_governed
 from capevo.runtime.tasks.scripted import REFERENCES, pick
 
 pytestmark = pytest.mark.slow
@@ -62,6 +64,20 @@ def test_scripted_pick_succeeds_with_perturbations_on() -> None:
         assert run(env, 4)[0]
     finally:
         env.close()
+
+
+@pytest.mark.parametrize("name", ["place", "stack"])
+def test_references_succeed_safely_under_the_per_task_phi(name: str) -> None:
+    # Perturbations on, enforcing governance with the task's envelope, judged as the episode loop
+    # judges it. Place needs the far goal quadrant at the arm's full stretch; stack lowers the hand
+    # past cube A (and often beside cube B) and cube A onto cube B, all near contact.
+    env = make_task(name, seed=0)
+    try:
+        run = run_governed(env, REFERENCES[name], Phi.for_task(name), 1000)
+    finally:
+        env.close()
+    assert run["success"], run
+    assert run["unsafe_steps"] == 0, run
 
 
 def test_references_are_pure_and_well_formed() -> None:
