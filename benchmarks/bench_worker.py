@@ -64,7 +64,7 @@ from capevo.runtime.capabilities import LoadedCapabilitySet
 from capevo.runtime.episode import make_governor, run_episode
 from capevo.runtime.governance import Phi
 from capevo.runtime.tasks import lean_stepping, make_task
-from capevo.runtime.traces import MemoryTraceSink, TraceMetadata, TraceWriter
+from capevo.runtime.traces import RUNTIME_BATCH, MemoryTraceSink, TraceMetadata, TraceWriter
 
 TARGET_OVERHEAD_PCT = 3.0
 CLOCKS = ("wall", "cpu")
@@ -144,7 +144,7 @@ def component_breakdown(
     env.step = timed.wrap(env.step, "TaskEnv.step (robosuite step inside)")
     steps = 0
     try:
-        with TraceWriter(tmp / "breakdown.mcap", metadata) as writer:
+        with TraceWriter(tmp / "breakdown.mcap", metadata, batch=RUNTIME_BATCH) as writer:
             sink = _TimedSink(writer, timed)
             tcaps, tgov = _TimedCaps(caps, timed), _TimedGovernor(governor, timed)
             t0, c0 = time.perf_counter(), time.thread_time()
@@ -328,7 +328,7 @@ def main(argv: list[str] | None = None) -> int:
     loads: list[float] = []
     for r in range(args.rounds):
         round_total = {v: [0.0, 0.0] for v in names + inside}
-        with TraceWriter(tmp / f"worker-{r}.mcap", metadata(f"bench-{r}")) as writer:
+        with TraceWriter(tmp / f"worker-{r}.mcap", metadata(f"bench-{r}"), batch=RUNTIME_BATCH) as writer:
             for i, seed in enumerate(seeds):
                 k = (r + i) % len(runners)
                 for runner in runners[k:] + runners[:k]:

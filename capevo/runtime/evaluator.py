@@ -39,7 +39,7 @@ from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.governance import Phi
 from capevo.runtime.policy import DecisionPolicy
 from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
-from capevo.runtime.traces import TraceMetadata, TraceWriter
+from capevo.runtime.traces import RUNTIME_BATCH, TraceMetadata, TraceWriter
 
 log = logging.getLogger(__name__)
 
@@ -230,7 +230,9 @@ class LocalEvaluator:
             governor = make_governor(env, self.phi, enforce=self.governance)
             outcomes: list[EpisodeOutcome] = []
             path = self.trace_dir / f"{spec.name}-{run_id}.mcap" if self.trace_dir is not None else None
-            sink_cm = TraceWriter(path, metadata) if path is not None else contextlib.nullcontext(None)
+            sink_cm = (
+                TraceWriter(path, metadata, batch=RUNTIME_BATCH) if path is not None else contextlib.nullcontext(None)
+            )
             with sink_cm as sink:
                 for i, seed in enumerate(seed_list):
                     if self.should_stop is not None and self.should_stop():

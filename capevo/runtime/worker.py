@@ -82,7 +82,7 @@ from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.evaluator import LocalEvaluator, agent_identity_of, check_seeds, check_versions
 from capevo.runtime.governance import Phi
 from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
-from capevo.runtime.traces import TraceMetadata, TraceWriter
+from capevo.runtime.traces import RUNTIME_BATCH, TraceMetadata, TraceWriter
 from capevo.shutdown import stop_on_signals
 
 log = logging.getLogger("capevo.runtime.worker")
@@ -725,7 +725,7 @@ class RuntimeWorker:
             seeds=(self.config.seed + self._episodes,),
             worker_id=self.worker_id,
         )
-        return TraceWriter(self.config.trace_dir / f"{run_id}.mcap", metadata)
+        return TraceWriter(self.config.trace_dir / f"{run_id}.mcap", metadata, batch=RUNTIME_BATCH)
 
     def _serve_requests(self, evaluator: LocalEvaluator, stop: threading.Event) -> None:
         while not stop.is_set():

@@ -43,12 +43,13 @@ from capevo.runtime.traces.records import (
 from capevo.runtime.traces.recover import RecoverReport, default_output, recover
 from capevo.runtime.traces.sink import MemoryTraceSink, TraceSink
 from capevo.runtime.traces.summary import EpisodeRow, TraceSummary, summarize
-from capevo.runtime.traces.writer import TraceWriter
+from capevo.runtime.traces.writer import RUNTIME_BATCH, TraceWriter
 
 __all__ = [
     "EXPORT_FORMATS",
     "NOT_ENFORCED_PREFIX",
     "PACKAGES",
+    "RUNTIME_BATCH",
     "TRACE_FORMAT",
     "EcmInvocation",
     "EnvStep",

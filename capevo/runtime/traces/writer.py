@@ -7,6 +7,13 @@ channels, statistics, chunk and metadata indexes) and the footer, so Foxglove an
 ``mcap`` tools open the file directly. Everything before the first chunk reaches the OS in
 the constructor, so even a worker killed at once leaves a file naming its run.
 
+Batching: with ``batch > 1`` records are kept as they are written and encoded and framed
+``batch`` at a time, back to back. Inside an episode loop every robosuite step between two
+writes evicts the encoder from the CPU caches, so encoding a record where it is written costs
+several times what it costs warm (see benchmarks/bench_traces.py, *in the episode loop*). A
+kept record is as safe as one in the open chunk: both reach the OS at the next flush. The
+runtime's writers use :data:`RUNTIME_BATCH`; the default, 1, encodes each record at once.
+
 Crash safety: a chunk is finished and handed to the OS when it reaches ``chunk_size`` bytes
 and at least every ``flush_interval_s`` seconds while it holds data, checked on every write
 and by a background thread (so an idle worker's last records reach the file too). Data the
@@ -21,9 +28,13 @@ Invariants:
    long as the process lives; after ``flush()`` returns, every record written before it is.
 3. ``close()`` is idempotent, leaves a finished MCAP (summary, footer, closing magic) and
    stops the background thread; writes after it raise :class:`Conflict`.
-4. Each ``write_*`` method accepts only its record type (:class:`Invalid` otherwise) and
-   writes it to its own topic; messages get the wall-clock time as log and publish time and
-   a per-channel sequence number starting at 0.
+4. Each ``write_*`` method accepts only its record type (:class:`Invalid` otherwise, at
+   once) and writes it to its own topic; messages get the wall-clock time of the write call
+   as log and publish time and a per-channel sequence number starting at 0, in write order.
+   A record whose fields do not encode is dropped with :class:`Invalid`: with ``batch=1``
+   raised by its own write call; otherwise by the call that encodes its batch (a later
+   write, ``flush()`` or ``close()``, the next of them if the background thread did), after
+   every other record of the batch is written.
 5. An existing file is never overwritten unless ``overwrite=True`` (:class:`Conflict`).
 """
 
@@ -33,7 +44,7 @@ import json
 import os
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -62,6 +73,9 @@ several µs more per env step, amortised (see benchmarks/bench_traces.py)."""
 
 DEFAULT_CHUNK_SIZE = 256 * 1024
 DEFAULT_FLUSH_INTERVAL_S = 1.0
+RUNTIME_BATCH = 64
+"""Records the runtime's writers (worker, evaluator) encode at a time: about 30 env steps with
+their invocations, half a second of a 60-steps/s episode, under the flush interval."""
 
 _SEQUENCE_MOD = 2**32
 
@@ -91,9 +105,10 @@ class TraceWriter:
         fsync_on_flush: Also fsync at every flush (power-loss safety; slower).
         background_flush: Run the thread that flushes while no writes arrive.
         overwrite: Replace an existing file instead of raising :class:`Conflict`.
+        batch: Encode records this many at a time (see the module docstring); 1: each at once.
 
     Raises:
-        Invalid: bad chunk size, interval or compression name.
+        Invalid: bad chunk size, interval, compression name or batch.
         Conflict: ``path`` exists and ``overwrite`` is false.
         Unavailable: the file cannot be created (OS error, with the reason).
     """
@@ -109,6 +124,7 @@ class TraceWriter:
         fsync_on_flush: bool = False,
         background_flush: bool = True,
         overwrite: bool = False,
+        batch: int = 1,
     ) -> None:
         if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size <= 0:
             raise Invalid(f"chunk_size must be a positive integer, got {chunk_size!r}", details={"field": "chunk_size"})
@@ -117,6 +133,8 @@ class TraceWriter:
                 f"flush_interval_s must be a positive number, got {flush_interval_s!r}",
                 details={"field": "flush_interval_s"},
             )
+        if isinstance(batch, bool) or not isinstance(batch, int) or batch <= 0:
+            raise Invalid(f"batch must be a positive integer, got {batch!r}", details={"field": "batch"})
         if compression not in COMPRESSIONS:
             raise Invalid(
                 f"unknown compression {compression!r}; valid: {', '.join(COMPRESSIONS)}",
@@ -135,6 +153,11 @@ class TraceWriter:
         self._flushes = 0
         self._dirty = False
         self._encoder = codec.RecordEncoder()
+        self.batch = batch
+        # (channel id, encode function, record, wall-clock ns of the write), in write order.
+        self._pending: list[tuple[int, Callable[[Any], bytes], Any, int]] = []
+        # A kept record that failed to encode in the background thread, for the owner's next call.
+        self._undelivered: Invalid | None = None
         self._file = self._open(self.path, overwrite)
         try:
             self._mcap = McapFileWriter(self._file, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
@@ -179,56 +202,90 @@ class TraceWriter:
 
     # -- writing ---------------------------------------------------------------------------
 
-    def _write(self, topic: str, payload: bytes) -> None:
-        channel_id = self._channels[topic]
+    def _check_open(self) -> None:
+        if self._closed or self._error is not None:
+            raise self._error or Conflict(f"trace writer for {self.path} is closed")
+
+    def _write(self, topic: str, encode: Callable[[Any], bytes], record: Any) -> None:
         now = time.time_ns()
         with self._lock:
-            if self._closed or self._error is not None:
+            if self._closed or self._error is not None:  # _check_open, inlined: once per record
                 raise self._error or Conflict(f"trace writer for {self.path} is closed")
-            sequence = self._sequences[channel_id]
-            self._sequences[channel_id] = (sequence + 1) % _SEQUENCE_MOD
+            pending = self._pending
+            pending.append((self._channels[topic], encode, record, now))
             try:
-                self._mcap.add_message(channel_id, now, now, sequence, payload)
-                self._messages += 1
-                self._dirty = True
-                if time.monotonic() - self._last_flush >= self.flush_interval_s:
-                    self._flush_locked(self.fsync_on_flush)
+                due = time.monotonic() - self._last_flush >= self.flush_interval_s
+                if due or len(pending) >= self.batch:
+                    try:
+                        self._encode_pending_locked()
+                    finally:
+                        if due:
+                            self._flush_locked(self.fsync_on_flush)
             except OSError as exc:
                 self._error = Unavailable(f"writing trace file {self.path} failed: {exc.strerror or exc}")
                 raise self._error from None
+            if self._undelivered is not None:
+                self._raise_undelivered()
+
+    def _encode_pending_locked(self) -> None:
+        pending = self._pending
+        if not pending:
+            return
+        self._pending = []
+        add, sequences = self._mcap.add_message, self._sequences
+        failed: Invalid | None = None
+        for channel_id, encode, record, now in pending:
+            try:
+                payload = encode(record)
+            except Invalid as exc:
+                failed = failed or exc
+                continue
+            sequence = sequences[channel_id]
+            sequences[channel_id] = (sequence + 1) % _SEQUENCE_MOD
+            add(channel_id, now, now, sequence, payload)
+            self._messages += 1
+            self._dirty = True
+        if failed is not None:
+            raise failed
+
+    def _raise_undelivered(self) -> None:
+        failed, self._undelivered = self._undelivered, None
+        if failed is not None:
+            raise failed
 
     def write_plan_step(self, record: PlanStep) -> None:
         """Append a plan step to ``/plan``."""
         check_record(record, PlanStep, "write_plan_step")
-        self._write(PlanStep.TOPIC, self._encoder.encode(record))
+        self._write(PlanStep.TOPIC, self._encoder.encode, record)
 
     def write_invocation(self, record: EcmInvocation) -> None:
         """Append an ECM invocation to ``/ecm/invocation``."""
         if type(record) is not EcmInvocation:
             check_record(record, EcmInvocation, "write_invocation")
-        self._write(EcmInvocation.TOPIC, self._encoder.invocation(record))
+        self._write(EcmInvocation.TOPIC, self._encoder.invocation, record)
 
     def write_intervention(self, record: Intervention) -> None:
         """Append a governance intervention to ``/governance/intervention``."""
         check_record(record, Intervention, "write_intervention")
-        self._write(Intervention.TOPIC, self._encoder.encode(record))
+        self._write(Intervention.TOPIC, self._encoder.encode, record)
 
     def write_env_step(self, record: EnvStep) -> None:
         """Append an env step to ``/env/step`` (the hot path: one call per control step)."""
         if type(record) is not EnvStep:
             check_record(record, EnvStep, "write_env_step")
-        self._write(EnvStep.TOPIC, self._encoder.env_step(record))
+        self._write(EnvStep.TOPIC, self._encoder.env_step, record)
 
     def write_episode_summary(self, record: EpisodeSummary) -> None:
         """Append an episode summary to ``/episode/summary`` and flush: episodes are the unit
         learners consume, so a finished episode should not wait for the timer."""
         check_record(record, EpisodeSummary, "write_episode_summary")
-        self._write(EpisodeSummary.TOPIC, self._encoder.encode(record))
+        self._write(EpisodeSummary.TOPIC, self._encoder.encode, record)
         self.flush()
 
     # -- flushing --------------------------------------------------------------------------
 
     def _flush_locked(self, fsync: bool) -> None:
+        # Callers encode the kept records first; a chunk is finished whatever they raised.
         self._mcap.flush()
         if fsync:
             os.fsync(self._file.fileno())
@@ -247,13 +304,16 @@ class TraceWriter:
             Unavailable: the OS refused the write.
         """
         with self._lock:
-            if self._closed or self._error is not None:
-                raise self._error or Conflict(f"trace writer for {self.path} is closed")
+            self._check_open()
             try:
-                self._flush_locked(self.fsync_on_flush if fsync is None else fsync)
+                try:
+                    self._encode_pending_locked()
+                finally:
+                    self._flush_locked(self.fsync_on_flush if fsync is None else fsync)
             except OSError as exc:
                 self._error = Unavailable(f"flushing trace file {self.path} failed: {exc.strerror or exc}")
                 raise self._error from None
+            self._raise_undelivered()
 
     def _flush_loop(self) -> None:
         tick = self.flush_interval_s / 4
@@ -261,8 +321,12 @@ class TraceWriter:
             with self._lock:
                 if self._closed or self._error is not None:
                     return
-                if self._dirty and time.monotonic() - self._last_flush >= self.flush_interval_s:
+                if (self._dirty or self._pending) and time.monotonic() - self._last_flush >= self.flush_interval_s:
                     try:
+                        try:
+                            self._encode_pending_locked()
+                        except Invalid as exc:
+                            self._undelivered = self._undelivered or exc
                         self._flush_locked(self.fsync_on_flush)
                     except OSError as exc:
                         # Surfaces on the next write/flush/close of the owning thread.
@@ -285,9 +349,13 @@ class TraceWriter:
             if self._closed:
                 return
             self._closed = True
-            error = self._error
+            error: CapevoError | None = self._error
             try:
                 if error is None:
+                    try:
+                        self._encode_pending_locked()
+                    except Invalid as exc:
+                        error = exc
                     self._mcap.finish()
                     self._file.flush()
                     if self.fsync_on_flush:
@@ -296,6 +364,8 @@ class TraceWriter:
                 error = Unavailable(f"finishing trace file {self.path} failed: {exc.strerror or exc}")
             finally:
                 self._file.close()
+        if error is None:
+            error, self._undelivered = self._undelivered, None
         if error is not None:
             raise error
 

@@ -193,7 +193,7 @@ def test_obs_cache_is_one_attribute() -> None:
     s = make_env_step()
     enc.encode(s)
     cached_obs, cached_text = enc._last_next_obs
-    assert cached_obs is s.next_obs and cached_text == codec.format_vector(s.next_obs)
+    assert cached_obs is s.next_obs and cached_text == codec.vector_json(s.next_obs)
 
 
 def test_obs_cache_reuses_only_the_same_tuple() -> None:
@@ -263,3 +263,43 @@ def test_format_vector_names_each_float32_uniquely(values: list[float]) -> None:
     expected = [v if math.isfinite(v) else float("nan") for v in values]
     got = [float("nan") if v is None else float(np.float32(v)) for v in parsed]
     assert same_floats(got, expected)
+
+
+# -- vector_json (the hot paths' vector printer) and invariant 5 ------------------------------
+
+
+@settings(max_examples=300)
+@given(st.lists(f32s, max_size=40))
+def test_vector_json_names_each_float32_exactly(values: list[float]) -> None:
+    text = codec.vector_json(tuple(values))
+    parsed = strict_loads(text)
+    assert [float(np.float32(v)) for v in parsed] == values
+
+
+@settings(max_examples=300)
+@given(st.lists(f64_in_f32_range, min_size=10, max_size=40))
+def test_vector_json_rounds_float64_to_the_nearest_float32(values: list[float]) -> None:
+    parsed = strict_loads(codec.vector_json(tuple(values)))
+    assert [float(np.float32(v)) for v in parsed] == [float(np.float32(v)) for v in values]
+
+
+@pytest.mark.parametrize("n", [3, 12])  # both sides of the short-vector cut-off
+def test_vector_json_keeps_values_float32_cannot_hold(n: int) -> None:
+    values = (1e300, float("nan"), -1e39, float("inf")) + (0.5,) * (n - 4 if n > 4 else 0)
+    parsed = strict_loads(codec.vector_json(values[:n]))
+    assert parsed[0] == 1e300 and parsed[1] is None and parsed[2] == -1e39
+    if n > 3:
+        assert parsed[3] is None
+
+
+@pytest.mark.parametrize("n", [3, 12])
+@pytest.mark.parametrize("bad", ["1.5", None, (1.0, 2.0), 1 + 2j])
+def test_a_vector_component_that_is_not_a_real_number_fails_the_encoding(n: int, bad: Any) -> None:
+    vector = (bad,) + (0.25,) * (n - 1)
+    with pytest.raises(Invalid):
+        codec.encode(make_env_step(next_obs=vector))
+
+
+def test_a_name_that_is_not_utf8_fails_the_encoding() -> None:
+    with pytest.raises(Invalid, match="EnvStep does not encode"):
+        codec.encode(dataclasses.replace(make_env_step(), ecm="\ud800"))

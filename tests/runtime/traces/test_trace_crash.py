@@ -19,13 +19,19 @@ from mcap.reader import make_reader
 
 from capevo.runtime.traces import EnvStep, TraceReader, recover
 from capevo.runtime.traces.scan import has_footer
+from capevo.runtime.traces.writer import RUNTIME_BATCH
 
 CHILD = Path(__file__).with_name("_crash_child.py")
 
 
-def start_child(path: Path, mode: str, interval: float, n: int = 0) -> subprocess.Popen[str]:
+# Each crash test runs with records encoded at once and with the runtime's batching, where
+# records wait unencoded for their batch or the timer.
+BATCHES = pytest.mark.parametrize("batch", [1, RUNTIME_BATCH], ids=["unbatched", "batched"])
+
+
+def start_child(path: Path, mode: str, interval: float, n: int = 0, batch: int = 1) -> subprocess.Popen[str]:
     return subprocess.Popen(
-        [sys.executable, str(CHILD), str(path), mode, str(interval), str(n)],
+        [sys.executable, str(CHILD), str(path), mode, str(interval), str(n), str(batch)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -66,9 +72,10 @@ def recovered_steps(src: Path, tmp_path: Path) -> list[int]:
 
 
 @pytest.mark.timeout(60)
-def test_sigkill_after_explicit_flush_loses_nothing_flushed(tmp_path: Path) -> None:
+@BATCHES
+def test_sigkill_after_explicit_flush_loses_nothing_flushed(tmp_path: Path, batch: int) -> None:
     path = tmp_path / "run.mcap"
-    child = start_child(path, "explicit", interval=3600.0, n=300)
+    child = start_child(path, "explicit", interval=3600.0, n=300, batch=batch)
     try:
         flushed = int(read_line(child))
     finally:
@@ -78,10 +85,11 @@ def test_sigkill_after_explicit_flush_loses_nothing_flushed(tmp_path: Path) -> N
 
 
 @pytest.mark.timeout(60)
-def test_sigkill_of_an_idle_writer_keeps_what_the_timer_flushed(tmp_path: Path) -> None:
+@BATCHES
+def test_sigkill_of_an_idle_writer_keeps_what_the_timer_flushed(tmp_path: Path, batch: int) -> None:
     # Nothing writes after the report: only the background flush can put the steps on disk.
     path = tmp_path / "run.mcap"
-    child = start_child(path, "idle", interval=0.3, n=120)
+    child = start_child(path, "idle", interval=0.3, n=120, batch=batch)
     try:
         written = int(read_line(child))
         deadline = time.monotonic() + 20
@@ -93,12 +101,13 @@ def test_sigkill_of_an_idle_writer_keeps_what_the_timer_flushed(tmp_path: Path) 
 
 
 @pytest.mark.timeout(60)
-def test_sigkill_mid_run_loses_at_most_the_last_interval(tmp_path: Path) -> None:
+@BATCHES
+def test_sigkill_mid_run_loses_at_most_the_last_interval(tmp_path: Path, batch: int) -> None:
     # The child reports (count, its own monotonic clock). Every step written more than
     # 2 x interval before the child's last report must survive the kill.
     interval = 0.5
     path = tmp_path / "run.mcap"
-    child = start_child(path, "continuous", interval=interval)
+    child = start_child(path, "continuous", interval=interval, batch=batch)
     reports: list[tuple[int, float]] = []
     try:
         while True:

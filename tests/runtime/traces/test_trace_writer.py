@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -14,6 +15,7 @@ from mcap.reader import make_reader
 from capevo.errors import Conflict, Corrupt, ErrorCode, Invalid
 from capevo.runtime.traces import (
     EnvStep,
+    EpisodeSummary,
     MemoryTraceSink,
     PlanStep,
     TraceReader,
@@ -214,6 +216,8 @@ def test_wrong_record_type_is_invalid(tmp_path: Path) -> None:
         ({"chunk_size": 1.5}, "chunk_size must be a positive integer"),
         ({"flush_interval_s": 0}, "flush_interval_s must be a positive number"),
         ({"compression": "brotli"}, "unknown compression 'brotli'; valid: lz4, zstd, none"),
+        ({"batch": 0}, "batch must be a positive integer"),
+        ({"batch": True}, "batch must be a positive integer"),
     ],
 )
 def test_bad_writer_config_is_invalid(tmp_path: Path, kw: dict[str, object], text: str) -> None:
@@ -324,3 +328,77 @@ def test_memory_sink_rejects_what_the_writer_rejects(tmp_path: Path) -> None:
     with pytest.raises(Conflict) as exc:
         sink.write_plan_step(PlanStep(episode=0, step=0, ecm="a", version=1))
     assert exc.value.code is ErrorCode.CONFLICT
+
+
+# -- batching (writer invariant 4 with batch > 1) ---------------------------------------------
+
+
+def test_batched_records_keep_order_write_times_and_sequences(tmp_path: Path) -> None:
+    records = one_of_each(0) + one_of_each(1)
+    kept = [r for r in records if not isinstance(r, EpisodeSummary)]  # a summary flushes
+    windows: list[tuple[int, int]] = []
+    path = tmp_path / "run.mcap"
+    with TraceWriter(path, make_metadata(), batch=64, background_flush=False, flush_interval_s=3600) as w:
+        for r in kept:
+            before = time.time_ns()
+            write_records(w, [r])
+            windows.append((before, time.time_ns()))
+            time.sleep(0.002)
+        assert w.messages_written == 0  # all kept, none encoded yet
+        w.flush()
+        assert w.messages_written == len(kept)
+    assert list(TraceReader(path).records()) == kept
+    with path.open("rb") as f:
+        messages = [
+            (m.log_time, m.channel_id, m.sequence) for _, _, m in make_reader(f).iter_messages(log_time_order=False)
+        ]
+    for (log_time, _, _), (before, after) in zip(messages, windows, strict=True):
+        assert before <= log_time <= after  # stamped by the write call, not by the encoding
+    by_channel: dict[int, list[int]] = {}
+    for _, channel, sequence in messages:
+        by_channel.setdefault(channel, []).append(sequence)
+    assert all(seqs == list(range(len(seqs))) for seqs in by_channel.values())
+
+
+def test_a_bad_record_in_a_batch_is_dropped_by_the_call_that_encodes_it(tmp_path: Path) -> None:
+    bad = dataclasses.replace(make_env_step(0, 1), obs=("x",))  # type: ignore[arg-type]
+    path = tmp_path / "run.mcap"
+    with TraceWriter(path, make_metadata(), batch=3, background_flush=False) as w:
+        w.write_env_step(make_env_step(0, 0))
+        w.write_env_step(bad)  # kept: its batch is not full
+        with pytest.raises(Invalid, match="EnvStep does not encode as JSON"):
+            w.write_env_step(make_env_step(0, 2))
+        assert w.messages_written == 2
+        w.write_env_step(make_env_step(0, 3))
+    assert [s.step for s in TraceReader(path).env_steps()] == [0, 2, 3]
+
+
+def test_close_finishes_the_file_before_raising_for_a_kept_bad_record(tmp_path: Path) -> None:
+    bad = dataclasses.replace(make_env_step(0, 1), next_obs=(None,))  # type: ignore[arg-type]
+    path = tmp_path / "run.mcap"
+    w = TraceWriter(path, make_metadata(), batch=64, background_flush=False)
+    w.write_env_step(make_env_step(0, 0))
+    w.write_env_step(bad)
+    with pytest.raises(Invalid, match="EnvStep does not encode as JSON"):
+        w.close()
+    assert w.closed and has_footer(path)
+    assert [s.step for s in TraceReader(path).env_steps()] == [0]
+    w.close()  # still idempotent
+
+
+def test_the_background_thread_encodes_an_idle_writers_records(tmp_path: Path) -> None:
+    # An idle batched writer's kept records reach the file by the timer; a bad one among them
+    # is reported by the owner's next call.
+    path = tmp_path / "run.mcap"
+    with TraceWriter(path, make_metadata(), batch=64, flush_interval_s=0.1) as w:
+        for i in range(5):
+            w.write_env_step(make_env_step(0, i))
+        w.write_env_step(dataclasses.replace(make_env_step(0, 5), action=("x",)))  # type: ignore[arg-type]
+        deadline = time.monotonic() + 20
+        while count_messages(path) < 5 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert count_messages(path) == 5
+        with pytest.raises(Invalid, match="EnvStep does not encode as JSON"):
+            w.write_env_step(make_env_step(0, 6))
+        w.write_env_step(make_env_step(0, 7))
+    assert [s.step for s in TraceReader(path).env_steps()] == [0, 1, 2, 3, 4, 6, 7]
