@@ -87,13 +87,15 @@ class WorkspaceBox:
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             b: list[float] | None = None
-            notes: list[str] = []
+            reason: str | None = None
             for i, arm in enumerate(arms):
-                o, reasons = per_arm[i]
                 x, y, z = p = arm.eef_pos
+                if lx < x < hx and ly < y < hy and lz < z < hz:
+                    continue
                 if x - x != 0.0 or y - y != 0.0 or z - z != 0.0:  # NaN or ±inf
                     return None, f"arm {i}: end-effector position {p} is not finite"  # rare: format here
-                ax, ay, az = a[o], a[o + 1], a[o + 2]
+                o, reasons = per_arm[i]
+                ax, ay, az = a[o : o + 3]
                 zx = (ax > 0.0 and x >= hx) or (ax < 0.0 and x <= lx)
                 zy = (ay > 0.0 and y >= hy) or (ay < 0.0 and y <= ly)
                 zz = (az > 0.0 and z >= hz) or (az < 0.0 and z <= lz)
@@ -101,18 +103,22 @@ class WorkspaceBox:
                     continue
                 if b is None:
                     b = list(a)
+                # Reasons join as "; ".join would, without a list for the usual single one.
                 if zx:
                     b[o] = 0.0
-                    notes.append(reasons[0 if ax > 0.0 else 1])
+                    note = reasons[0 if ax > 0.0 else 1]
+                    reason = note if reason is None else f"{reason}; {note}"
                 if zy:
                     b[o + 1] = 0.0
-                    notes.append(reasons[2 if ay > 0.0 else 3])
+                    note = reasons[2 if ay > 0.0 else 3]
+                    reason = note if reason is None else f"{reason}; {note}"
                 if zz:
                     b[o + 2] = 0.0
-                    notes.append(reasons[4 if az > 0.0 else 5])
+                    note = reasons[4 if az > 0.0 else 5]
+                    reason = note if reason is None else f"{reason}; {note}"
             if b is None:
                 return None
-            return b, notes[0] if len(notes) == 1 else "; ".join(notes)
+            return b, reason  # type: ignore[return-value]
 
         def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             for arm in arms:

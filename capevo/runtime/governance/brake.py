@@ -27,12 +27,15 @@ def brake_along(arm: list[float], axes: Sequence[tuple[int, float]], q: float, s
     (tangential) is kept, where scaling every approaching component by one factor would slow a
     hand that mostly moves past a geom as much as one that moves straight at it.
     """
-    active = [(k, n) for k, n in axes if sign * arm[k] * n > 0.0]
+    # The closing speed first: a bound already met (the common case) builds nothing.
     c = 0.0
-    for k, n in active:
-        c += sign * arm[k] * n
+    for k, n in axes:
+        v = sign * arm[k] * n
+        if v > 0.0:
+            c += v
     if c <= q:
         return
+    active = [(k, n) for k, n in axes if sign * arm[k] * n > 0.0]
     excess = c - q * SHRINK
     while active and excess > 0.0:
         nn = 0.0
@@ -52,7 +55,10 @@ def brake_along(arm: list[float], axes: Sequence[tuple[int, float]], q: float, s
         k0, n0 = min(active, key=lambda kn: abs(arm[kn[0]] / kn[1]))
         if lam * abs(n0) < abs(arm[k0]):
             for k, n in active:
-                arm[k] -= sign * lam * n
+                v = arm[k] - sign * lam * n
+                # Components that reach 0 together (an action parallel to n) can cross it by
+                # rounding; they stop at 0, which closes no faster.
+                arm[k] = v if v * arm[k] > 0.0 else 0.0
             return
         excess -= sign * arm[k0] * n0
         arm[k0] = 0.0

@@ -70,15 +70,18 @@ class VelocityCap:
         cap = self.max_norm
         cap2 = cap * cap
         target = cap * SHRINK
-        offsets = tuple(arm.offset for arm in layout.arms)
-        reasons = tuple(f"arm {i}: pose-delta norm above the cap {cap}: scaled down to it" for i in range(len(offsets)))
+        # (offset, reason) per arm: an intervention picks a prepared string, it never formats.
+        per_arm = tuple(
+            (arm.offset, f"arm {i}: pose-delta norm above the cap {cap}: scaled down to it")
+            for i, arm in enumerate(layout.arms)
+        )
         sqrt, hypot = math.sqrt, math.hypot
 
-        def slow(a: Sequence[float]) -> Result:
+        def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             b: list[float] | None = None
-            notes: list[str] = []
-            for i, o in enumerate(offsets):
-                x0, x1, x2, x3, x4, x5 = a[o], a[o + 1], a[o + 2], a[o + 3], a[o + 4], a[o + 5]
+            reason: str | None = None
+            for o, note in per_arm:
+                x0, x1, x2, x3, x4, x5 = a[o : o + 6]
                 n2 = x0 * x0 + x1 * x1 + x2 * x2 + x3 * x3 + x4 * x4 + x5 * x5
                 if n2 <= cap2:
                     continue
@@ -90,23 +93,12 @@ class VelocityCap:
                     s = target / hypot(x0, x1, x2, x3, x4, x5)
                 else:
                     s = target / sqrt(n2)
-                b[o] = x0 * s
-                b[o + 1] = x1 * s
-                b[o + 2] = x2 * s
-                b[o + 3] = x3 * s
-                b[o + 4] = x4 * s
-                b[o + 5] = x5 * s
-                notes.append(reasons[i])
+                b[o : o + 6] = x0 * s, x1 * s, x2 * s, x3 * s, x4 * s, x5 * s
+                # Reasons join as "; ".join would, without building a list for the usual single one.
+                reason = note if reason is None else f"{reason}; {note}"
             if b is None:
                 return None
-            return b, notes[0] if len(notes) == 1 else "; ".join(notes)
-
-        def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
-            for o in offsets:
-                x0, x1, x2, x3, x4, x5 = a[o], a[o + 1], a[o + 2], a[o + 3], a[o + 4], a[o + 5]
-                if not x0 * x0 + x1 * x1 + x2 * x2 + x3 * x3 + x4 * x4 + x5 * x5 <= cap2:
-                    return slow(a)
-            return None
+            return b, reason  # type: ignore[return-value]
 
         return check
 

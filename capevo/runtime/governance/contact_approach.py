@@ -58,7 +58,7 @@ from typing import Any, ClassVar
 from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
 from capevo.runtime.governance.brake import brake_along
 from capevo.runtime.governance.cap import SHRINK
-from capevo.runtime.governance.proximity import FIXED, LOOSE
+from capevo.runtime.governance.proximity import LOOSE
 from capevo.runtime.state import ActionLayout, ArmState
 
 
@@ -128,62 +128,116 @@ class ContactApproach:
 
     def compile(self, layout: ActionLayout) -> Check:
         band = self.clearance + max(self.brake, self.brake_loose or 0.0)
-        bound, turn, lever = self.bound, self.rotation, self.lever
+        turn, lever = self.rotation, self.lever
+        # bound()'s terms as locals: the loop inlines it (the same operations, so the same bits),
+        # since a method call per pair costs more than the rest of a pair that needs no edit.
+        cl = self.clearance
+        br_fixed, t_fixed = self.brake, self.touch
+        br_loose = self.brake_loose if self.brake_loose is not None else self.brake
+        t_loose = self.touch_loose
+        u_fixed, u_loose = 1.0 - t_fixed, 1.0 - t_loose
+        # With the same settings a movable object's bound is the fixed one, bit for bit, so it
+        # needs no second bound (repr, not ==: a touch of -0.0 gives a bound of -0.0 at 0 m).
+        split = repr((br_loose, t_loose)) != repr((br_fixed, t_fixed))
         offsets = tuple(arm.offset for arm in layout.arms)
         reasons = tuple(f"arm {i}: hand near a contact: motion towards it braked" for i in range(len(offsets)))
-        isfinite, sqrt = math.isfinite, math.sqrt
+        isfinite, sqrt, inf = math.isfinite, math.sqrt, math.inf
+        # Below this |r|^2 the lever factor is 1, rounding included (sqrt is monotone).
+        lever2 = lever * lever * (1.0 - 1e-12)
 
         n_arms = len(offsets)
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
-            poses = [[a[o + j] for j in range(6)] for o in offsets]
-            q_rot = [math.inf] * n_arms
+            poses = [list(a[o : o + 6]) for o in offsets]
+            q_rot = [inf] * n_arms
+            # Arms an edit may have changed; the others are still their slice of ``a``.
+            edited = [False] * n_arms
             for i in range(n_arms):
+                arm = poses[i]
+                qr_i = q_rot[i]  # only this arm's own pairs change it in this loop (owner != i)
                 for pair in getattr(arms[i], "near", ()):
                     dist, nx, ny, nz, rx, ry, rz, owner = pair
-                    if not (isfinite(dist) and isfinite(nx) and isfinite(ny) and isfinite(nz)):
+                    # A finite sum proves all four finite; an overflowing one takes the exact test.
+                    s = dist + nx + ny + nz
+                    if s - s != 0.0 and not (isfinite(dist) and isfinite(nx) and isfinite(ny) and isfinite(nz)):
                         return None, f"arm {i}: proximity pair {pair} is not finite"  # rare: format here
                     if dist >= band:
                         continue
-                    q = bound(dist, owner)
-                    q_down = bound(dist, FIXED) if owner == LOOSE and nz < 0.0 else q
-                    pinned = q_down < q  # only a looser bound for the object needs the split
+                    if split and owner == LOOSE:
+                        x = (dist - cl) / br_loose
+                        x = 0.0 if x < 0.0 else 1.0 if x > 1.0 else x
+                        q = t_loose + u_loose * x
+                        if nz < 0.0:
+                            x = (dist - cl) / br_fixed
+                            x = 0.0 if x < 0.0 else 1.0 if x > 1.0 else x
+                            q_down = t_fixed + u_fixed * x
+                        else:
+                            q_down = q
+                    else:
+                        x = (dist - cl) / br_fixed
+                        x = 0.0 if x < 0.0 else 1.0 if x > 1.0 else x
+                        q = q_down = t_fixed + u_fixed * x
                     if q >= 1.0 and q_down >= 1.0:
                         continue  # at the edge of the band: nothing to limit
-                    arm = poses[i]
-                    if pinned:
+                    # Closing speed of the approaching components alone, summed as brake_along
+                    # sums it (later edits only shrink components, which can lower it, never raise
+                    # it): most pairs already meet their bound, and then nothing is built or called.
+                    v0, v1, v2 = arm[0] * nx, arm[1] * ny, arm[2] * nz
+                    c = v0 if v0 > 0.0 else 0.0
+                    if v1 > 0.0:
+                        c += v1
+                    if q_down < q:
                         # A loose object below the hand slides when pushed sideways but is pinned
                         # against its support when pushed down: that part keeps the fixed bound.
-                        if arm[2] * nz > q_down:
+                        if v2 > q_down:
                             arm[2] = q_down / nz * SHRINK
-                        axes: tuple[tuple[int, float], ...] = ((0, nx), (1, ny))
+                            edited[i] = True
+                        if c > q:
+                            brake_along(arm, ((0, nx), (1, ny)), q)
+                            edited[i] = True
+                        q = q_down
                     else:
-                        axes = ((0, nx), (1, ny), (2, nz))
-                    # Closing speed of the approaching components alone: later edits only shrink
-                    # components, which can lower this sum but never raise it.
-                    brake_along(arm, axes, q)
-                    q = min(q, q_down)
+                        if v2 > 0.0:
+                            c += v2
+                        if c > q:
+                            brake_along(arm, ((0, nx), (1, ny), (2, nz)), q)
+                            edited[i] = True
                     if turn:
-                        r = sqrt(rx * rx + ry * ry + rz * rz) if isfinite(rx + ry + rz) else math.inf
-                        qr = q * (lever / r if r > lever else 1.0)
-                        if qr < q_rot[i]:
-                            q_rot[i] = qr
+                        rr = rx * rx + ry * ry + rz * rz
+                        if rr < lever2:
+                            qr = q  # |r| < lever for sure: no sqrt needed for a factor of 1
+                        else:
+                            r = sqrt(rr) if isfinite(rx + ry + rz) else inf
+                            qr = q * (lever / r if r > lever else 1.0)
+                        if qr < qr_i:
+                            qr_i = qr
                     if 0 <= owner < n_arms and owner != i:
                         # Another arm's hand or link: its motion closes the gap from the other side.
-                        brake_along(poses[owner], ((0, nx), (1, ny), (2, nz)), q, sign=-1.0)
+                        other = poses[owner]
+                        v0, v1, v2 = -other[0] * nx, -other[1] * ny, -other[2] * nz
+                        c = v0 if v0 > 0.0 else 0.0
+                        if v1 > 0.0:
+                            c += v1
+                        if v2 > 0.0:
+                            c += v2
+                        if c > q:
+                            brake_along(other, ((0, nx), (1, ny), (2, nz)), q, sign=-1.0)
+                            edited[owner] = True
                         if turn and q < q_rot[owner]:
                             q_rot[owner] = q
+                q_rot[i] = qr_i
             b: list[float] | None = None
             notes: list[str] = []
             for i, o in enumerate(offsets):
                 arm = poses[i]
                 qr = q_rot[i]
-                if qr < math.inf:
+                if qr < inf:
                     for k in (3, 4, 5):
                         v = arm[k]
                         if abs(v) > qr:
                             arm[k] = qr if v > 0.0 else -qr
-                if any(arm[j] != a[o + j] for j in range(6)):
+                            edited[i] = True
+                if edited[i] and any(arm[j] != a[o + j] for j in range(6)):
                     if b is None:
                         b = list(a)
                     b[o : o + 6] = arm

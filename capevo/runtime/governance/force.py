@@ -42,6 +42,7 @@ from capevo.runtime.governance.base import Check, Result, config_of, invalid, no
 from capevo.runtime.state import ActionLayout, ArmState
 
 AXES = ("x", "y", "z")
+INF = math.inf
 
 
 @register("contact_force")
@@ -88,15 +89,17 @@ class ContactForce:
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             b: list[float] | None = None
-            notes: list[str] = []
+            reason: str | None = None
             for i, arm in enumerate(arms):
-                o, reasons = per_arm[i]
                 fx, fy, fz = f = arm.eef_force
-                if fx - fx != 0.0 or fy - fy != 0.0 or fz - fz != 0.0:  # NaN or ±inf
+                n2 = fx * fx + fy * fy + fz * fz
+                if n2 <= lim2:
+                    continue  # at or below the limit, hence also finite
+                # A non-finite reading makes n2 NaN or inf; finite ones can overflow to inf too.
+                if not n2 < INF and (fx - fx != 0.0 or fy - fy != 0.0 or fz - fz != 0.0):
                     return None, f"arm {i}: force reading {f} is not finite"  # rare: format here
-                if fx * fx + fy * fy + fz * fz <= lim2:
-                    continue
-                ax, ay, az = a[o], a[o + 1], a[o + 2]
+                o, reasons = per_arm[i]
+                ax, ay, az = a[o : o + 3]
                 # Compare signs, not products: a * f can underflow to -0.0.
                 zx = (ax > 0.0 and fx < 0.0) or (ax < 0.0 and fx > 0.0)
                 zy = (ay > 0.0 and fy < 0.0) or (ay < 0.0 and fy > 0.0)
@@ -105,18 +108,19 @@ class ContactForce:
                     continue
                 if b is None:
                     b = list(a)
+                # Reasons join as "; ".join would, without building a list for the usual single one.
                 if zx:
                     b[o] = 0.0
-                    notes.append(reasons[0])
+                    reason = reasons[0] if reason is None else f"{reason}; {reasons[0]}"
                 if zy:
                     b[o + 1] = 0.0
-                    notes.append(reasons[1])
+                    reason = reasons[1] if reason is None else f"{reason}; {reasons[1]}"
                 if zz:
                     b[o + 2] = 0.0
-                    notes.append(reasons[2])
+                    reason = reasons[2] if reason is None else f"{reason}; {reasons[2]}"
             if b is None:
                 return None
-            return b, notes[0] if len(notes) == 1 else "; ".join(notes)
+            return b, reason  # type: ignore[return-value]
 
         def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             for arm in arms:

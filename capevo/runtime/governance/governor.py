@@ -58,7 +58,17 @@ from numpy import ndarray
 
 from capevo.errors import Invalid
 from capevo.runtime.governance.layouts import check_layout
-from capevo.runtime.governance.records import GovernanceStats, Intervention, new_intervention
+from capevo.runtime.governance.records import (
+    _NEW,
+    _SET_CONSTRAINT,
+    _SET_ENFORCED,
+    _SET_ORIGINAL,
+    _SET_REASON,
+    _SET_RESULT,
+    GovernanceStats,
+    Intervention,
+    new_intervention,
+)
 from capevo.runtime.state import ActionLayout, ArmState, RobotState
 
 if TYPE_CHECKING:
@@ -67,11 +77,12 @@ if TYPE_CHECKING:
 GUARD = "governor"
 """Label of the governor's own input checks in interventions."""
 NO_INTERVENTIONS: tuple[Intervention, ...] = ()
+_isfinite = math.isfinite
 
 
 def _floats_or_empty(values: Any) -> tuple[float, ...]:
     try:
-        return tuple(float(v) for v in values)
+        return tuple(map(float, values))
     except (TypeError, ValueError):
         return ()
 
@@ -160,10 +171,10 @@ class Governor:
         """
         self._steps += 1
         t = type(action)
-        if t is list or t is tuple:
-            a = action
-        elif t is ndarray:
+        if t is ndarray:
             a = action.tolist() if action.ndim == 1 else None
+        elif t is list or t is tuple:
+            a = action
         else:
             a = self._as_list(action)
         arms = state.arms
@@ -174,7 +185,7 @@ class Governor:
         except TypeError:
             return self._guard(action, a, arms)
         # inf - inf and nan - x are nan; a finite sum proves every component finite.
-        if s - s != 0.0 and not all(math.isfinite(v) for v in a):
+        if s - s != 0.0 and not all(map(_isfinite, a)):
             return self._guard(action, a, arms)
         if self._rot is not None:
             a = _rotate(a, self._rot, to_world=True)
@@ -200,28 +211,39 @@ class Governor:
     def _intervene(
         self, action: Any, a: Sequence[float], arms: Sequence[ArmState], i: int, r: tuple[Any, str]
     ) -> tuple[Any, tuple[Intervention, ...]]:
-        checks, labels, enforce, rot = self._checks, self._labels, self.enforce, self._rot
+        checks, labels, enforce, counts = self._checks, self._labels, self.enforce, self._counts
+        n = len(checks)
+        rot = self._rot
         # Components keep the caller's number types (a tuple of ints stays ints where untouched);
         # converting every record to floats would cost more than the rest of this path.
         original = tuple(a if rot is None else _rotate(a, rot, to_world=False))
         records: list[Intervention] = []
         while True:
             new, reason = r
-            result = None if new is None else tuple(new if rot is None else _rotate(new, rot, to_world=False))
-            records.append(new_intervention(labels[i], original, result, reason, enforce))
-            self._counts[i] += 1
+            # Inlined new_intervention: this loop builds up to one record per constraint per call.
+            rec = _NEW(Intervention)
+            _SET_CONSTRAINT(rec, labels[i])
+            _SET_ORIGINAL(rec, original)
+            _SET_REASON(rec, reason)
+            _SET_ENFORCED(rec, enforce)
+            records.append(rec)
             if new is None:
+                _SET_RESULT(rec, None)
+                counts[i] += 1
                 self._rejected += 1
                 return (None if enforce else action), tuple(records)
-            original = result
-            for j in range(i + 1, len(checks)):
-                r2 = checks[j](arms, new)
-                if r2 is not None:
-                    i, r = j, r2
+            original = tuple(new if rot is None else _rotate(new, rot, to_world=False))
+            _SET_RESULT(rec, original)
+            counts[i] += 1
+            i += 1
+            while i < n:
+                r = checks[i](arms, new)
+                if r is not None:
                     break
+                i += 1
             else:
                 self._modified += 1
-                return (result if enforce else action), tuple(records)
+                return (original if enforce else action), tuple(records)
 
     def _guard(self, action: Any, a: Any, arms: Sequence[ArmState]) -> tuple[Any, tuple[Intervention, ...]]:
         if a is None:
@@ -234,7 +256,7 @@ class Governor:
             bad = [k for k, v in enumerate(a) if not isinstance(v, (int, float)) or not math.isfinite(v)]
             reason = f"action components {bad} are not finite numbers" if bad else "action is not numeric"
         original = _floats_or_empty(a) if a is not None else ()
-        record = Intervention(constraint=GUARD, original=original, result=None, reason=reason, enforced=self.enforce)
+        record = new_intervention(GUARD, original, None, reason, self.enforce)
         self._counts[-1] += 1
         self._rejected += 1
         return (None if self.enforce else action), (record,)

@@ -42,16 +42,63 @@ Invariants (per governed arm, hand box and obstacle, after the check, with the q
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from capevo.errors import Invalid
 from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
-from capevo.runtime.governance.hand import hand_extent, hand_reach
+from capevo.runtime.governance.hand import hand_reach
 from capevo.runtime.governance.pose import DOWN, rotation_of
 from capevo.runtime.governance.zone import Aabb
 from capevo.runtime.state import ActionLayout, ArmState
+
+Vec3 = tuple[float, float, float]
+
+
+def extent_of(hand: Sequence[Aabb]) -> Callable[[Sequence[float]], tuple[Vec3, Vec3]]:
+    """:func:`~capevo.runtime.governance.hand.hand_extent` of ``hand`` as a function of the rotation.
+
+    The boxes' centres and half sizes are computed once; per call the operations are
+    ``hand_extent``'s, in its order (``x < lo`` where it takes ``min(lo, x)``), so the result is
+    the same to the bit, NaN included.
+    """
+    shapes = tuple(
+        (
+            tuple((box.low[j] + box.high[j]) / 2 for j in range(3)),
+            tuple((box.high[j] - box.low[j]) / 2 for j in range(3)),
+        )
+        for box in hand
+    )
+    if not shapes:
+        zero: tuple[Vec3, Vec3] = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+        return lambda rot: zero
+    inf = math.inf
+
+    def extent(rot: Sequence[float]) -> tuple[Vec3, Vec3]:
+        r0, r1, r2, r3, r4, r5, r6, r7, r8 = rot[:9]
+        a0, a1, a2, a3, a4, a5, a6, a7, a8 = map(abs, rot[:9])
+        lo0 = lo1 = lo2 = inf
+        hi0 = hi1 = hi2 = -inf
+        for (c0, c1, c2), (h0, h1, h2) in shapes:
+            m, e = r0 * c0 + r1 * c1 + r2 * c2, a0 * h0 + a1 * h1 + a2 * h2
+            if m - e < lo0:
+                lo0 = m - e
+            if m + e > hi0:
+                hi0 = m + e
+            m, e = r3 * c0 + r4 * c1 + r5 * c2, a3 * h0 + a4 * h1 + a5 * h2
+            if m - e < lo1:
+                lo1 = m - e
+            if m + e > hi1:
+                hi1 = m + e
+            m, e = r6 * c0 + r7 * c1 + r8 * c2, a6 * h0 + a7 * h1 + a8 * h2
+            if m - e < lo2:
+                lo2 = m - e
+            if m + e > hi2:
+                hi2 = m + e
+        return (lo0, lo1, lo2), (hi0, hi1, hi2)
+
+    return extent
 
 
 @register("obstacle_approach")
@@ -104,7 +151,6 @@ class ObstacleApproach:
     def compile(self, layout: ActionLayout) -> Check:
         hand, cl, br, turn = self.hand, self.clearance, self.brake, self.rotation
         grow = hand_reach(hand) + cl + br
-        parts = tuple((box,) for box in hand) or ((),)
         # Per obstacle: its box, its centre, and the box the site must be in for the rule to apply.
         obstacles = tuple(
             (
@@ -129,7 +175,11 @@ class ObstacleApproach:
             for i in range(len(layout.arms))
         )
         reasons = tuple(tuple(r) for r in reasons)
-        isfinite, sqrt = math.isfinite, math.sqrt
+        isfinite, sqrt, inf = math.isfinite, math.sqrt, math.inf
+        band = cl + br
+        flat = tuple((j, *o[3], *o[4]) for j, o in enumerate(obstacles))
+        # Each hand box separately: a wide hand body above narrow fingers is not one big box.
+        parts = tuple(extent_of((box,)) for box in hand) or (extent_of(()),)
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             b: list[float] | None = None
@@ -137,69 +187,78 @@ class ObstacleApproach:
             for i, o in offsets:
                 arm = arms[i]
                 p = arm.eef_pos
-                if not (isfinite(p[0]) and isfinite(p[1]) and isfinite(p[2])):
+                px, py, pz = p[0], p[1], p[2]
+                if not (isfinite(px) and isfinite(py) and isfinite(pz)):
                     return None, f"arm {i}: end-effector position {p} is not finite"  # rare: format here
-                near = [
-                    j
-                    for j, (_, _, _, g_lo, g_hi) in enumerate(obstacles)
-                    if g_lo[0] <= p[0] <= g_hi[0] and g_lo[1] <= p[1] <= g_hi[1] and g_lo[2] <= p[2] <= g_hi[2]
-                ]
+                near = [j for j, lx, ly, lz, hx, hy, hz in flat if lx <= px <= hx and ly <= py <= hy and lz <= pz <= hz]
                 if not near:
                     continue
                 rot = rotation_of(arm)
                 if rot is None:
                     rot = DOWN
-                elif not all(isfinite(v) for v in rot):
-                    return None, f"arm {i}: end-effector orientation {rot} is not finite"
-                # Each hand box separately: a wide hand body above narrow fingers is not one big box.
+                else:
+                    # A finite sum proves every entry finite; an overflowing one takes the exact test.
+                    s = sum(rot)
+                    if s - s != 0.0 and not all(isfinite(v) for v in rot):
+                        return None, f"arm {i}: end-effector orientation {rot} is not finite"
                 hulls = []
-                for part in parts:
-                    off_lo, off_hi = hand_extent(part, rot)
-                    hulls.append(
-                        (
-                            (p[0] + off_lo[0], p[1] + off_lo[1], p[2] + off_lo[2]),
-                            (p[0] + off_hi[0], p[1] + off_hi[1], p[2] + off_hi[2]),
-                        )
-                    )
+                for extent in parts:
+                    (l0, l1, l2), (h0, h1, h2) = extent(rot)
+                    hulls.append(((px + l0, py + l1, pz + l2), (px + h0, py + h1, pz + h2)))
                 src = a if b is None else b
-                arm_a = [src[o + j] for j in range(6)]
-                q_rot = math.inf
+                arm_a = list(src[o : o + 6])
+                q_rot = inf
                 hit: list[str] = []
-                for j, (hl, hh) in ((j, hull) for j in near for hull in hulls):
+                for j in near:
                     lo, hi, centre, _, _ = obstacles[j]
-                    s = [0.0, 0.0, 0.0]
-                    side = [0, 0, 0]
-                    for k in (0, 1, 2):
-                        if hh[k] < lo[k]:
-                            s[k], side[k] = lo[k] - hh[k], 1
-                        elif hl[k] > hi[k]:
-                            s[k], side[k] = hl[k] - hi[k], -1
-                    dist = sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
-                    if dist >= cl + br and dist > cl:
-                        continue
-                    q = (dist - cl) / br if br > 0.0 and dist > cl else 0.0
-                    changed = False
-                    if dist > 0.0:
-                        # One bound for every approaching axis: the closing speed sum(a_k * s_k / dist)
-                        # is then at most q, and an axis with little separation is not starved.
-                        bound = q * dist / (s[0] + s[1] + s[2])
-                        for k in (0, 1, 2):
-                            v = arm_a[k]
-                            if side[k] and v * side[k] > 0.0 and abs(v) > bound:
-                                arm_a[k] = bound * side[k]
-                                changed = True
-                    else:
-                        mid = ((hl[0] + hh[0]) / 2, (hl[1] + hh[1]) / 2, (hl[2] + hh[2]) / 2)
-                        for k in (0, 1, 2):
-                            v = arm_a[k]
-                            if (v > 0.0 and mid[k] < centre[k]) or (v < 0.0 and mid[k] > centre[k]):
-                                arm_a[k] = 0.0
-                                changed = True
-                    if turn and q < q_rot:
-                        q_rot = q
-                    if changed and reasons[i][j] not in hit:
-                        hit.append(reasons[i][j])
-                if turn and q_rot < math.inf:
+                    lo0, lo1, lo2 = lo
+                    hi0, hi1, hi2 = hi
+                    for hl, hh in hulls:
+                        # Per axis the separation s_k and the side (+1: the obstacle lies towards +k).
+                        if hh[0] < lo0:
+                            s0, d0 = lo0 - hh[0], 1
+                        elif hl[0] > hi0:
+                            s0, d0 = hl[0] - hi0, -1
+                        else:
+                            s0, d0 = 0.0, 0
+                        if hh[1] < lo1:
+                            s1, d1 = lo1 - hh[1], 1
+                        elif hl[1] > hi1:
+                            s1, d1 = hl[1] - hi1, -1
+                        else:
+                            s1, d1 = 0.0, 0
+                        if hh[2] < lo2:
+                            s2, d2 = lo2 - hh[2], 1
+                        elif hl[2] > hi2:
+                            s2, d2 = hl[2] - hi2, -1
+                        else:
+                            s2, d2 = 0.0, 0
+                        dist = sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+                        if dist >= band and dist > cl:
+                            continue
+                        q = (dist - cl) / br if br > 0.0 and dist > cl else 0.0
+                        changed = False
+                        if dist > 0.0:
+                            # One bound for every approaching axis: the closing speed sum(a_k * s_k / dist)
+                            # is then at most q, and an axis with little separation is not starved.
+                            bound = q * dist / (s0 + s1 + s2)
+                            for k, side in ((0, d0), (1, d1), (2, d2)):
+                                v = arm_a[k]
+                                if side and v * side > 0.0 and abs(v) > bound:
+                                    arm_a[k] = bound * side
+                                    changed = True
+                        else:
+                            for k in (0, 1, 2):
+                                v = arm_a[k]
+                                mid = (hl[k] + hh[k]) / 2
+                                if (v > 0.0 and mid < centre[k]) or (v < 0.0 and mid > centre[k]):
+                                    arm_a[k] = 0.0
+                                    changed = True
+                        if turn and q < q_rot:
+                            q_rot = q
+                        if changed and reasons[i][j] not in hit:
+                            hit.append(reasons[i][j])
+                if turn and q_rot < inf:
                     for k in (3, 4, 5):
                         v = arm_a[k]
                         if abs(v) > q_rot:

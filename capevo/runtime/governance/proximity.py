@@ -56,6 +56,9 @@ from capevo.runtime.state import ArmState
 Near = tuple[float, float, float, float, float, float, float, int]
 """One hand-to-scene pair: ``(dist, nx, ny, nz, rx, ry, rz, owner)``, see invariant 1."""
 
+Frame = tuple[list[float], tuple[float, float, float]]
+"""A geom's rotation (row-major, 9 floats) and the world centre of its bounding box."""
+
 FIXED = -1
 """``owner`` of a pair whose other geom is part of the fixed scene (table, bin, peg, a robot's mount)."""
 LOOSE = -2
@@ -204,37 +207,69 @@ class ProximitySensor:
         half = (np.abs(rot) * self._half[geoms][:, None, :]).sum(axis=2)
         return centre - half, centre + half
 
-    def _sphere_to_box(self, h: int, o: int) -> tuple[float, float, float, float, float, float, float] | None:
-        """``(dist, p1, p2)`` from a sphere around box ``h`` to box ``o``: a lower bound on their distance."""
+    def _frame(self, g: int) -> Frame:
+        """Geom ``g``'s rotation (row-major, 9 floats) and the world centre of its bounding box, now."""
         d = self.data
         # Plain floats: for one 3x3 rotation, numpy's per-call cost dominates.
-        rh, ro = d.geom_xmat[h].tolist(), d.geom_xmat[o].tolist()
-        ph, po = d.geom_xpos[h].tolist(), d.geom_xpos[o].tolist()
-        ch, co = self._centre_l[h], self._centre_l[o]
-        c = [ph[k] + rh[3 * k] * ch[0] + rh[3 * k + 1] * ch[1] + rh[3 * k + 2] * ch[2] for k in range(3)]
-        q = [po[k] + ro[3 * k] * co[0] + ro[3 * k + 1] * co[1] + ro[3 * k + 2] * co[2] for k in range(3)]
-        v = [c[0] - q[0], c[1] - q[1], c[2] - q[2]]
-        half = self._half_l[o]
+        return self._frame_of(g, d.geom_xmat[g].tolist(), d.geom_xpos[g].tolist())
+
+    def _frame_of(self, g: int, r: list[float], p: list[float]) -> Frame:
+        cx, cy, cz = self._centre_l[g]
+        return r, (
+            p[0] + r[0] * cx + r[1] * cy + r[2] * cz,
+            p[1] + r[3] * cx + r[4] * cy + r[5] * cz,
+            p[2] + r[6] * cx + r[7] * cy + r[8] * cz,
+        )
+
+    def _frames(self, geoms: Sequence[int]) -> dict[int, Frame]:
+        """:meth:`_frame` of each of ``geoms``, read from the data in one go."""
+        ids = sorted(set(geoms))
+        if not ids:
+            return {}
+        d = self.data
+        rots, pos = d.geom_xmat[ids].tolist(), d.geom_xpos[ids].tolist()
+        return {g: self._frame_of(g, r, p) for g, r, p in zip(ids, rots, pos, strict=True)}
+
+    def _sphere_to_box(
+        self, h: int, o: int, fh: Frame | None = None, fo: Frame | None = None
+    ) -> tuple[float, float, float, float, float, float, float] | None:
+        """``(dist, p1, p2)`` from a sphere around box ``h`` to box ``o``: a lower bound on their distance.
+
+        ``fh`` and ``fo``: the two geoms' :meth:`_frame` if already read.
+        """
+        c = (fh or self._frame(h))[1]
+        ro, q = fo or self._frame(o)
+        cx, cy, cz = c
+        qx, qy, qz = q
+        vx, vy, vz = cx - qx, cy - qy, cz - qz
+        r0, r1, r2, r3, r4, r5, r6, r7, r8 = ro
+        hx, hy, hz = self._half_l[o]
         # The sphere's centre in the other box's frame, clamped into the box, back to the world.
-        inner = []
-        for j in range(3):
-            x = ro[j] * v[0] + ro[3 + j] * v[1] + ro[6 + j] * v[2]
-            inner.append(-half[j] if x < -half[j] else half[j] if x > half[j] else x)
-        p2 = [q[k] + ro[3 * k] * inner[0] + ro[3 * k + 1] * inner[1] + ro[3 * k + 2] * inner[2] for k in range(3)]
-        w = [p2[0] - c[0], p2[1] - c[1], p2[2] - c[2]]
-        gap = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+        x = r0 * vx + r3 * vy + r6 * vz
+        ix = -hx if x < -hx else hx if x > hx else x
+        x = r1 * vx + r4 * vy + r7 * vz
+        iy = -hy if x < -hy else hy if x > hy else x
+        x = r2 * vx + r5 * vy + r8 * vz
+        iz = -hz if x < -hz else hz if x > hz else x
+        p2x = qx + r0 * ix + r1 * iy + r2 * iz
+        p2y = qy + r3 * ix + r4 * iy + r5 * iz
+        p2z = qz + r6 * ix + r7 * iy + r8 * iz
+        wx, wy, wz = p2x - cx, p2y - cy, p2z - cz
+        gap = math.sqrt(wx * wx + wy * wy + wz * wz)
         radius = self._radius_l[h]
         if gap < 1e-9:
             # The sphere's centre is inside the box: point at the box's centre instead.
-            w = [q[0] - c[0], q[1] - c[1], q[2] - c[2]]
-            n = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+            wx, wy, wz = qx - cx, qy - cy, qz - cz
+            n = math.sqrt(wx * wx + wy * wy + wz * wz)
             if n < 1e-9:
                 return None
-            return (-radius, *(c[k] + w[k] / n * radius for k in range(3)), *c)
-        t = min(radius, gap) / gap
-        return (gap - radius, *(c[k] + w[k] * t for k in range(3)), *p2)
+            return (-radius, cx + wx / n * radius, cy + wy / n * radius, cz + wz / n * radius, cx, cy, cz)
+        t = (gap if gap < radius else radius) / gap  # min(radius, gap)
+        return (gap - radius, cx + wx * t, cy + wy * t, cz + wz * t, p2x, p2y, p2z)
 
-    def _box_to_box(self, h: int, o: int) -> tuple[float, float, float, float, float, float, float] | None:
+    def _box_to_box(
+        self, h: int, o: int, fh: Frame | None = None, fo: Frame | None = None
+    ) -> tuple[float, float, float, float, float, float, float] | None:
         """``(dist, p1, p2)`` for boxes ``h`` and ``o``: the larger of two lower bounds on their distance.
 
         One is :meth:`_sphere_to_box`; the other is the separating-axis bound: along each face
@@ -245,45 +280,50 @@ class ProximitySensor:
         pad beside a cube's face or a held cube above another, and points along the face normal,
         so motion parallel to that face does not count as closing on it. ``p1`` is the hand
         box's corner farthest along the direction (for the rotation lever) and ``p2 − p1`` the
-        bound along it.
+        bound along it. ``fh`` and ``fo``: the two geoms' :meth:`_frame` if already read.
         """
-        sphere = self._sphere_to_box(h, o)
-        d = self.data
-        rh, ro = d.geom_xmat[h].tolist(), d.geom_xmat[o].tolist()
-        ph, po = d.geom_xpos[h].tolist(), d.geom_xpos[o].tolist()
-        ch, co = self._centre_l[h], self._centre_l[o]
-        hh, ho = self._half_l[h], self._half_l[o]
-        c1 = [ph[k] + rh[3 * k] * ch[0] + rh[3 * k + 1] * ch[1] + rh[3 * k + 2] * ch[2] for k in range(3)]
-        c2 = [po[k] + ro[3 * k] * co[0] + ro[3 * k + 1] * co[1] + ro[3 * k + 2] * co[2] for k in range(3)]
-        g = (c2[0] - c1[0], c2[1] - c1[1], c2[2] - c1[2])
-        # Box axes are the columns of the row-major rotations; ``dots[i][j]`` = hand axis i . other axis j.
-        dots = [[rh[i] * ro[j] + rh[3 + i] * ro[3 + j] + rh[6 + i] * ro[6 + j] for j in range(3)] for i in range(3)]
-        best, axis = -math.inf, None
-        for i in range(3):  # the hand box's face normals
-            along = g[0] * rh[i] + g[1] * rh[3 + i] + g[2] * rh[6 + i]
-            row = dots[i]
-            sep = abs(along) - hh[i] - (abs(row[0]) * ho[0] + abs(row[1]) * ho[1] + abs(row[2]) * ho[2])
+        fh = fh or self._frame(h)
+        fo = fo or self._frame(o)
+        sphere = self._sphere_to_box(h, o, fh, fo)
+        (rh, c1), (ro, c2) = fh, fo
+        hx, hy, hz = self._half_l[h]
+        ox, oy, oz = self._half_l[o]
+        gx, gy, gz = c2[0] - c1[0], c2[1] - c1[1], c2[2] - c1[2]
+        # Box axes are the columns of the row-major rotations: u_i for the hand, w_j for the other.
+        u0, u1, u2 = (rh[0], rh[3], rh[6]), (rh[1], rh[4], rh[7]), (rh[2], rh[5], rh[8])
+        w0, w1, w2 = (ro[0], ro[3], ro[6]), (ro[1], ro[4], ro[7]), (ro[2], ro[5], ro[8])
+        # c_ij = |u_i . w_j|
+        c00, c01, c02, c10, c11, c12, c20, c21, c22 = (
+            abs(u[0] * w[0] + u[1] * w[1] + u[2] * w[2]) for u in (u0, u1, u2) for w in (w0, w1, w2)
+        )
+        best, axis, sign = -math.inf, None, 1.0
+        # Each face normal's separation: the hand box's three, then the other box's.
+        for n, half, extent in (
+            (u0, hx, c00 * ox + c01 * oy + c02 * oz),
+            (u1, hy, c10 * ox + c11 * oy + c12 * oz),
+            (u2, hz, c20 * ox + c21 * oy + c22 * oz),
+            (w0, ox, c00 * hx + c10 * hy + c20 * hz),
+            (w1, oy, c01 * hx + c11 * hy + c21 * hz),
+            (w2, oz, c02 * hx + c12 * hy + c22 * hz),
+        ):
+            along = gx * n[0] + gy * n[1] + gz * n[2]
+            sep = abs(along) - half - extent
             if sep > best:
-                best, axis = sep, (rh, i, along)
-        for j in range(3):  # the other box's face normals
-            along = g[0] * ro[j] + g[1] * ro[3 + j] + g[2] * ro[6 + j]
-            sep = abs(along) - ho[j] - (abs(dots[0][j]) * hh[0] + abs(dots[1][j]) * hh[1] + abs(dots[2][j]) * hh[2])
-            if sep > best:
-                best, axis = sep, (ro, j, along)
+                best, axis, sign = sep, n, along
+        hh = (hx, hy, hz)
+        ah = (u0, u1, u2)
         if axis is None or not best > 0.0 or (sphere is not None and sphere[0] >= best):
             return sphere
-        rot, j, along = axis
-        sign = 1.0 if along >= 0.0 else -1.0
-        n = (sign * rot[j], sign * rot[3 + j], sign * rot[6 + j])
+        nx, ny, nz = axis if sign >= 0.0 else (-axis[0], -axis[1], -axis[2])
         # The hand box's corner farthest along n, and a point the bound beyond it.
-        p1 = list(c1)
+        px, py, pz = c1
         for i in range(3):
-            a = (rh[i], rh[3 + i], rh[6 + i])
-            w = hh[i] if n[0] * a[0] + n[1] * a[1] + n[2] * a[2] >= 0.0 else -hh[i]
-            p1[0] += w * a[0]
-            p1[1] += w * a[1]
-            p1[2] += w * a[2]
-        return (best, p1[0], p1[1], p1[2], p1[0] + best * n[0], p1[1] + best * n[1], p1[2] + best * n[2])
+            a0, a1, a2 = ah[i]
+            e = hh[i] if nx * a0 + ny * a1 + nz * a2 >= 0.0 else -hh[i]
+            px += e * a0
+            py += e * a1
+            pz += e * a2
+        return (best, px, py, pz, px + best * nx, py + best * ny, pz + best * nz)
 
     def _touching(self, h: int, o: int) -> bool:
         """Whether MuJoCo's own collision step found a contact between geoms ``h`` and ``o``."""
@@ -349,18 +389,23 @@ class ProximitySensor:
             moving = moving[~np.isin(moving, extra)]
         if not hand:
             return ()
-        m_lo, m_hi = self._boxes(moving)
         others = np.concatenate((static, moving))
         if others.size == 0:
             return ()
-        lo = np.concatenate((s_lo, m_lo))
-        hi = np.concatenate((s_hi, m_hi))
+        # The hand's boxes and the moving geoms' world boxes in one pass (numpy's cost is per call;
+        # each row's value does not depend on what else is in the batch).
+        hand_ids = np.asarray(hand, dtype=np.int64)
+        n_hand = hand_ids.size
+        ids = np.concatenate((hand_ids, moving))
+        rot = d.geom_xmat[ids].reshape(-1, 3, 3)
+        centre = d.geom_xpos[ids] + (rot * self._centre[ids][:, None, :]).sum(axis=2)
+        half = (np.abs(rot) * self._half[ids][:, None, :]).sum(axis=2)
+        m_centre, m_half = centre[n_hand:], half[n_hand:]
+        lo = np.concatenate((s_lo, m_centre - m_half))
+        hi = np.concatenate((s_hi, m_centre + m_half))
+        centre, half = centre[:n_hand], half[:n_hand]
         # Broad phase, per hand geom and other geom: the larger of two lower bounds on their
         # distance, a sphere around the hand geom's box and its world box, each against the other's world box.
-        hand_ids = np.asarray(hand, dtype=np.int64)
-        rot = d.geom_xmat[hand_ids].reshape(-1, 3, 3)
-        centre = d.geom_xpos[hand_ids] + (rot * self._centre[hand_ids][:, None, :]).sum(axis=2)
-        half = (np.abs(rot) * self._half[hand_ids][:, None, :]).sum(axis=2)
         c = centre[:, None, :]
         h = half[:, None, :]
         sep = np.maximum(np.maximum(lo[None] - c - h, c - h - hi[None]), 0.0)
@@ -378,12 +423,15 @@ class ProximitySensor:
         xpos = d.geom_xpos
         owner = self._owner
         boxes = self._is_box
-        for h, o in zip(hand_ids[hi_idx].tolist(), others[oi_idx].tolist(), strict=True):
+        hs, os_ = hand_ids[hi_idx].tolist(), others[oi_idx].tolist()
+        # A box pair's geoms are read once per call, however many pairs they are in.
+        frames = self._frames([g for h, o in zip(hs, os_, strict=True) if boxes[h] and boxes[o] for g in (h, o)])
+        for h, o in zip(hs, os_, strict=True):
             if boxes[h] and boxes[o]:
                 # MuJoCo's box-box distance is unreliable with a margin this large (it reports 0
                 # for boxes centimetres apart), so bound it from below: a sphere around the hand's
                 # box, or the boxes' separation along a face normal where that is larger.
-                pair = self._box_to_box(h, o)
+                pair = self._box_to_box(h, o, frames[h], frames[o])
                 if pair is None:
                     continue
                 dist, p1x, p1y, p1z, p2x, p2y, p2z = pair

@@ -42,7 +42,8 @@ from typing import Any, ClassVar
 
 from capevo.errors import Invalid
 from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
-from capevo.runtime.governance.hand import hand_extent, hand_reach
+from capevo.runtime.governance.hand import hand_reach
+from capevo.runtime.governance.obstacle import extent_of
 from capevo.runtime.governance.pose import DOWN, rotation_of
 from capevo.runtime.governance.zone import Aabb
 from capevo.runtime.state import ActionLayout, ArmState
@@ -112,19 +113,25 @@ class ArmSeparation:
         reasons = {(i, j): f"arms {i} and {j}: hands near each other: approach slowed" for i, j, _ in pairs}
         isfinite, sqrt = math.isfinite, math.sqrt
 
+        extents = tuple(extent_of(h) for h in hands)
+
         def boxes(arms: Sequence[ArmState]) -> list[tuple[tuple[float, ...], tuple[float, ...]]] | str:
             out = []
             for i in range(n):
                 p = arms[i].eef_pos
-                if not (isfinite(p[0]) and isfinite(p[1]) and isfinite(p[2])):
+                px, py, pz = p[0], p[1], p[2]
+                if not (isfinite(px) and isfinite(py) and isfinite(pz)):
                     return f"arm {i}: end-effector position {p} is not finite"
                 rot = rotation_of(arms[i])
                 if rot is None:
                     rot = DOWN
-                elif not all(isfinite(v) for v in rot):
-                    return f"arm {i}: end-effector orientation {rot} is not finite"
-                lo, hi = hand_extent(hands[i], rot)
-                out.append((tuple(p[k] + lo[k] for k in range(3)), tuple(p[k] + hi[k] for k in range(3))))
+                else:
+                    # A finite sum proves every entry finite; an overflowing one takes the exact test.
+                    s = sum(rot)
+                    if s - s != 0.0 and not all(isfinite(v) for v in rot):
+                        return f"arm {i}: end-effector orientation {rot} is not finite"
+                (l0, l1, l2), (h0, h1, h2) = extents[i](rot)
+                out.append(((px + l0, py + l1, pz + l2), (px + h0, py + h1, pz + h2)))
             return out
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:

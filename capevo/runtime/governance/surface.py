@@ -128,8 +128,11 @@ class SurfaceApproach:
                 rot = rotation_of(arm)
                 if rot is None:
                     rot = DOWN
-                elif not all(isfinite(v) for v in rot):
-                    return None, f"arm {i}: end-effector orientation {rot} is not finite"
+                else:
+                    # A finite sum proves every entry finite; an overflowing one takes the exact test.
+                    s = sum(rot)
+                    if s - s != 0.0 and not all(isfinite(v) for v in rot):
+                        return None, f"arm {i}: end-effector orientation {rot} is not finite"
                 gap = z + lowest_offset(hand, rot) - stop
                 if gap >= br and gap > 0.0:
                     continue

@@ -29,6 +29,7 @@ from capevo.runtime.governance import (
     WorkspaceGuard,
 )
 from capevo.runtime.governance.hand import hand_extent, hand_reach, lowest_offset
+from capevo.runtime.governance.obstacle import extent_of
 from capevo.runtime.governance.task_phi import PANDA_HAND
 from capevo.runtime.state import SINGLE_PANDA, ArmState, RobotState
 
@@ -344,3 +345,42 @@ def test_two_arm_task_phi_satisfies_every_rule_at_once_where_nothing_restores(da
     out, _ = phi.governor(TWO_ARM_NO_GRIPPER)(state, action)
     assert violations(phi, TWO_ARM_NO_GRIPPER, state, out, tol=TOL) == []
     unchanged_or_clamped(action, out)
+
+
+HANDS = st.lists(
+    st.tuples(*[st.floats(-0.2, 0.2)] * 3, *[st.floats(0.001, 0.1)] * 3).map(
+        lambda v: Aabb(low=v[:3], high=(v[0] + v[3], v[1] + v[4], v[2] + v[5]))
+    ),
+    max_size=3,
+)
+ODD = st.sampled_from([math.nan, math.inf, -math.inf, 1e308, -0.0])
+
+
+@settings(max_examples=300, deadline=None)
+@given(hand=HANDS, q=QUATS, odd=st.one_of(st.none(), st.tuples(st.integers(0, 8), ODD)))
+def test_compiled_hand_extent_is_hand_extent_to_the_bit(hand, q, odd) -> None:
+    rot = list(rotation(q))
+    if odd is not None:
+        rot[odd[0]] = odd[1]
+    got, want = extent_of(hand)(rot), hand_extent(hand, rot)
+    assert repr(got) == repr(want)  # repr: NaN equals NaN and -0.0 differs from 0.0
+
+
+@settings(max_examples=300, deadline=None)
+@given(q=QUATS, direction=QUATS, off=st.floats(1e-8, 1e-3), side=st.sampled_from([-1.0, 1.0]), push=st.floats(1.0, 3.0))
+def test_reach_limit_on_its_wrist_test_brakes_right_at_the_edge_of_its_band(q, direction, off, side, push) -> None:
+    # The check decides from the wrist itself that a state is clear: near the band's edge it
+    # must still brake where the rule says so (10 nm and more either side of the edge: at the
+    # edge itself the rule and govcheck may round d differently).
+    reach = next(c for c in Phi.for_task("T4").constraints if isinstance(c, ReachLimit))
+    c, rot = reach.centres[0], rotation(q)
+    u = [v / math.sqrt(sum(x * x for x in direction[:3]) or 1.0) for v in direction[:3]]
+    assume(sum(x * x for x in u) > 0.5 and abs(u[2]) < 0.7)  # keep out of the base column
+    r = reach.max_radius - reach.margin - reach.brake + side * off
+    wrist = [c[k] + r * u[k] for k in range(3)]
+    pt = reach.point
+    p = tuple(wrist[k] - (rot[3 * k] * pt[0] + rot[3 * k + 1] * pt[1] + rot[3 * k + 2] * pt[2]) for k in range(3))
+    state = RobotState(arms=(ArmPose(eef_pos=p, eef_force=(0.0, 0.0, 0.0), eef_rot=rot),))
+    action = [push * u[0], push * u[1], push * u[2], 0.0, 0.0, 0.0, 0.0]
+    out, _ = Phi((reach,)).governor(SINGLE_PANDA)(state, action)
+    assert violations(Phi((reach,)), SINGLE_PANDA, state, out, tol=TOL) == []

@@ -8,6 +8,7 @@ in closed form (a sphere over a loose cube on a table, a small box, a loose can,
 from __future__ import annotations
 
 import math
+import struct
 from typing import Any
 
 import mujoco
@@ -30,6 +31,7 @@ from capevo.runtime.governance import (
     near_of,
 )
 from capevo.runtime.governance.brake import brake_along
+from capevo.runtime.governance.cap import SHRINK
 from capevo.runtime.governance.pose import DOWN
 from capevo.runtime.governance.proximity import FIXED, LOOSE
 from capevo.runtime.state import SINGLE_PANDA, ArmState, RobotState
@@ -129,9 +131,11 @@ def test_brake_along_is_the_least_change_that_meets_the_bound(a: list[float], n:
             assert 0.0 <= out[k] / a[k] <= 1.0 if a[k] else out[k] == 0.0
         else:
             assert out[k] == a[k]
-    # No larger a change than scaling the approaching components by one factor.
+    # No larger a change than scaling the approaching components by one factor to the same
+    # target, q * SHRINK: brake_along aims that far below the bound so rounding cannot cross it
+    # (with a parallel to n the two changes are equal, and scaling to q itself would be smaller).
     c = sum(max(0.0, a[k] * n[k]) for k in range(3))
-    f = min(1.0, q / c) if c > 0 else 1.0
+    f = min(1.0, q * SHRINK / c) if c > 0 else 1.0
     scaled = [a[k] * f if a[k] * n[k] > 0 else a[k] for k in range(3)]
     assert math.dist(out, a) <= math.dist(scaled, a) + 1e-9
 
@@ -246,6 +250,79 @@ def test_alone_any_action_ends_within_every_pairs_bound(rule: ContactApproach, d
     assert (out is action) == (not records)
     for x, y in zip(action, out, strict=True):
         assert abs(y) <= abs(x) and (y == 0.0 or (x > 0) == (y > 0))
+
+
+def reference(rule: ContactApproach, arms: Any, a: list[float], layout: Any) -> Any:
+    """The rule as its docstring states it, pair by pair through ``bound`` and ``brake_along``:
+    the compiled check inlines both and skips what a met bound makes moot, and must agree to the bit."""
+    band = rule.clearance + max(rule.brake, rule.brake_loose or 0.0)
+    offsets = [arm.offset for arm in layout.arms]
+    n = len(offsets)
+    poses = [[a[o + j] for j in range(6)] for o in offsets]
+    q_rot = [math.inf] * n
+    for i in range(n):
+        for p in near_of(arms[i]):
+            dist, nx, ny, nz, rx, ry, rz, owner = p
+            if not all(math.isfinite(v) for v in (dist, nx, ny, nz)):
+                return None, f"arm {i}: proximity pair {p} is not finite"
+            if dist >= band:
+                continue
+            q = rule.bound(dist, owner)
+            q_down = rule.bound(dist, FIXED) if owner == LOOSE and nz < 0.0 else q
+            if q >= 1.0 and q_down >= 1.0:
+                continue
+            arm = poses[i]
+            if q_down < q:
+                if arm[2] * nz > q_down:
+                    arm[2] = q_down / nz * SHRINK
+                brake_along(arm, ((0, nx), (1, ny)), q)
+            else:
+                brake_along(arm, ((0, nx), (1, ny), (2, nz)), q)
+            q = min(q, q_down)
+            if rule.rotation:
+                r = math.sqrt(rx * rx + ry * ry + rz * rz) if math.isfinite(rx + ry + rz) else math.inf
+                q_rot[i] = min(q_rot[i], q * (rule.lever / r if r > rule.lever else 1.0))
+            if 0 <= owner < n and owner != i:
+                brake_along(poses[owner], ((0, nx), (1, ny), (2, nz)), q, sign=-1.0)
+                if rule.rotation:
+                    q_rot[owner] = min(q_rot[owner], q)
+    b, notes = None, []
+    for i, o in enumerate(offsets):
+        arm = poses[i]
+        for k in (3, 4, 5):
+            if abs(arm[k]) > q_rot[i]:
+                arm[k] = q_rot[i] if arm[k] > 0.0 else -q_rot[i]
+        if any(arm[j] != a[o + j] for j in range(6)):
+            b = list(a) if b is None else b
+            b[o : o + 6] = arm
+            notes.append(f"arm {i}: hand near a contact: motion towards it braked")
+    return None if b is None else (b, "; ".join(notes))
+
+
+def bits(x: Any) -> Any:
+    """``x`` with every float as its bytes: equal exactly when equal to the bit (-0.0 is not 0.0)."""
+    if isinstance(x, float):
+        return struct.pack("<d", x)
+    if isinstance(x, (tuple, list)):
+        return type(x)(bits(v) for v in x)
+    return x
+
+
+NEAR_EDGE = st.one_of(
+    PAIRS, st.sampled_from([(0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, LOOSE), (math.nan, *[0.0] * 6, FIXED)])
+)
+
+
+@settings(max_examples=500, deadline=None)
+@given(rule=RULES, data=st.data())
+def test_the_compiled_check_agrees_with_the_reference_rule_to_the_bit(
+    rule: ContactApproach, data: st.DataObject
+) -> None:
+    two = data.draw(st.booleans())
+    layout = TWO_ARM_NO_GRIPPER if two else SINGLE_PANDA
+    arms = tuple(scene((0.0, 0.0, 1.0), *data.draw(st.lists(NEAR_EDGE, max_size=6))) for _ in range(2 if two else 1))
+    action = data.draw(st.lists(COMPONENT, min_size=layout.dim, max_size=layout.dim))
+    assert bits(rule.compile(layout)(arms, action)) == bits(reference(rule, arms, action, layout))
 
 
 @pytest.mark.parametrize("task", ["T1", "T3", "T4"])

@@ -263,3 +263,20 @@ def test_numpy_list_and_tuple_inputs_govern_identically(state, action) -> None:
     outs = [None if o is None else tuple(float(x) for x in o) for o, _ in results]
     assert outs[0] == outs[1] == outs[2] or not finite_state(state)
     assert results[0][1] == results[1][1] == results[2][1]
+
+
+def test_several_edits_by_one_constraint_share_one_record_with_reasons_joined_in_arm_and_axis_order() -> None:
+    gov = Phi.default().governor(TWO_ARM_NO_GRIPPER)
+    # Arm 0 beyond +x and pushing down into a 35 N contact; arm 1 near +y and +z.
+    state = state_of(((0.55, -0.2, 1.0), (0.0, 0.0, 35.0)), ((0.0, 0.56, 1.25), (0.0, 0.0, 0.0)))
+    action = (1.0, 0.4, -1.0, 1.0, 1.0, 0.5, 0.0, 1.0, 1.0, 1.2, 1.2, 0.0)
+    out, (box, force, cap) = gov(state, action)
+    face = "within 0.08 m of the {} face ({} m) or beyond: motion out through it zeroed"
+    assert box.reason == "; ".join(
+        [f"arm 0: {face.format('+x', 0.6)}", f"arm 1: {face.format('+y', 0.6)}", f"arm 1: {face.format('+z', 1.3)}"]
+    )
+    assert box.result == (0.0, 0.4, -1.0, 1.0, 1.0, 0.5, 0.0, 0.0, 0.0, 1.2, 1.2, 0.0)
+    assert force.reason == "arm 0: contact force above 20.0 N: motion into the contact along z zeroed"
+    assert cap.reason == "; ".join(f"arm {i}: pose-delta norm above the cap 1.5: scaled down to it" for i in (0, 1))
+    assert out is cap.result and all(type(x) is float for x in out)
+    assert gov.stats().by_constraint == {"workspace_box": 1, "contact_force": 1, "velocity_cap": 1}
