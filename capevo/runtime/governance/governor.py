@@ -58,17 +58,7 @@ from numpy import ndarray
 
 from capevo.errors import Invalid
 from capevo.runtime.governance.layouts import check_layout
-from capevo.runtime.governance.records import (
-    _NEW,
-    _SET_CONSTRAINT,
-    _SET_ENFORCED,
-    _SET_ORIGINAL,
-    _SET_REASON,
-    _SET_RESULT,
-    GovernanceStats,
-    Intervention,
-    new_intervention,
-)
+from capevo.runtime.governance.records import GovernanceStats, Intervention, new_intervention
 from capevo.runtime.state import ActionLayout, ArmState, RobotState
 
 if TYPE_CHECKING:
@@ -220,20 +210,14 @@ class Governor:
         records: list[Intervention] = []
         while True:
             new, reason = r
-            # Inlined new_intervention: this loop builds up to one record per constraint per call.
-            rec = _NEW(Intervention)
-            _SET_CONSTRAINT(rec, labels[i])
-            _SET_ORIGINAL(rec, original)
-            _SET_REASON(rec, reason)
-            _SET_ENFORCED(rec, enforce)
-            records.append(rec)
             if new is None:
-                _SET_RESULT(rec, None)
+                records.append(new_intervention(labels[i], original, None, reason, enforce))
                 counts[i] += 1
                 self._rejected += 1
                 return (None if enforce else action), tuple(records)
-            original = tuple(new if rot is None else _rotate(new, rot, to_world=False))
-            _SET_RESULT(rec, original)
+            result = tuple(new if rot is None else _rotate(new, rot, to_world=False))
+            records.append(new_intervention(labels[i], original, result, reason, enforce))
+            original = result
             counts[i] += 1
             i += 1
             while i < n:
