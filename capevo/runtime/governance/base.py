@@ -47,7 +47,7 @@ import re
 import types
 import typing
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, ClassVar, Protocol, TypeVar, Union
+from typing import Any, ClassVar, NamedTuple, Protocol, TypeVar, Union
 
 from capevo.errors import Conflict, Invalid
 from capevo.runtime.state import ActionLayout, ArmState
@@ -79,6 +79,21 @@ class Constraint(Protocol):
     def to_config(self) -> dict[str, Any]:
         """Normalized config: every field with its value (defaults filled), JSON types only."""
         ...
+
+
+class KernelSpec(NamedTuple):
+    """A constraint compiled for the fused C kernel (:mod:`capevo.runtime.governance.fused`).
+
+    Built by a constraint's optional ``kernel_spec(layout)`` from the same precomputed numbers as
+    its :meth:`Constraint.compile`; the C check of ``kind`` (``csrc/<kind>.c``) reads them in
+    the order its header comment lists.
+    """
+
+    kind: str
+    floats: tuple[float, ...]
+    ints: tuple[int, ...]
+    reasons: tuple[str, ...]
+    """Every reason the C check can give, indexed; several join with ``"; "`` as the Python check joins them."""
 
 
 C = TypeVar("C")

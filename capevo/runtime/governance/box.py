@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
 from capevo.runtime.state import ActionLayout, ArmState
 
 AXES = ("x", "y", "z")
@@ -128,6 +128,18 @@ class WorkspaceBox:
             return None
 
         return check
+
+    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
+        """This check for the fused kernel (``csrc/workspace_box.c``); the same numbers as :meth:`compile`."""
+        m = self.margin
+        inner = tuple(v + m for v in self.low) + tuple(v - m for v in self.high)
+        reasons = tuple(
+            f"arm {i}: within {m} m of the {sign}{AXES[k]} face ({face} m) or beyond: motion out through it zeroed"
+            for i in range(len(layout.arms))
+            for k in range(3)
+            for sign, face in (("+", self.high[k]), ("-", self.low[k]))
+        )
+        return KernelSpec(self.kind, inner, tuple(arm.offset for arm in layout.arms), reasons)
 
     def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
         for i, arm in enumerate(arms):

@@ -57,6 +57,7 @@ from typing import TYPE_CHECKING, Any
 from numpy import ndarray
 
 from capevo.errors import Invalid
+from capevo.runtime.governance.fused import fused_program
 from capevo.runtime.governance.layouts import check_layout
 from capevo.runtime.governance.records import GovernanceStats, Intervention, new_intervention
 from capevo.runtime.state import ActionLayout, ArmState, RobotState
@@ -86,6 +87,8 @@ class Governor:
         enforce: False for the evaluation-only governance-off mode (count, never change).
         frames: Per arm, the rotation from the arm's action (base) frame to the world frame as
             9 floats, row-major; None means the identity for every arm.
+        kernel: Run the checks in the fused C kernel where it has every constraint of Φ
+            (:mod:`capevo.runtime.governance.fused`); False: always the Python checks.
 
     Raises:
         Invalid: if the layout's indices do not fit its dimension, or a frame is not a rotation.
@@ -98,6 +101,7 @@ class Governor:
         "_labels",
         "_modified",
         "_n_arms",
+        "_program",
         "_rejected",
         "_rot",
         "_steps",
@@ -114,6 +118,7 @@ class Governor:
         *,
         enforce: bool = True,
         frames: Sequence[Sequence[float]] | None = None,
+        kernel: bool = True,
     ) -> None:
         self.phi = phi
         self.layout = check_layout(layout)
@@ -127,6 +132,8 @@ class Governor:
         self._labels = tuple(c.label for c in phi.constraints)
         self._dim = layout.dim
         self._n_arms = len(layout.arms)
+        # The same checks fused into one C call where every constraint has a port (fused.py).
+        self._program = fused_program(phi, layout, self._rot) if kernel else None
         self.reset_stats()
 
     def reset_stats(self) -> None:
@@ -159,6 +166,15 @@ class Governor:
         Returns:
             ``(governed, interventions)``; see the module docstring.
         """
+        program = self._program
+        if program is not None:
+            r = program(state.arms, action)
+            if r is True:
+                self._steps += 1
+                return action, NO_INTERVENTIONS
+            if r is not None:
+                self._steps += 1
+                return self._from_program(action, r)
         self._steps += 1
         t = type(action)
         if t is ndarray:
@@ -228,6 +244,22 @@ class Governor:
             else:
                 self._modified += 1
                 return (original if enforce else action), tuple(records)
+
+    def _from_program(self, action: Any, r: tuple[Any, Any]) -> tuple[Any, tuple[Intervention, ...]]:
+        # The kernel's (check, result, reason) steps as _intervene would have recorded them.
+        original, steps = r
+        labels, enforce, counts = self._labels, self.enforce, self._counts
+        records = []
+        result = original
+        for i, result, reason in steps:
+            records.append(new_intervention(labels[i], original, result, reason, enforce))
+            counts[i] += 1
+            original = result
+        if result is None:
+            self._rejected += 1
+            return (None if enforce else action), tuple(records)
+        self._modified += 1
+        return (result if enforce else action), tuple(records)
 
     def _guard(self, action: Any, a: Any, arms: Sequence[ArmState]) -> tuple[Any, tuple[Intervention, ...]]:
         if a is None:
