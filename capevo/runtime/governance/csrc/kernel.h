@@ -1,6 +1,6 @@
 /* The fused governance kernel: every constraint of a Φ compiled into one C call.
  *
- * The Python constraints (capevo/runtime/governance/*.py) are the specification. Each ported
+ * The Python constraints (capevo/runtime/governance, one module per kind) are the specification. Each ported
  * check here must return, for every input it accepts, exactly what the Python check returns:
  * the same verdict, the same components bit for bit (signed zeros included) and the same
  * reason strings. Where matching Python exactly would be hard (a reason formatted with values,
