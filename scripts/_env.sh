@@ -12,10 +12,19 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
   echo "capevo: installing capevo[${CAPEVO_EXTRAS:-test}] (first run takes a few minutes)" >&2
-  "$VENV/bin/python" -m pip install --quiet --upgrade pip >&2
+  "$VENV/bin/python" -m pip install --quiet --upgrade pip "setuptools>=68" >&2
   # torch is pinned in pyproject (2.13.0, CPU build): an unpinned torch would pull CUDA wheels.
   "$VENV/bin/python" -m pip install --quiet -e "$ROOT[${CAPEVO_EXTRAS:-test}]" >&2
   echo "$WANT" > "$STAMP"
+fi
+# The fused governance kernel is C (capevo/runtime/governance/csrc): rebuild it in place whenever
+# a source changed since the last build, so a pull or an edit never runs a stale kernel.
+KSTAMP="$VENV/.capevo-kernel-stamp"
+KWANT="$(cat "$ROOT/setup.py" "$ROOT"/capevo/runtime/governance/csrc/* | sha256sum | cut -d' ' -f1)"
+if [ ! -f "$KSTAMP" ] || [ "$(cat "$KSTAMP")" != "$KWANT" ]; then
+  echo "capevo: building the governance kernel" >&2
+  (cd "$ROOT" && flock /tmp/capevo-kernel-build.lock "$VENV/bin/python" setup.py -q build_ext --inplace >&2)
+  echo "$KWANT" > "$KSTAMP"
 fi
 export PATH="$VENV/bin:$PATH"
 cd "$ROOT"

@@ -66,24 +66,24 @@ class WorkspaceBox:
     def to_config(self) -> dict[str, Any]:
         return config_of(self)
 
-    def compile(self, layout: ActionLayout) -> Check:
+    def _prepared(self, layout: ActionLayout) -> tuple[tuple[float, ...], tuple[int, ...], tuple[str, ...]]:
+        """The box shrunk by the margin (low x, y, z, high x, y, z), each arm's offset, and per arm
+        the six reasons (+x, -x, +y, -y, +z, -z): what :meth:`compile` and :meth:`kernel_spec` share."""
         m = self.margin
-        lx, ly, lz = (v + m for v in self.low)
-        hx, hy, hz = (v - m for v in self.high)
+        inner = tuple(v + m for v in self.low) + tuple(v - m for v in self.high)
+        reasons = tuple(
+            f"arm {i}: within {m} m of the {sign}{AXES[k]} face ({face} m) or beyond: motion out through it zeroed"
+            for i in range(len(layout.arms))
+            for k in range(3)
+            for sign, face in (("+", self.high[k]), ("-", self.low[k]))
+        )
+        return inner, tuple(arm.offset for arm in layout.arms), reasons
+
+    def compile(self, layout: ActionLayout) -> Check:
+        (lx, ly, lz, hx, hy, hz), offsets, all_reasons = self._prepared(layout)
         # (index of the x component, reasons for +x, -x, +y, -y, +z, -z) per arm, built once:
         # the slow path only picks strings, it never formats.
-        per_arm = tuple(
-            (
-                arm.offset,
-                tuple(
-                    f"arm {i}: within {m} m of the {sign}{AXES[k]} face ({face} m) or beyond: "
-                    f"motion out through it zeroed"
-                    for k in range(3)
-                    for sign, face in (("+", self.high[k]), ("-", self.low[k]))
-                ),
-            )
-            for i, arm in enumerate(layout.arms)
-        )
+        per_arm = tuple((o, all_reasons[6 * i : 6 * i + 6]) for i, o in enumerate(offsets))
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             b: list[float] | None = None
@@ -130,16 +130,8 @@ class WorkspaceBox:
         return check
 
     def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
-        """This check for the fused kernel (``csrc/workspace_box.c``); the same numbers as :meth:`compile`."""
-        m = self.margin
-        inner = tuple(v + m for v in self.low) + tuple(v - m for v in self.high)
-        reasons = tuple(
-            f"arm {i}: within {m} m of the {sign}{AXES[k]} face ({face} m) or beyond: motion out through it zeroed"
-            for i in range(len(layout.arms))
-            for k in range(3)
-            for sign, face in (("+", self.high[k]), ("-", self.low[k]))
-        )
-        return KernelSpec(self.kind, inner, tuple(arm.offset for arm in layout.arms), reasons)
+        """This check for the fused kernel (``csrc/workspace_box.c``)."""
+        return KernelSpec(self.kind, *self._prepared(layout))
 
     def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
         for i, arm in enumerate(arms):

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
 from capevo.runtime.state import ActionLayout, ArmState
 
 INF = math.inf
@@ -66,7 +66,8 @@ class VelocityCap:
     def to_config(self) -> dict[str, Any]:
         return config_of(self)
 
-    def compile(self, layout: ActionLayout) -> Check:
+    def _prepared(self, layout: ActionLayout) -> tuple[float, float, tuple[tuple[int, str], ...]]:
+        # The numbers and strings compile() and kernel_spec() share: cap2, target, per_arm.
         cap = self.max_norm
         cap2 = cap * cap
         target = cap * SHRINK
@@ -75,6 +76,10 @@ class VelocityCap:
             (arm.offset, f"arm {i}: pose-delta norm above the cap {cap}: scaled down to it")
             for i, arm in enumerate(layout.arms)
         )
+        return cap2, target, per_arm
+
+    def compile(self, layout: ActionLayout) -> Check:
+        cap2, target, per_arm = self._prepared(layout)
         sqrt, hypot = math.sqrt, math.hypot
 
         def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
@@ -101,6 +106,13 @@ class VelocityCap:
             return b, reason  # type: ignore[return-value]
 
         return check
+
+    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
+        """This check for the fused kernel (``csrc/velocity_cap.c``); the same numbers as :meth:`compile`."""
+        cap2, target, per_arm = self._prepared(layout)
+        return KernelSpec(
+            self.kind, (float(cap2), float(target)), tuple(o for o, _ in per_arm), tuple(n for _, n in per_arm)
+        )
 
     def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
         if action is None:

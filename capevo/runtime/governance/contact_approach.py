@@ -53,13 +53,32 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
-from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
 from capevo.runtime.governance.brake import brake_along
 from capevo.runtime.governance.cap import SHRINK
 from capevo.runtime.governance.proximity import LOOSE
 from capevo.runtime.state import ActionLayout, ArmState
+
+
+class _Compiled(NamedTuple):
+    """The numbers and strings :meth:`ContactApproach.compile` and ``kernel_spec`` share."""
+
+    band: float
+    cl: float
+    br_fixed: float
+    t_fixed: float
+    br_loose: float
+    t_loose: float
+    u_fixed: float
+    u_loose: float
+    lever: float
+    lever2: float
+    split: bool
+    turn: bool
+    offsets: tuple[int, ...]
+    reasons: tuple[str, ...]
 
 
 @register("contact_approach")
@@ -126,9 +145,8 @@ class ContactApproach:
         t = self.touch_loose if loose else self.touch
         return t + (1.0 - t) * x
 
-    def compile(self, layout: ActionLayout) -> Check:
+    def _compiled(self, layout: ActionLayout) -> _Compiled:
         band = self.clearance + max(self.brake, self.brake_loose or 0.0)
-        turn, lever = self.rotation, self.lever
         # bound()'s terms as locals: the loop inlines it (the same operations, so the same bits),
         # since a method call per pair costs more than the rest of a pair that needs no edit.
         cl = self.clearance
@@ -141,9 +159,25 @@ class ContactApproach:
         split = repr((br_loose, t_loose)) != repr((br_fixed, t_fixed))
         offsets = tuple(arm.offset for arm in layout.arms)
         reasons = tuple(f"arm {i}: hand near a contact: motion towards it braked" for i in range(len(offsets)))
-        isfinite, sqrt, inf = math.isfinite, math.sqrt, math.inf
+        lever = self.lever
         # Below this |r|^2 the lever factor is 1, rounding included (sqrt is monotone).
         lever2 = lever * lever * (1.0 - 1e-12)
+        return _Compiled(
+            band, cl, br_fixed, t_fixed, br_loose, t_loose, u_fixed, u_loose, lever, lever2,
+            split, self.rotation, offsets, reasons,
+        )  # fmt: skip
+
+    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
+        """This check for the fused kernel (``csrc/contact_approach.c``); the same numbers as :meth:`compile`."""
+        p = self._compiled(layout)
+        floats = (p.band, p.cl, p.br_fixed, p.t_fixed, p.br_loose, p.t_loose, p.u_fixed, p.u_loose, p.lever, p.lever2)
+        ints = (int(p.split), int(p.turn), len(p.offsets), *p.offsets)
+        return KernelSpec(self.kind, tuple(float(v) for v in floats), ints, p.reasons)
+
+    def compile(self, layout: ActionLayout) -> Check:
+        (band, cl, br_fixed, t_fixed, br_loose, t_loose, u_fixed, u_loose,
+         lever, lever2, split, turn, offsets, reasons) = self._compiled(layout)  # fmt: skip
+        isfinite, sqrt, inf = math.isfinite, math.sqrt, math.inf
 
         n_arms = len(offsets)
 

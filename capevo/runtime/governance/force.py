@@ -38,7 +38,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
 from capevo.runtime.state import ActionLayout, ArmState
 
 AXES = ("x", "y", "z")
@@ -74,7 +74,9 @@ class ContactForce:
     def to_config(self) -> dict[str, Any]:
         return config_of(self)
 
-    def compile(self, layout: ActionLayout) -> Check:
+    def _prepared(self, layout: ActionLayout) -> tuple[float, tuple[tuple[int, tuple[str, ...]], ...]]:
+        # The numbers and strings compile() and kernel_spec() share: lim2, and per arm
+        # (offset, reasons for x, y, z).
         limit = self.max_force
         lim2 = limit * limit
         per_arm = tuple(
@@ -86,6 +88,10 @@ class ContactForce:
             )
             for i, arm in enumerate(layout.arms)
         )
+        return lim2, per_arm
+
+    def compile(self, layout: ActionLayout) -> Check:
+        lim2, per_arm = self._prepared(layout)
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             b: list[float] | None = None
@@ -130,6 +136,16 @@ class ContactForce:
             return None
 
         return check
+
+    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
+        """This check for the fused kernel (``csrc/contact_force.c``); the same numbers as :meth:`compile`."""
+        lim2, per_arm = self._prepared(layout)
+        return KernelSpec(
+            self.kind,
+            (float(lim2),),
+            tuple(o for o, _ in per_arm),
+            tuple(note for _, notes in per_arm for note in notes),
+        )
 
     def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
         lim2 = self.max_force * self.max_force

@@ -13,9 +13,11 @@ Invariants:
 1. :func:`fused_program` returns a program only when the kernel is built, not switched off
    (``CAPEVO_GOVERNANCE_KERNEL=0``), and every constraint of Φ has a ``kernel_spec`` whose kind
    the kernel knows; otherwise None, and the governor runs the Python checks.
-2. For every input, a program returns ``True`` (allow), ``None`` (the Python checks must decide:
-   inputs that are not exact floats, non-finite values, rare paths with formatted reasons) or
-   ``(original, steps)``; a governor that follows it gives the same output as one that does not
+2. For every input, ``program(arms, action, enforce)`` returns ``True`` (allow), ``None`` (the
+   Python checks must decide: inputs that are not exact floats, non-finite values, rare paths
+   with formatted reasons) or ``(governed, records, indices)``: the governed action (None for
+   ⊥), the intervention records and the index in Φ of each record's constraint. A governor that
+   follows it gives the same output as one that does not
    (tested over random and recorded states, ``tests/runtime/governance/test_gov_fused.py``).
 """
 
@@ -26,6 +28,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 from capevo.runtime.governance.cap import SHRINK
+from capevo.runtime.governance.records import Intervention
 from capevo.runtime.state import ActionLayout
 
 if TYPE_CHECKING:
@@ -37,6 +40,7 @@ except ImportError:  # a source tree nobody installed: the Python checks still g
     _fused = None
 else:
     _fused.set_shrink(SHRINK)
+    _fused.set_record_type(Intervention)
 
 ENV_SWITCH = "CAPEVO_GOVERNANCE_KERNEL"
 """Set to 0 to govern with the Python checks only (to compare, or to debug a check)."""
@@ -70,4 +74,5 @@ def fused_program(phi: Phi, layout: ActionLayout, rot: Sequence[tuple[int, tuple
         if spec is None or spec.kind not in known:
             return None
         specs.append(spec)
-    return _fused.Program(tuple(specs), layout.dim, len(layout.arms), tuple(rot or ()))
+    labels = tuple(c.label for c in phi.constraints)
+    return _fused.Program(tuple(specs), layout.dim, len(layout.arms), tuple(rot or ()), labels)

@@ -168,7 +168,7 @@ class Governor:
         """
         program = self._program
         if program is not None:
-            r = program(state.arms, action)
+            r = program(state.arms, action, self.enforce)
             if r is True:
                 self._steps += 1
                 return action, NO_INTERVENTIONS
@@ -245,21 +245,16 @@ class Governor:
                 self._modified += 1
                 return (original if enforce else action), tuple(records)
 
-    def _from_program(self, action: Any, r: tuple[Any, Any]) -> tuple[Any, tuple[Intervention, ...]]:
-        # The kernel's (check, result, reason) steps as _intervene would have recorded them.
-        original, steps = r
-        labels, enforce, counts = self._labels, self.enforce, self._counts
-        records = []
-        result = original
-        for i, result, reason in steps:
-            records.append(new_intervention(labels[i], original, result, reason, enforce))
+    def _from_program(self, action: Any, r: tuple[Any, Any, Any]) -> tuple[Any, tuple[Intervention, ...]]:
+        governed, records, indices = r
+        counts = self._counts
+        for i in indices:
             counts[i] += 1
-            original = result
-        if result is None:
+        if governed is None:
             self._rejected += 1
-            return (None if enforce else action), tuple(records)
+            return (None if self.enforce else action), records
         self._modified += 1
-        return (result if enforce else action), tuple(records)
+        return (governed if self.enforce else action), records
 
     def _guard(self, action: Any, a: Any, arms: Sequence[ArmState]) -> tuple[Any, tuple[Intervention, ...]]:
         if a is None:

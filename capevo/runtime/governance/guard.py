@@ -38,7 +38,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
 from capevo.runtime.state import ActionLayout, ArmState
 
 AXES = ("x", "y", "z")
@@ -103,12 +103,14 @@ class WorkspaceGuard:
     def to_config(self) -> dict[str, Any]:
         return config_of(self)
 
-    def compile(self, layout: ActionLayout) -> Check:
-        low, high, m, br, rs, freeze = self.low, self.high, self.margin, self.brake, self.restore, self.freeze_rotation
-        band = m + br
-        # Strictly inside this inner box, no rule applies: the fast path.
-        ilx, ily, ilz = (v + band for v in low)
-        ihx, ihy, ihz = (v - band for v in high)
+    def _prepared(
+        self, layout: ActionLayout
+    ) -> tuple[float, tuple[float, ...], tuple[int, ...], tuple[tuple[str, str, str], ...]]:
+        """What :meth:`compile` and :meth:`kernel_spec` precompute: band, inner box, offsets, reasons."""
+        low, high, m, rs = self.low, self.high, self.margin, self.restore
+        band = m + self.brake
+        # Strictly inside this inner box (lx, ly, lz, hx, hy, hz), no rule applies: the fast path.
+        inner = (*(v + band for v in low), *(v - band for v in high))
         offsets = tuple(arm.offset for arm in layout.arms)
         reasons = tuple(
             (
@@ -118,6 +120,11 @@ class WorkspaceGuard:
             )
             for i in range(len(offsets))
         )
+        return band, inner, offsets, reasons
+
+    def compile(self, layout: ActionLayout) -> Check:
+        low, high, m, br, rs, freeze = self.low, self.high, self.margin, self.brake, self.restore, self.freeze_rotation
+        band, (ilx, ily, ilz, ihx, ihy, ihz), offsets, reasons = self._prepared(layout)
         isfinite = math.isfinite
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
@@ -180,6 +187,13 @@ class WorkspaceGuard:
             return None
 
         return check
+
+    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
+        """This check for the fused kernel (``csrc/workspace_guard.c``); the same numbers as :meth:`compile`."""
+        band, inner, offsets, reasons = self._prepared(layout)
+        floats = (*self.low, *self.high, self.margin, self.brake, self.restore, band, *inner)
+        ints = (int(self.freeze_rotation), *offsets)
+        return KernelSpec(self.kind, tuple(float(v) for v in floats), ints, tuple(r for arm in reasons for r in arm))
 
     def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
         return None

@@ -47,13 +47,29 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from capevo.errors import Invalid
-from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
 from capevo.runtime.governance.hand import hand_reach
 from capevo.runtime.governance.pose import DOWN, rotation_of
 from capevo.runtime.governance.zone import Aabb
 from capevo.runtime.state import ActionLayout, ArmState
 
 Vec3 = tuple[float, float, float]
+
+
+def hand_shapes(hand: Sequence[Aabb]) -> tuple[tuple[tuple[float, ...], tuple[float, ...]], ...]:
+    """Per box of ``hand``, its centre and half sizes in the site frame, as :func:`extent_of` turns them."""
+    return tuple(
+        (
+            tuple((box.low[j] + box.high[j]) / 2 for j in range(3)),
+            tuple((box.high[j] - box.low[j]) / 2 for j in range(3)),
+        )
+        for box in hand
+    )
+
+
+def kernel_shapes(hand: Sequence[Aabb]) -> tuple[float, ...]:
+    """:func:`hand_shapes` flat for the kernel's ``csrc/hand.c``: per box ``c0, c1, c2, h0, h1, h2``."""
+    return tuple(float(v) for centre, half in hand_shapes(hand) for v in (*centre, *half))
 
 
 def extent_of(hand: Sequence[Aabb]) -> Callable[[Sequence[float]], tuple[Vec3, Vec3]]:
@@ -63,13 +79,7 @@ def extent_of(hand: Sequence[Aabb]) -> Callable[[Sequence[float]], tuple[Vec3, V
     ``hand_extent``'s, in its order (``x < lo`` where it takes ``min(lo, x)``), so the result is
     the same to the bit, NaN included.
     """
-    shapes = tuple(
-        (
-            tuple((box.low[j] + box.high[j]) / 2 for j in range(3)),
-            tuple((box.high[j] - box.low[j]) / 2 for j in range(3)),
-        )
-        for box in hand
-    )
+    shapes = hand_shapes(hand)
     if not shapes:
         zero: tuple[Vec3, Vec3] = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
         return lambda rot: zero
@@ -148,8 +158,9 @@ class ObstacleApproach:
     def to_config(self) -> dict[str, Any]:
         return config_of(self)
 
-    def compile(self, layout: ActionLayout) -> Check:
-        hand, cl, br, turn = self.hand, self.clearance, self.brake, self.rotation
+    def _plan(self, layout: ActionLayout) -> tuple[Any, ...]:
+        """What :meth:`compile` and :meth:`kernel_spec` share: the obstacles, their hull, arms and reasons."""
+        hand, cl, br = self.hand, self.clearance, self.brake
         grow = hand_reach(hand) + cl + br
         # Per obstacle: its box, its centre, and the box the site must be in for the rule to apply.
         obstacles = tuple(
@@ -171,12 +182,34 @@ class ObstacleApproach:
         which = range(len(layout.arms)) if self.arm is None else (self.arm,)
         offsets = tuple((i, layout.arms[i].offset) for i in which)
         reasons = tuple(
-            (f"arm {i}: hand near obstacle {j}: motion towards it braked" for j in range(len(obstacles)))
+            tuple(f"arm {i}: hand near obstacle {j}: motion towards it braked" for j in range(len(obstacles)))
             for i in range(len(layout.arms))
         )
-        reasons = tuple(tuple(r) for r in reasons)
+        return obstacles, gl, gh, offsets, reasons, cl + br
+
+    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
+        """This check for the fused kernel (``csrc/obstacle_approach.c``); the same numbers as :meth:`compile`.
+
+        floats: ``clearance, brake, band, *gl, *gh``, per obstacle ``*low, *high, *centre, *grown_low,
+        *grown_high``, then :func:`kernel_shapes` of the hand; ints: ``rotation, obstacles, hand boxes,
+        governed arms``, then per governed arm ``(index, offset)``; reasons: arm-major, ``n_arms * obstacles``.
+        """
+        obstacles, gl, gh, offsets, reasons, band = self._plan(layout)
+        floats = [self.clearance, self.brake, band, *gl, *gh]
+        for o in obstacles:
+            for part in o:
+                floats.extend(part)
+        floats.extend(kernel_shapes(self.hand))
+        ints = [int(self.rotation), len(obstacles), len(self.hand), len(offsets)]
+        for i, o in offsets:
+            ints.extend((i, o))
+        flat = tuple(r for per_arm in reasons for r in per_arm)
+        return KernelSpec(self.kind, tuple(float(v) for v in floats), tuple(ints), flat)
+
+    def compile(self, layout: ActionLayout) -> Check:
+        hand, cl, br, turn = self.hand, self.clearance, self.brake, self.rotation
+        obstacles, gl, gh, offsets, reasons, band = self._plan(layout)
         isfinite, sqrt, inf = math.isfinite, math.sqrt, math.inf
-        band = cl + br
         flat = tuple((j, *o[3], *o[4]) for j, o in enumerate(obstacles))
         # Each hand box separately: a wide hand body above narrow fingers is not one big box.
         parts = tuple(extent_of((box,)) for box in hand) or (extent_of(()),)

@@ -37,7 +37,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
 from capevo.runtime.governance.guard import MAX_RESTORE
 from capevo.runtime.state import ActionLayout, ArmState
 
@@ -86,10 +86,10 @@ class ForceRamp:
         """Largest into-contact component allowed at force ``magnitude`` (<= max_force)."""
         return self.speed * (self.max_force - magnitude) / (self.max_force - self.soft_from)
 
-    def compile(self, layout: ActionLayout) -> Check:
+    def _prepared(self, layout: ActionLayout) -> tuple[float, float, tuple[int, ...], tuple[tuple[str, str], ...]]:
+        """What :meth:`compile` and :meth:`kernel_spec` precompute: soft², limit², offsets, reasons."""
         soft2 = self.soft_from * self.soft_from
         lim2 = self.max_force * self.max_force
-        ramp_bound, backoff = self.ramp_bound, self.backoff
         offsets = tuple(arm.offset for arm in layout.arms)
         reasons = tuple(
             (
@@ -98,6 +98,11 @@ class ForceRamp:
             )
             for i in range(len(offsets))
         )
+        return soft2, lim2, offsets, reasons
+
+    def compile(self, layout: ActionLayout) -> Check:
+        soft2, lim2, offsets, reasons = self._prepared(layout)
+        ramp_bound, backoff = self.ramp_bound, self.backoff
         sqrt = math.sqrt
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
@@ -162,6 +167,16 @@ class ForceRamp:
             return None
 
         return check
+
+    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
+        """This check for the fused kernel (``csrc/force_ramp.c``); the same numbers as :meth:`compile`.
+
+        The C check computes :meth:`ramp_bound` from ``speed``, ``max_force`` and ``soft_from``
+        with the same expression.
+        """
+        soft2, lim2, offsets, reasons = self._prepared(layout)
+        floats = (soft2, lim2, self.speed, self.max_force, self.soft_from, self.backoff)
+        return KernelSpec(self.kind, tuple(float(v) for v in floats), offsets, tuple(r for arm in reasons for r in arm))
 
     def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
         return None

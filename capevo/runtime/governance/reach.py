@@ -50,10 +50,10 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 from capevo.errors import Invalid
-from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
 from capevo.runtime.governance.brake import brake_along
 from capevo.runtime.governance.guard import MAX_RESTORE
 from capevo.runtime.governance.pose import DOWN, rotation_of
@@ -72,6 +72,19 @@ def polar(v: tuple[float, float, float]) -> tuple[float, tuple[float, float, flo
     x, y, z = v[0] / mx, v[1] / mx, v[2] / mx
     n = math.sqrt(x * x + y * y + z * z)
     return mx * n, (x / n, y / n, z / n)
+
+
+class _Params(NamedTuple):
+    """What ``ReachLimit.compile`` precomputes for a layout (shared with its ``kernel_spec``)."""
+
+    band: float
+    lever: float
+    far_out2: float
+    near_in2: float
+    far_w2: float
+    near_in2_safe: float
+    arms_info: tuple[tuple[int, tuple[float, float, float]], ...]
+    reasons: tuple[tuple[str, str, str, str], ...]
 
 
 @register("reach_limit")
@@ -136,13 +149,14 @@ class ReachLimit:
     def to_config(self) -> dict[str, Any]:
         return config_of(self)
 
-    def compile(self, layout: ActionLayout) -> Check:
+    def _params(self, layout: ActionLayout) -> _Params:
+        """The numbers and reasons :meth:`compile` and :meth:`kernel_spec` share, computed once."""
         if len(self.centres) != len(layout.arms):
             raise Invalid(
                 f"centres: {len(self.centres)} given; the layout has {len(layout.arms)} arm(s)",
                 details={"field": "centres"},
             )
-        m, br, rs, creep = self.margin, self.brake, self.restore, self.creep
+        m, br, rs = self.margin, self.brake, self.restore
         band = m + br
         r_out = self.max_radius
         r_in = self.min_radius
@@ -152,6 +166,13 @@ class ReachLimit:
         # The limited point is within `lever` of the site, so the site being this close is enough.
         far_out2 = (r_out - band - lever) ** 2 if r_out > band + lever else -1.0
         near_in2 = (r_in + band) ** 2 if r_in > 0.0 else -1.0
+        # The site's test gives up `lever` (0.2 m for a wrist) before the limited point can be
+        # near the reach, so most states of a stretched-out task fail it. Then the point itself is
+        # tested, computed as slow() computes it, with a relative margin (1e-9, far above the few
+        # ulps by which slow()'s polar() can differ) so that passing proves slow() would do nothing.
+        safe = 1e-9
+        far_w2 = ((r_out - band) * (1.0 - safe)) ** 2 if r_out > band else -1.0
+        near_in2_safe = ((r_in + band) * (1.0 + safe)) ** 2 if r_in > 0.0 else -1.0
         arms_info = tuple((arm.offset, c) for arm, c in zip(layout.arms, self.centres, strict=True))
         reasons = tuple(
             (
@@ -162,6 +183,40 @@ class ReachLimit:
             )
             for i in range(len(arms_info))
         )
+        return _Params(band, lever, far_out2, near_in2, far_w2, near_in2_safe, arms_info, reasons)
+
+    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
+        """This check for the fused kernel (``csrc/reach_limit.c``); the same numbers as :meth:`compile`."""
+        pm = self._params(layout)
+        floats = (
+            self.margin,
+            self.brake,
+            self.restore,
+            self.creep,
+            pm.band,
+            self.max_radius,
+            self.min_radius,
+            pm.lever,
+            pm.far_out2,
+            pm.near_in2,
+            pm.far_w2,
+            pm.near_in2_safe,
+            *self.point,
+            *DOWN,
+            *(v for _, c in pm.arms_info for v in c),
+        )
+        ints = (len(pm.arms_info), *(o for o, _ in pm.arms_info))
+        reasons = tuple(text for per_arm in pm.reasons for text in per_arm)
+        return KernelSpec(self.kind, tuple(float(v) for v in floats), ints, reasons)
+
+    def compile(self, layout: ActionLayout) -> Check:
+        pm = self._params(layout)
+        m, br, rs, creep = self.margin, self.brake, self.restore, self.creep
+        band, lever, far_out2, near_in2 = pm.band, pm.lever, pm.far_out2, pm.near_in2
+        far_w2, near_in2_safe, arms_info, reasons = pm.far_w2, pm.near_in2_safe, pm.arms_info, pm.reasons
+        r_out = self.max_radius
+        r_in = self.min_radius
+        pt = self.point
         isfinite = math.isfinite
 
         def limit(d: float) -> float:
@@ -252,13 +307,6 @@ class ReachLimit:
                 return None
             return b, notes[0] if len(notes) == 1 else "; ".join(notes)
 
-        # The site's test gives up `lever` (0.2 m for a wrist) before the limited point can be
-        # near the reach, so most states of a stretched-out task fail it. Then the point itself is
-        # tested, computed as slow() computes it, with a relative margin (1e-9, far above the few
-        # ulps by which slow()'s polar() can differ) so that passing proves slow() would do nothing.
-        safe = 1e-9
-        far_w2 = ((r_out - band) * (1.0 - safe)) ** 2 if r_out > band else -1.0
-        near_in2_safe = ((r_in + band) * (1.0 + safe)) ** 2 if r_in > 0.0 else -1.0
         pt0, pt1, pt2 = pt
 
         def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:

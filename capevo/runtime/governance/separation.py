@@ -41,9 +41,9 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from capevo.errors import Invalid
-from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
 from capevo.runtime.governance.hand import hand_reach
-from capevo.runtime.governance.obstacle import extent_of
+from capevo.runtime.governance.obstacle import extent_of, kernel_shapes
 from capevo.runtime.governance.pose import DOWN, rotation_of
 from capevo.runtime.governance.zone import Aabb
 from capevo.runtime.state import ActionLayout, ArmState
@@ -98,11 +98,12 @@ class ArmSeparation:
     def to_config(self) -> dict[str, Any]:
         return config_of(self)
 
-    def compile(self, layout: ActionLayout) -> Check:
+    def _plan(self, layout: ActionLayout) -> tuple[Any, ...]:
+        """What :meth:`compile` and :meth:`kernel_spec` share: the offsets, the pairs and their reasons."""
         n = len(layout.arms)
         if len(self.hands) != n:
             raise Invalid(f"hands: {len(self.hands)} given; the layout has {n} arm(s)", details={"field": "hands"})
-        hands, cl, br, fl, turn = self.hands, self.clearance, self.brake, self.floor, self.rotation
+        hands, cl, br = self.hands, self.clearance, self.brake
         offsets = tuple(arm.offset for arm in layout.arms)
         # A hand's box lies within sqrt(3) * reach of its site, so sites farther apart than this are out of range.
         pairs = tuple(
@@ -111,6 +112,28 @@ class ArmSeparation:
             for j in range(i + 1, n)
         )
         reasons = {(i, j): f"arms {i} and {j}: hands near each other: approach slowed" for i, j, _ in pairs}
+        return offsets, pairs, reasons
+
+    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
+        """This check for the fused kernel (``csrc/arm_separation.c``); the same numbers as :meth:`compile`.
+
+        floats: ``clearance, brake, floor, clearance + brake, CENTRE_TIE``, each pair's reach (pairs
+        ``i < j`` in order), then per arm :func:`~capevo.runtime.governance.obstacle.kernel_shapes` of
+        its hand; ints: ``rotation, n_arms``, each arm's offset, each arm's hand box count;
+        reasons: one per pair, in pair order.
+        """
+        offsets, pairs, reasons = self._plan(layout)
+        cl, br = self.clearance, self.brake
+        floats = [cl, br, self.floor, cl + br, CENTRE_TIE, *(reach for _, _, reach in pairs)]
+        for hand in self.hands:
+            floats.extend(kernel_shapes(hand))
+        ints = (int(self.rotation), len(offsets), *offsets, *(len(hand) for hand in self.hands))
+        return KernelSpec(self.kind, tuple(float(v) for v in floats), ints, tuple(reasons[(i, j)] for i, j, _ in pairs))
+
+    def compile(self, layout: ActionLayout) -> Check:
+        n = len(layout.arms)
+        offsets, pairs, reasons = self._plan(layout)
+        hands, cl, br, fl, turn = self.hands, self.clearance, self.brake, self.floor, self.rotation
         isfinite, sqrt = math.isfinite, math.sqrt
 
         extents = tuple(extent_of(h) for h in hands)

@@ -46,7 +46,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
 from capevo.runtime.governance.hand import hand_reach, lowest_offset
 from capevo.runtime.governance.pose import DOWN, rotation_of
 from capevo.runtime.governance.zone import Aabb
@@ -105,16 +105,30 @@ class SurfaceApproach:
         rot = rotation_of(arm)
         return arm.eef_pos[2] + lowest_offset(self.hand, DOWN if rot is None else rot) - (self.height + self.clearance)
 
-    def compile(self, layout: ActionLayout) -> Check:
-        stop, br, hand, turn = self.height + self.clearance, self.brake, self.hand, self.rotation
-        lat = self.lateral
+    def _prepared(self, layout: ActionLayout) -> tuple[float, float, float, tuple[int, ...], tuple[str, ...]]:
+        """``(stop, br, top, offsets, reasons)``: what :meth:`compile` and :meth:`kernel_spec` share."""
+        stop, br = self.height + self.clearance, self.brake
         # No corner is farther from the site than this, whatever the orientation: above
         # stop + reach + brake the rule cannot apply (the fast path).
-        top = stop + hand_reach(hand) + br
+        top = stop + hand_reach(self.hand) + br
         offsets = tuple(arm.offset for arm in layout.arms)
         reasons = tuple(
             f"arm {i}: hand near the surface at {self.height} m: motion towards it braked" for i in range(len(offsets))
         )
+        return stop, br, top, offsets, reasons
+
+    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
+        """This check for the fused kernel (``csrc/surface_approach.c``); the same numbers as :meth:`compile`."""
+        stop, br, top, offsets, reasons = self._prepared(layout)
+        lat = self.lateral
+        corners = (float(v) for box in self.hand for v in (*box.low, *box.high))
+        floats = (float(top), float(stop), float(br), float(lat) if lat is not None else 0.0, *corners)
+        ints = (int(self.rotation), int(lat is not None), len(self.hand), *offsets)
+        return KernelSpec(self.kind, floats, ints, reasons)
+
+    def compile(self, layout: ActionLayout) -> Check:
+        stop, br, top, offsets, reasons = self._prepared(layout)
+        hand, turn, lat = self.hand, self.rotation, self.lateral
         isfinite, inf = math.isfinite, math.inf
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:

@@ -24,7 +24,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from capevo.runtime.governance.base import Check, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
 from capevo.runtime.state import ActionLayout, ArmState
 
 AXES = ("x", "y", "z")
@@ -81,7 +81,8 @@ class ForbiddenZone:
     def to_config(self) -> dict[str, Any]:
         return config_of(self)
 
-    def compile(self, layout: ActionLayout) -> Check:
+    def _prepared(self, layout: ActionLayout) -> tuple[tuple[Any, ...], tuple[int, ...], tuple[Any, ...]]:
+        # The numbers and strings compile() and kernel_spec() share: zones, offsets, reasons.
         m = self.margin
         # (grown low, grown high, zone low, zone high, centre) per box, flattened for the fast path.
         zones = tuple(
@@ -94,7 +95,6 @@ class ForbiddenZone:
             )
             for z in self.boxes
         )
-        grown = tuple((*g_lo, *g_hi) for g_lo, g_hi, _, _, _ in zones)
         offsets = tuple(arm.offset for arm in layout.arms)
         n_arms = len(offsets)
         # reasons[arm][zone][inside][axis], built once so the slow path never formats.
@@ -112,6 +112,12 @@ class ForbiddenZone:
             )
             for i in range(n_arms)
         )
+        return zones, offsets, reasons
+
+    def compile(self, layout: ActionLayout) -> Check:
+        zones, offsets, reasons = self._prepared(layout)
+        grown = tuple((*g_lo, *g_hi) for g_lo, g_hi, _, _, _ in zones)
+        n_arms = len(offsets)
         isfinite = math.isfinite
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
@@ -147,6 +153,13 @@ class ForbiddenZone:
             return None
 
         return check
+
+    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
+        """This check for the fused kernel (``csrc/forbidden_zone.c``); the same numbers as :meth:`compile`."""
+        zones, offsets, reasons = self._prepared(layout)
+        floats = tuple(float(v) for zone in zones for corner in zone for v in corner)
+        flat = tuple(note for arm in reasons for zone in arm for side in zone for note in side)
+        return KernelSpec(self.kind, floats, (len(zones), *offsets), flat)
 
     def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
         for i, arm in enumerate(arms):

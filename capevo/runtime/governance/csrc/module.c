@@ -1,15 +1,16 @@
 /* capevo.runtime.governance._fused: R(a, Φ) for a whole Φ in one call.
  *
- * Program(specs, dim, n_arms, rot) is built once per governor (see fused.py). Calling it as
- * program(arms, action) returns
+ * Program(specs, dim, n_arms, rot, labels) is built once per governor (see fused.py). Calling it
+ * as program(arms, action, enforce=True) returns
  *   True                          allow: no check intervened;
  *   None                          fall back: run the Python checks for this call (an input the
  *                                 kernel does not take exactly: not a flat sequence of exact
  *                                 floats of the right length, a non-finite value, a state field
  *                                 of another type, or a check's rare path);
- *   (original, steps)             interventions: ``original`` the action in its own frame as
- *                                 the Python governor's first record holds it, ``steps`` a tuple
- *                                 of (check index, result tuple or None for ⊥, reason str).
+ *   (governed, records, indices)  interventions: ``governed`` the last record's result (None
+ *                                 for ⊥), ``records`` the Intervention records exactly as the
+ *                                 Python governor builds them (``enforced`` = enforce), ``indices``
+ *                                 the index in Φ of each record's check (for the counters).
  * It never raises for bad input (that is the Python path's job) and never touches the counters.
  */
 #define PY_SSIZE_T_CLEAN
@@ -51,6 +52,7 @@ typedef struct {
 typedef struct {
     PyObject_HEAD
     vectorcallfunc vectorcall;
+    PyObject *labels; /* tuple of str: each check's label, as interventions carry it */
     int dim;
     int n_arms;
     int n_checks;
@@ -61,6 +63,24 @@ typedef struct {
 } Program;
 
 static PyObject *s_eef_pos, *s_eef_force, *s_eef_rot, *s_near, *s_join_sep;
+
+/* records.Intervention and the setters of its slots, given once by set_record_type(): records
+ * are built here the way records.new_intervention builds them, without the frozen __setattr__. */
+static PyTypeObject *record_type;
+static PyObject *record_fields[5]; /* constraint, original, result, reason, enforced */
+
+static PyObject *new_record(PyObject *constraint, PyObject *original, PyObject *result, PyObject *reason,
+                            PyObject *enforced) {
+    PyObject *values[5] = {constraint, original, result, reason, enforced};
+    PyObject *obj = record_type->tp_alloc(record_type, 0);
+    if (obj == NULL) return NULL;
+    for (int k = 0; k < 5; k++)
+        if (Py_TYPE(record_fields[k])->tp_descr_set(record_fields[k], obj, values[k]) < 0) {
+            Py_DECREF(obj);
+            return NULL;
+        }
+    return obj;
+}
 
 /* ---- reading inputs ---------------------------------------------------------------------- */
 
@@ -228,7 +248,7 @@ static PyObject *reason_of(const cv_compiled *c, const cv_reasons *r) {
 
 /* ---- the call ---------------------------------------------------------------------------- */
 
-static PyObject *program_run(Program *p, PyObject *arms, PyObject *action) {
+static PyObject *program_run(Program *p, PyObject *arms, PyObject *action, PyObject *enforced) {
     cv_state s;
     double near_bufs[CV_MAX_ARMS][CV_MAX_NEAR * 8];
     double input[CV_MAX_DIM], bufs[2][CV_MAX_DIM];
@@ -275,12 +295,14 @@ static PyObject *program_run(Program *p, PyObject *arms, PyObject *action) {
     }
     if (n_hits == 0) Py_RETURN_TRUE;
 
+    /* As Governor._intervene records them: each record's original is the previous result. */
     PyObject *original = action_tuple(p, first);
-    PyObject *steps = PyTuple_New(n_hits);
-    if (original == NULL || steps == NULL) goto fail;
+    PyObject *records = PyTuple_New(n_hits);
+    PyObject *indices = PyTuple_New(n_hits);
+    if (original == NULL || records == NULL || indices == NULL) goto fail;
     for (int h = 0; h < n_hits; h++) {
         cv_compiled *ck = &p->checks[hit_check[h]];
-        PyObject *result, *reason, *index, *step;
+        PyObject *result, *reason, *index, *record;
         if (hit_verdict[h] == CV_MODIFY) {
             result = action_tuple(p, hit_result[h]);
         } else {
@@ -293,28 +315,37 @@ static PyObject *program_run(Program *p, PyObject *arms, PyObject *action) {
             Py_XDECREF(result); Py_XDECREF(reason); Py_XDECREF(index);
             goto fail;
         }
-        step = PyTuple_Pack(3, index, result, reason);
-        Py_DECREF(index); Py_DECREF(result); Py_DECREF(reason);
-        if (step == NULL) goto fail;
-        PyTuple_SET_ITEM(steps, h, step);
+        record = new_record(PyTuple_GET_ITEM(p->labels, hit_check[h]), original, result, reason, enforced);
+        Py_DECREF(reason);
+        if (record == NULL) { Py_DECREF(result); Py_DECREF(index); goto fail; }
+        PyTuple_SET_ITEM(records, h, record);
+        PyTuple_SET_ITEM(indices, h, index);
+        Py_DECREF(original);
+        original = result; /* the next record's original; after the loop, the governed action */
     }
-    PyObject *ret = PyTuple_Pack(2, original, steps);
+    PyObject *ret = PyTuple_Pack(3, original, records, indices);
     Py_DECREF(original);
-    Py_DECREF(steps);
+    Py_DECREF(records);
+    Py_DECREF(indices);
     return ret;
 fail:
     Py_XDECREF(original);
-    Py_XDECREF(steps);
+    Py_XDECREF(records);
+    Py_XDECREF(indices);
     return NULL;
 }
 
 static PyObject *program_vectorcall(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames) {
     Py_ssize_t n = PyVectorcall_NARGS(nargsf);
-    if (n != 2 || (kwnames != NULL && PyTuple_GET_SIZE(kwnames) != 0)) {
-        PyErr_SetString(PyExc_TypeError, "Program(arms, action) takes exactly two positional arguments");
+    if (n < 2 || n > 3 || (kwnames != NULL && PyTuple_GET_SIZE(kwnames) != 0) || (n == 3 && !PyBool_Check(args[2]))) {
+        PyErr_SetString(PyExc_TypeError, "program(arms, action, enforce=True) takes positional arguments, enforce a bool");
         return NULL;
     }
-    return program_run((Program *)self, args[0], args[1]);
+    if (record_type == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "set_record_type() was not called");
+        return NULL;
+    }
+    return program_run((Program *)self, args[0], args[1], n == 3 ? args[2] : Py_True);
 }
 
 /* ---- construction ------------------------------------------------------------------------ */
@@ -332,6 +363,7 @@ static void program_free_checks(Program *p) {
 
 static void program_dealloc(Program *p) {
     program_free_checks(p);
+    Py_XDECREF(p->labels);
     Py_TYPE(p)->tp_free((PyObject *)p);
 }
 
@@ -381,12 +413,16 @@ static int fill_check(cv_compiled *c, PyObject *spec) {
 }
 
 static PyObject *program_new(PyTypeObject *type, PyObject *args, PyObject *kwds) {
-    static char *kwlist[] = {"specs", "dim", "n_arms", "rot", NULL};
-    PyObject *specs, *rot;
+    static char *kwlist[] = {"specs", "dim", "n_arms", "rot", "labels", NULL};
+    PyObject *specs, *rot, *labels;
     int dim, n_arms;
-    if (!PyArg_ParseTupleAndKeywords(args, kwds, "O!iiO!", kwlist, &PyTuple_Type, &specs, &dim, &n_arms,
-                                     &PyTuple_Type, &rot))
+    if (!PyArg_ParseTupleAndKeywords(args, kwds, "O!iiO!O!", kwlist, &PyTuple_Type, &specs, &dim, &n_arms,
+                                     &PyTuple_Type, &rot, &PyTuple_Type, &labels))
         return NULL;
+    if (PyTuple_GET_SIZE(labels) != PyTuple_GET_SIZE(specs)) {
+        PyErr_SetString(PyExc_ValueError, "Program: one label per spec");
+        return NULL;
+    }
     if (dim < 1 || dim > CV_MAX_DIM || n_arms < 1 || n_arms > CV_MAX_ARMS || PyTuple_GET_SIZE(specs) > 64 ||
         PyTuple_GET_SIZE(rot) > CV_MAX_ARMS) {
         PyErr_SetString(PyExc_ValueError, "Program: dim, arms, checks or frames out of the kernel's range");
@@ -395,6 +431,8 @@ static PyObject *program_new(PyTypeObject *type, PyObject *args, PyObject *kwds)
     Program *p = (Program *)type->tp_alloc(type, 0);
     if (p == NULL) return NULL;
     p->vectorcall = program_vectorcall;
+    Py_INCREF(labels);
+    p->labels = labels;
     p->dim = dim;
     p->n_arms = n_arms;
     p->n_checks = (int)PyTuple_GET_SIZE(specs);
@@ -424,7 +462,8 @@ static PyTypeObject ProgramType = {
     .tp_vectorcall_offset = offsetof(Program, vectorcall),
     .tp_call = PyVectorcall_Call,
     .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_VECTORCALL,
-    .tp_doc = "A Φ compiled for one action layout: program(arms, action) -> True | None | (original, steps).",
+    .tp_doc = "A Φ compiled for one action layout: program(arms, action, enforce) -> True | None | "
+              "(governed, records, check indices).",
     .tp_new = program_new,
 };
 
@@ -446,7 +485,33 @@ static PyObject *set_shrink(PyObject *self, PyObject *arg) {
     Py_RETURN_NONE;
 }
 
+static PyObject *set_record_type(PyObject *self, PyObject *cls) {
+    static const char *names[5] = {"constraint", "original", "result", "reason", "enforced"};
+    if (!PyType_Check(cls)) {
+        PyErr_SetString(PyExc_TypeError, "set_record_type takes the Intervention class");
+        return NULL;
+    }
+    PyObject *fields[5];
+    for (int k = 0; k < 5; k++) {
+        /* The slot's member descriptor from the class's own dict (the class attribute lookup would
+         * find the same object; its __set__ writes the slot directly). */
+        fields[k] = PyDict_GetItemString(((PyTypeObject *)cls)->tp_dict, names[k]);
+        if (fields[k] == NULL || Py_TYPE(fields[k])->tp_descr_set == NULL) {
+            PyErr_Format(PyExc_TypeError, "record type has no slot %s", names[k]);
+            return NULL;
+        }
+    }
+    for (int k = 0; k < 5; k++) {
+        Py_INCREF(fields[k]);
+        Py_XSETREF(record_fields[k], fields[k]);
+    }
+    Py_INCREF(cls);
+    Py_XSETREF(record_type, (PyTypeObject *)cls);
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
+    {"set_record_type", set_record_type, METH_O, "Set records.Intervention (called once at import)."},
     {"kinds", kinds, METH_NOARGS, "The constraint kinds the kernel has a check for."},
     {"set_shrink", set_shrink, METH_O, "Set cap.SHRINK (called once at import)."},
     {NULL, NULL, 0, NULL},
