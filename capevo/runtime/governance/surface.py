@@ -33,8 +33,9 @@ Invariants (per arm after the check; ``gap`` as above, ``q = max(0, gap) / brake
    with ``lateral`` set, it implies ``|a_x|, |a_y| <= max(lateral, q)``.
 3. Only those components change (clamped to the bound); an action the rule does not touch is
    allowed (None) and never copied.
-4. A non-finite end-effector height is ⊥ with a reason, and so is a non-finite orientation
-   of an arm low enough for its hand to be within ``brake`` of the surface (x and y play no part).
+4. Whenever the rule looks at the arms (some arm's site is below ``stop + hand reach + brake``,
+   or its height is not finite), a non-finite height or orientation of any arm is ⊥ with a
+   reason (x and y play no part).
 5. No hard limit of its own (:meth:`SurfaceApproach.unsafe` is None): what it prevents shows as
    contact force.
 """
