@@ -14,6 +14,7 @@ import struct
 from collections.abc import Sequence
 from typing import Any
 
+from govcheck import QUATS, rotation
 from hypothesis import strategies as st
 
 from capevo.runtime.governance import Governor, Phi
@@ -29,22 +30,12 @@ SIGNED_PERMUTATIONS: tuple[tuple[float, ...], ...] = (
     (0.0, 1.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0, 1.0),
     (0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, -1.0),
 )
-QUATS = st.tuples(*[st.floats(-1, 1) for _ in range(4)]).filter(lambda q: sum(c * c for c in q) > 0.1)
 COMPONENT = st.one_of(
     st.floats(-2.0, 2.0),
     st.sampled_from([0.0, -0.0, 1.0, -1.0, 1.5, -1.5, 0.04, -0.04, 1e-300, 5e-324]),
     st.floats(-1e6, 1e6),
 )
 """Action components: the usual range, exact values the checks compare against, and extremes."""
-
-
-def rotation(q: tuple[float, float, float, float]) -> tuple[float, ...]:
-    w, x, y, z = (v / math.sqrt(sum(c * c for c in q)) for v in q)
-    return (
-        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-    )  # fmt: skip
 
 
 def near_edges(*edges: float, spread: float = 0.05) -> st.SearchStrategy[float]:

@@ -45,6 +45,20 @@ FORCE = st.one_of(
 )
 ACTION_COMPONENT = st.one_of(SMALL, FINITE, st.sampled_from([0.0, 1.0, -1.0, 1.5, -0.0]))
 
+QUATS = st.tuples(*[st.floats(-1, 1) for _ in range(4)]).filter(lambda q: sum(c * c for c in q) > 0.1)
+"""Unnormalized quaternions far enough from 0 to normalize; :func:`rotation` turns them into matrices."""
+
+
+def rotation(q: tuple[float, float, float, float]) -> tuple[float, ...]:
+    """The row-major rotation matrix of the quaternion ``q`` (w, x, y, z), normalized first."""
+    w, x, y, z = (v / math.sqrt(sum(c * c for c in q)) for v in q)
+    return (
+        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+    )  # fmt: skip
+
+
 NEGLIGIBLE = 1e-12
 """A vector component this small relative to the vector's length is rounding, not a direction."""
 

@@ -93,7 +93,7 @@ def small_actions(dim: int) -> st.SearchStrategy[list[float]]:
 
 
 @pytest.mark.parametrize("name", list(CASES))
-@settings(max_examples=120, deadline=None)
+@settings(max_examples=60, deadline=None)
 @given(data=st.data())
 def test_kernel_matches_python_near_each_other(name: str, data: st.DataObject) -> None:
     pair = CASES[name]

@@ -136,7 +136,7 @@ def brake_cases(draw: st.DrawFn, n_arms: int) -> tuple[RobotState, list[float]]:
     return RobotState(arms=tuple(arms)), a
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=75, deadline=None)
 @given(data=st.data())
 def test_kernel_brakes_as_python(data: st.DataObject) -> None:
     pair = data.draw(st.sampled_from([*PAIRS, TWO]))

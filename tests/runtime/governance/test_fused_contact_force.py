@@ -72,7 +72,7 @@ def force_states(draw: st.DrawFn, n_arms: int, limit: float) -> RobotState:
 
 
 @pytest.mark.parametrize(("pair", "limit"), CASES, ids=IDS)
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(data=st.data())
 def test_kernel_matches_python(pair: Pair, limit: float, data: st.DataObject) -> None:
     layout = pair.kernel.layout

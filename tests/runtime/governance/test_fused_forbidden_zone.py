@@ -75,7 +75,7 @@ def zone_states(draw: st.DrawFn, n_arms: int, zone: ForbiddenZone) -> RobotState
 
 
 @pytest.mark.parametrize(("pair", "zone"), CASES, ids=IDS)
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(data=st.data())
 def test_kernel_matches_python(pair: Pair, zone: ForbiddenZone, data: st.DataObject) -> None:
     layout = pair.kernel.layout

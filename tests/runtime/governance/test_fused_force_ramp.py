@@ -74,7 +74,7 @@ def ramp_actions(ramp: ForceRamp, dim: int) -> st.SearchStrategy[list[float]]:
     [*PAIRS, TWO_ARMS, OFF, AFTER_GUARD],
     ids=["default", "firm", "no_backoff", "small", "two_arms", "off", "after_guard"],
 )
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=75, deadline=None)
 @given(data=st.data())
 def test_kernel_matches_python(pair: Pair, data: st.DataObject) -> None:
     layout = pair.kernel.layout

@@ -119,7 +119,7 @@ def small_actions(dim: int) -> st.SearchStrategy[list[float]]:
 
 
 @pytest.mark.parametrize("name", list(CASES))
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=50, deadline=None)
 @given(data=st.data())
 def test_kernel_matches_python_near_obstacles(name: str, data: st.DataObject) -> None:
     pair, _ = CASES[name]
@@ -139,7 +139,7 @@ def test_kernel_matches_python_anywhere(name: str, data: st.DataObject) -> None:
     pair.check(data.draw(robot_states(len(layout.arms))), data.draw(actions(layout.dim)))
 
 
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=50, deadline=None)
 @given(rot=st.one_of(ROTATIONS.filter(lambda r: r is not None), BAD_ROTATION))
 def test_extent_of_is_hand_extent(rot: tuple[float, ...]) -> None:
     """The extent hand.c ports: extent_of and hand_extent agree to the bit, NaN included."""

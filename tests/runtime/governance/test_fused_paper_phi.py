@@ -47,7 +47,7 @@ def as_container(a: list[float], kind: str) -> object:
 
 
 @pytest.mark.parametrize("name", list(PAIRS))
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=75, deadline=None)
 @given(data=st.data())
 def test_kernel_matches_python(name: str, data: st.DataObject) -> None:
     pair = PAIRS[name]

@@ -131,7 +131,7 @@ def reach_actions(dim: int, reach: ReachLimit) -> st.SearchStrategy[list[float]]
 
 
 @pytest.mark.parametrize("name", list(PAIRS))
-@settings(max_examples=120, deadline=None)
+@settings(max_examples=60, deadline=None)
 @given(data=st.data())
 def test_kernel_matches_python_at_the_edges(name: str, data: st.DataObject) -> None:
     pair, reach = PAIRS[name], LIMIT_OF[name]

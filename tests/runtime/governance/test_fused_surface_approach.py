@@ -116,7 +116,7 @@ def surface_case(draw: st.DrawFn, pair: Pair) -> tuple[RobotState, list[float]]:
 
 
 @pytest.mark.parametrize("name", list(PAIRS))
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=50, deadline=None)
 @given(data=st.data())
 def test_kernel_matches_python_near_the_surface(name: str, data: st.DataObject) -> None:
     pair = PAIRS[name]

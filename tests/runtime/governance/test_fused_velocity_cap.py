@@ -54,7 +54,7 @@ def cap_actions(draw: st.DrawFn, dim: int, n_arms: int, cap: float) -> list[floa
 
 
 @pytest.mark.parametrize(("pair", "cap"), CASES, ids=IDS)
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(data=st.data())
 def test_kernel_matches_python(pair: Pair, cap: float, data: st.DataObject) -> None:
     layout = pair.kernel.layout

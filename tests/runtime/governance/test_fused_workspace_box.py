@@ -24,7 +24,7 @@ OFF = Pair(Phi((BOXES[1],)), SINGLE_PANDA, enforce=False)
 
 
 @pytest.mark.parametrize("pair", [*PAIRS, TWO_ARMS, OFF], ids=["default", "tight", "wide", "two_arms", "off"])
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(data=st.data())
 def test_kernel_matches_python(pair: Pair, data: st.DataObject) -> None:
     layout = pair.kernel.layout

@@ -75,7 +75,7 @@ def guard_actions(guard: WorkspaceGuard, dim: int) -> st.SearchStrategy[list[flo
     [*PAIRS, TWO_ARMS, OFF, WITH_RAMP],
     ids=["default", "tight", "no_band", "thin", "two_arms", "off", "with_ramp"],
 )
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=75, deadline=None)
 @given(data=st.data())
 def test_kernel_matches_python(pair: Pair, data: st.DataObject) -> None:
     layout = pair.kernel.layout

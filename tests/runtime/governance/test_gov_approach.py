@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 
 import pytest
-from govcheck import arm_rot, hand_box, violations
+from govcheck import QUATS, arm_rot, hand_box, rotation, violations
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
@@ -36,16 +36,6 @@ from capevo.runtime.state import SINGLE_PANDA, ArmState, RobotState
 TOL = 1e-9
 COORD = st.floats(-1.0, 2.0)
 COMPONENT = st.one_of(st.floats(-3.0, 3.0), st.sampled_from([0.0, 1.0, -1.0]))
-QUATS = st.tuples(*[st.floats(-1, 1) for _ in range(4)]).filter(lambda q: sum(c * c for c in q) > 0.1)
-
-
-def rotation(q: tuple[float, float, float, float]) -> tuple[float, ...]:
-    w, x, y, z = (v / math.sqrt(sum(c * c for c in q)) for v in q)
-    return (
-        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-    )  # fmt: skip
 
 
 @st.composite

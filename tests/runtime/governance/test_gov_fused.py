@@ -68,7 +68,7 @@ def pair_for(task: str, enforce: bool = True) -> Pair:
 
 
 @pytest.mark.parametrize("task", TASKS)
-@settings(max_examples=250, deadline=None)
+@settings(max_examples=125, deadline=None)
 @given(data=st.data())
 def test_inv2_per_task_phi_matches_the_python_checks(task: str, data: st.DataObject) -> None:
     pair = pair_for(task)
@@ -77,7 +77,7 @@ def test_inv2_per_task_phi_matches_the_python_checks(task: str, data: st.DataObj
 
 
 @pytest.mark.parametrize("task", ["T1", "T6"])
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=50, deadline=None)
 @given(data=st.data())
 def test_inv2_governance_off_matches_too(task: str, data: st.DataObject) -> None:
     pair = pair_for(task, enforce=False)
@@ -94,7 +94,7 @@ JUNK = st.one_of(
 )
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=150, deadline=None)
 @given(arms=JUNK, action=JUNK)
 def test_inv2_the_program_takes_any_input_without_raising_and_declines_what_it_cannot_read(
     arms: Any, action: Any
@@ -103,7 +103,7 @@ def test_inv2_the_program_takes_any_input_without_raising_and_declines_what_it_c
     assert program(arms, action) is None or isinstance(arms, tuple)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(state=robot_states(1), action=actions(7), kind=st.sampled_from(["f64", "f32", "tuple", "ints", "2d", "nan"]))
 def test_inv2_other_action_types_match(state: Any, action: list[float], kind: str) -> None:
     pair = pair_for("T1")

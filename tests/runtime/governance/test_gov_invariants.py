@@ -9,9 +9,11 @@ import pytest
 from govcheck import (
     ANY_FLOAT,
     FINITE,
+    QUATS,
     actions,
     finite_state,
     robot_states,
+    rotation,
     state_of,
     to_world,
     violations,
@@ -39,16 +41,6 @@ REVERSED = Phi(tuple(reversed(FULL.constraints)))
 LAYOUTS = {"single": SINGLE_PANDA, "two_arm": TWO_ARM_NO_GRIPPER}
 
 
-def _rotation(q: tuple[float, float, float, float]) -> tuple[float, ...]:
-    w, x, y, z = (v / math.sqrt(sum(c * c for c in q)) for v in q)
-    return (
-        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-    )  # fmt: skip
-
-
-QUATS = st.tuples(*[st.floats(-1, 1) for _ in range(4)]).filter(lambda q: sum(c * c for c in q) > 0.1)
 RZ90 = (0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 RZ_90 = (0.0, 1.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 FLIP = (1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0)
@@ -93,7 +85,7 @@ def test_governed_action_satisfies_every_constraint_in_rotated_action_frames(
     layout_name: str, data: st.DataObject, exact: bool
 ) -> None:
     layout = LAYOUTS[layout_name]
-    frames = [data.draw(SIGNED_PERMUTATIONS if exact else QUATS.map(_rotation)) for _ in layout.arms]
+    frames = [data.draw(SIGNED_PERMUTATIONS if exact else QUATS.map(rotation)) for _ in layout.arms]
     state = data.draw(robot_states(len(layout.arms)))
     action = data.draw(actions(layout.dim, st.floats(-10, 10)))
     assume(finite_state(state))
