@@ -337,8 +337,9 @@ fail:
 
 static PyObject *program_vectorcall(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames) {
     Py_ssize_t n = PyVectorcall_NARGS(nargsf);
-    if (n < 2 || n > 3 || (kwnames != NULL && PyTuple_GET_SIZE(kwnames) != 0) || (n == 3 && !PyBool_Check(args[2]))) {
-        PyErr_SetString(PyExc_TypeError, "program(arms, action, enforce=True) takes positional arguments, enforce a bool");
+    /* ``enforce`` goes into the records as given, as the Python governor stores it. */
+    if (n < 2 || n > 3 || (kwnames != NULL && PyTuple_GET_SIZE(kwnames) != 0)) {
+        PyErr_SetString(PyExc_TypeError, "program(arms, action, enforce=True) takes positional arguments only");
         return NULL;
     }
     if (record_type == NULL) {
