@@ -35,7 +35,7 @@ int cv_check_forbidden_zone(const cv_spec *spec, const cv_state *s, const double
     int edited = 0;
     for (int i = 0; i < s->n_arms; i++) {
         const double *p = s->arms[i].pos;
-        if (!(isfinite(p[0]) && isfinite(p[1]) && isfinite(p[2]))) return CV_FALLBACK; /* formatted reason */
+        if (!cv_finite3(p)) return CV_FALLBACK; /* formatted reason */
         const long o = spec->i[1 + i];
         if (o < 0 || o + 3 > s->dim) return CV_FALLBACK;
         for (long zi = 0; zi < nz; zi++) {

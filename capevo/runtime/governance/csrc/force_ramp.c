@@ -30,7 +30,7 @@ int cv_check_force_ramp(const cv_spec *spec, const cv_state *s, const double *a,
     /* slow(): a non-finite reading anywhere is a reject with a formatted reason. */
     for (int i = 0; i < s->n_arms; i++) {
         const double *fv = s->arms[i].force;
-        if (!isfinite(fv[0]) || !isfinite(fv[1]) || !isfinite(fv[2])) return CV_FALLBACK;
+        if (!cv_finite3(fv)) return CV_FALLBACK;
     }
     int edited = 0; /* Python's ``b is not None`` */
     for (int i = 0; i < s->n_arms; i++) {

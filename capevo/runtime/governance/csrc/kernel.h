@@ -74,6 +74,9 @@ typedef int (*cv_check_fn)(const cv_spec *spec, const cv_state *s, const double 
 static inline double cv_pymin(double x, double y) { return y < x ? y : x; }
 static inline double cv_pymax(double x, double y) { return y > x ? y : x; }
 
+/* Whether all three components of a vector (a position, a force) are finite. */
+static inline int cv_finite3(const double *v) { return isfinite(v[0]) && isfinite(v[1]) && isfinite(v[2]); }
+
 /* capevo.runtime.governance.cap.SHRINK, passed in by the module at import time. */
 extern double cv_shrink;
 

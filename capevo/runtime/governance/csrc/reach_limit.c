@@ -101,7 +101,7 @@ int cv_check_reach_limit(const cv_spec *spec, const cv_state *s, const double *a
      * orientation) is not finite, whatever the arms before it did: that is Python's. */
     for (long i = 0; i < n; i++) {
         const cv_arm *arm = &s->arms[i];
-        if (!isfinite(arm->pos[0]) || !isfinite(arm->pos[1]) || !isfinite(arm->pos[2])) return CV_FALLBACK;
+        if (!cv_finite3(arm->pos)) return CV_FALLBACK;
         if (lever > 0.0 && arm->has_rot)
             for (int k = 0; k < 9; k++)
                 if (!isfinite(arm->rot[k])) return CV_FALLBACK;
@@ -131,7 +131,7 @@ int cv_check_reach_limit(const cv_spec *spec, const cv_state *s, const double *a
         if (!isfinite(e0) || !isfinite(e1) || !isfinite(e2)) return CV_FALLBACK;
         double rr, u[3];
         int has_u = polar(e0, e1, e2, &rr, u);
-        if (has_u && !(isfinite(u[0]) && isfinite(u[1]) && isfinite(u[2]))) return CV_FALLBACK;
+        if (has_u && !cv_finite3(u)) return CV_FALLBACK;
         rr *= 2.0;
         double d = r_out - rr;
         if ((d < band || d <= m) && has_u) {

@@ -33,7 +33,7 @@ int cv_check_workspace_guard(const cv_spec *spec, const cv_state *s, const doubl
     /* slow(): a non-finite position anywhere is a reject with a formatted reason. */
     for (int i = 0; i < s->n_arms; i++) {
         const double *p = s->arms[i].pos;
-        if (!isfinite(p[0]) || !isfinite(p[1]) || !isfinite(p[2])) return CV_FALLBACK;
+        if (!cv_finite3(p)) return CV_FALLBACK;
     }
     int edited = 0; /* Python's ``b is not None`` */
     for (int i = 0; i < s->n_arms; i++) {
