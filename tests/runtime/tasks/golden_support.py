@@ -3,15 +3,52 @@
 Computed from everything an episode exposes (flat and per-key observations, noisy and clean,
 rewards, flags, infos, signals, robot state), hashed from exact float representations, so a
 refactor of the task wrappers that changes any value by one ulp changes the digest.
+
+A digest also depends on the machine: numpy picks its SIMD kernels by CPU feature at run time
+(AVX2 and AVX-512 round some results differently), and the libraries' builds differ by version.
+Golden tables are therefore keyed by :func:`machine_fingerprint`; :func:`expect_golden` compares
+against this machine's entry and skips, saying how to add one, on a machine that has none.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+from collections.abc import Mapping
 from typing import Any
 
+import mujoco
 import numpy as np
+import pytest
+from numpy.core._multiarray_umath import __cpu_features__
+
+RECORDED_BEFORE_FINGERPRINTS = "recorded before fingerprints"
+"""Key of the digests of the machine the suite was first written on, whose fingerprint is unknown."""
+
+
+def machine_fingerprint() -> str:
+    """What a digest depends on besides the code: numpy's and MuJoCo's versions and the CPU
+    features numpy dispatches on."""
+    features = ",".join(sorted(name for name, enabled in __cpu_features__.items() if enabled))
+    text = f"numpy {np.__version__}; mujoco {mujoco.__version__}; cpu {features}"
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def expect_golden(got: Any, by_machine: Mapping[str, Any], *, generate: str) -> None:
+    """Assert ``got`` is this machine's golden value; skip on a machine with no entry.
+
+    The digests recorded before fingerprints existed count for any machine without an entry
+    that reproduces them. ``generate`` says how to compute an entry at a known-good commit.
+    """
+    fingerprint = machine_fingerprint()
+    want = by_machine.get(fingerprint)
+    if want is not None:
+        assert got == want
+    elif got != by_machine.get(RECORDED_BEFORE_FINGERPRINTS):
+        pytest.skip(
+            f"no golden digests for machine {fingerprint} (numpy {np.__version__}, mujoco {mujoco.__version__}); "
+            f"add an entry computed at a known-good commit with {generate}"
+        )
 
 
 class Digest:
@@ -73,6 +110,10 @@ def task_episode_digest(env: Any, seed: int, steps: int) -> str:
     return d.hexdigest()
 
 
+def _as_tuple(value: Any) -> Any:
+    return tuple(value.tolist()) if isinstance(value, np.ndarray) else value
+
+
 def trace_digest(records: Any, run: Any) -> str:
     """Digest of an episode's trace records and outcome, without wall-clock durations and
     without what depends on Φ (interventions, unsafe counts): with a counting governor
@@ -82,8 +123,10 @@ def trace_digest(records: Any, run: Any) -> str:
         name = type(r).__name__
         if name == "Intervention":
             continue
+        # A vector is digested as the tuple of its values, array or tuple alike, so these digests
+        # also pin the values of traces recorded before the loop passed the env's arrays.
         fields = {
-            f.name: getattr(r, f.name)
+            f.name: _as_tuple(getattr(r, f.name))
             for f in dataclasses.fields(r)
             if f.name not in ("duration_s", "interventions", "unsafe_steps")
         }
