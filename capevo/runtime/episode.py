@@ -64,7 +64,15 @@ from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.governance import Governor, Phi, hold_action, unsafe_reasons
 from capevo.runtime.policy import Decision, DecisionContext, DecisionPolicy, StepEnd
 from capevo.runtime.state import ActionLayout, RobotState
-from capevo.runtime.traces import NOT_ENFORCED_PREFIX, EcmInvocation, EnvStep, EpisodeSummary, PlanStep, TraceSink
+from capevo.runtime.traces import (
+    NOT_ENFORCED_PREFIX,
+    EcmInvocation,
+    EnvStep,
+    EpisodeSummary,
+    FloatVector,
+    PlanStep,
+    TraceSink,
+)
 from capevo.runtime.traces import Intervention as TraceIntervention
 from capevo.runtime.traces import Outcome as TraceOutcome
 
@@ -258,7 +266,9 @@ def run_episode_detailed(
 
     started = time.perf_counter()
     obs, info = env.reset(seed=seed)
-    obs_t = tuple(obs.tolist())
+    # Traces keep the env's own (fresh, float32) observation arrays: read-only, so a record
+    # can never change after it is written, and no tuple round trip (see traces.FloatVector).
+    obs_t = _read_only(obs)
     attempts: Counter[str] = Counter()
     activations: list[Activation] = []
     running: _Running | None = None
@@ -313,12 +323,7 @@ def run_episode_detailed(
         if sink is None:
             failures += sum(1 for a in result.attempts if a.status in FAILURES)
             return
-        if run.input_keys:
-            od = env.obs_dict
-            parts = [np.ravel(od[k]) for k in run.input_keys if k in od]
-            input_state = tuple(np.concatenate(parts).tolist()) if parts else ()
-        else:
-            input_state = obs_t
+        input_state = _input_state(env.obs_dict, run.input_keys) if run.input_keys else obs_t
         for a in result.attempts:
             if a.status in FAILURES:
                 failures += 1
@@ -470,7 +475,7 @@ def run_episode_detailed(
             count_unsafe(why, f"step {steps}")
         next_obs, reward, terminated, truncated, info = env.step(np.asarray(executed, dtype=np.float64))
         signals = None
-        next_t = tuple(next_obs.tolist())
+        next_t = _read_only(next_obs)
         reward = float(reward)
         if math.isfinite(reward):
             total_reward += reward
@@ -577,9 +582,25 @@ run_episode = _outcome_only(
 )
 
 
+def _read_only(values: np.ndarray) -> np.ndarray:
+    values.flags.writeable = False
+    return values
+
+
+def _input_state(obs: Mapping[str, np.ndarray], keys: tuple[str, ...]) -> FloatVector:
+    """The flat input an ECM with inputs ``keys`` saw, for its invocation record (read-only)."""
+    parts = [obs[k] for k in keys if k in obs]
+    # axis=None flattens as it concatenates: one numpy call, not one ravel per key.
+    return _read_only(np.concatenate(parts, axis=None)) if parts else ()
+
+
 def _key_state(state: RobotState) -> dict[str, tuple[float, ...]]:
+    arms = state.arms
+    if len(arms) == 1:  # every task but T6: one dict display (the loop and its f-strings cost 2x)
+        arm = arms[0]
+        return {"arm0_eef_pos": arm.eef_pos, "arm0_eef_force": arm.eef_force}
     out: dict[str, tuple[float, ...]] = {}
-    for i, arm in enumerate(state.arms):
+    for i, arm in enumerate(arms):
         out[f"arm{i}_eef_pos"] = arm.eef_pos
         out[f"arm{i}_eef_force"] = arm.eef_force
     return out

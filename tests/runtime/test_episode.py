@@ -8,10 +8,12 @@ only at episode boundaries (3), trace counts equal outcome counts (4), the no-pr
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 from runtime_support import (
     BAD_SHAPE,
@@ -339,3 +341,27 @@ def test_the_env_senses_proximity_only_when_its_envelope_reads_it(env: TaskEnv) 
     make_governor(env, PHI)
     assert not env.sense_proximity and not PHI.reads_proximity
     assert all(arm.near == () for arm in env.robot_state().arms)  # type: ignore[attr-defined]
+
+
+def test_records_carry_the_envs_observations_read_only(
+    env: TaskEnv, registry: LocalRegistry, policy: DecompositionPolicy
+) -> None:
+    # Traces keep the env's own float32 observation arrays, with no tuple round trip: each step's
+    # obs is the previous step's next_obs object, and neither can change after it is written.
+    publish_pick(registry)
+    sink = MemoryTraceSink()
+    with load(registry, env) as caps:
+        run = run_episode_detailed(env, caps, policy, make_governor(env, PHI), sink, seed=4)
+        reach_inputs = caps.records["pick.reach"].interface.inputs
+    steps, calls = sink.env_steps, sink.invocations
+    assert len(steps) == run.outcome.steps > 1 and calls
+    for before, after in itertools.pairwise(steps):
+        assert after.obs is before.next_obs
+    vectors = [v for s in steps for v in (s.obs, s.next_obs)] + [c.input_state for c in calls]
+    for v in vectors:
+        assert isinstance(v, np.ndarray) and v.dtype == np.float32 and v.ndim == 1 and not v.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        steps[0].next_obs[0] = 1.0
+    # an invocation's input is its ECM's interface inputs, flattened
+    reach_size = sum(math.prod(spec.shape) for spec in reach_inputs)
+    assert all(c.input_state.size == reach_size for c in calls if c.ecm == "pick.reach")

@@ -1,26 +1,38 @@
 """JSON encoding of trace records for MCAP ``json`` channels, with fast paths for hot topics.
 
-``/env/step`` (every control step), ``/ecm/invocation`` and ``/governance/intervention``
-(up to every step) are spliced into one bytes template each instead of building a dict and
-running :mod:`json`. Their vectors are printed by orjson as float32 arrays: the shortest text
-that names each float32, printed by compiled code (vectors shorter than ten values, where
-that costs more than it saves, use ``%.9g``). Python's shortest-repr float printing
-costs about 0.45 µs a value on the reference machine, ``%.9g`` about 0.14 µs, and an env step
-carries about 110 floats (see benchmarks/bench_traces.py). float32 is the precision the
-runtime works in; records' ``from_dict`` rounds vectors back to float32. A vector with a
-value float32 cannot hold (NaN, an infinity, or a finite float64 beyond its range) is printed
-with nine significant digits instead, which keeps such values finite where they were.
-Plan steps and episode summaries (rare, no vectors) go through :mod:`json`.
+``/env/step`` (every control step) and ``/ecm/invocation`` (every ECM call) are encoded with
+one :func:`orjson.dumps` call each. Per call costs dominate on records this size (numpy and
+orjson each cost about as much per call as per 40 values), so the fast paths make as few
+calls as they can (benchmarks/bench_traces.py, bench_traces_loop.py):
+
+- Observation vectors (``obs``, ``next_obs``, ``input_state``) are float32 data: a 1-D float32
+  array (what the episode loop passes, see :data:`~capevo.runtime.traces.records.FloatVector`)
+  goes to orjson as it is, anything else is rounded to float32 in one ``array("f")``
+  conversion; orjson prints the shortest text that names each float32.
+- The runtime's own float64 vectors (``action``, ``key_state``, ``output``) are printed
+  exactly, shortest repr, when they are tuples of floats (a float32 conversion would cost more
+  than the characters it saves); anything else is rounded to float32.
+
+Records' ``from_dict`` rounds every vector to float32, the precision the runtime works in.
+
+Whatever the fast path cannot print exactly goes through the template path instead, which
+splices per-field text into one bytes template: a record whose ints or names are not exactly
+``int``/``str``, and any payload that would contain ``null`` where the record has no None (a
+non-finite value, or a finite float64 beyond float32's range, which the template prints with
+nine significant digits so it stays finite). ``/governance/intervention`` (at most a few per
+step) always takes the template path; plan steps and episode summaries (rare, no vectors) go
+through :mod:`json`.
 
 Invariants:
 1. Every payload is strict JSON (RFC 8259): no ``NaN``/``Infinity`` tokens; a non-finite
    float becomes ``null`` (decoded as NaN).
-2. A fast path and the generic ``json`` path of the same record decode to the same record.
+2. A fast path, the template path and the generic ``json`` path of the same record decode to
+   the same record (for float64 vector values: each within one float32 ulp).
 3. ``decode(topic, encode(r)) == r`` for every record ``r`` with finite floats whose vectors
    hold float32 values; a float64 vector value comes back as a float32 within one float32
    ulp of it (beyond float32's range, within nine significant digits); scalar floats come
    back exactly.
-4. The encoding cache never serves stale text: it is keyed by the identity of a *tuple*
+4. The float32 cache never serves stale values: it is keyed by the identity of a *tuple*
    (immutable) that the encoder keeps alive, so the key cannot be reused for other content.
 5. A vector component that is not a real number (a string, None, a sequence, a complex
    number) fails the encoding, as it would fail ``%g``.
@@ -64,9 +76,11 @@ _INTERVENTION_TEMPLATE = (
     b'{"episode":%d,"step":%d,"constraint":%b,"original_action":%b,"result_action":%b,"reason":%b,"enforced":%b}'
 )
 _OUTCOMES = {o: json.dumps(o.value).encode() for o in Outcome}
+_OUTCOME_VALUES = {o: o.value for o in Outcome}
 _BOOLS = (b"false", b"true")
 _NUMPY = orjson.OPT_SERIALIZE_NUMPY
 _FLOAT32 = np.float32
+_PLAIN_FLOAT = frozenset((float,))
 
 _MAX_CACHED_NAMES = 4096
 _SHORT_VECTOR = 10
@@ -119,6 +133,28 @@ def _not_encodable(record: object, exc: Exception) -> Invalid:
     )
 
 
+def float32_array(values: Sequence[float] | np.ndarray) -> np.ndarray:
+    """``values`` rounded to float32 (one conversion; orjson prints the result).
+
+    A 1-D C-contiguous float32 array (the env's observations) is returned as it is.
+
+    Raises:
+        TypeError: a component is not a real number (``array("f")`` accepts exactly what ``%g``
+            accepts); a value beyond float32's range becomes an infinity.
+        OverflowError: an integer component too large for a float.
+    """
+    if type(values) is np.ndarray and values.dtype == _FLOAT32 and values.ndim == 1 and values.flags.c_contiguous:
+        return values
+    return np.frombuffer(array("f", values), dtype=_FLOAT32)
+
+
+def exact_or_float32(values: Sequence[float]) -> Any:
+    """``values`` itself if it is a tuple of floats (orjson prints each exactly), else float32."""
+    if type(values) is tuple and set(map(type, values)) <= _PLAIN_FLOAT:
+        return values
+    return float32_array(values)
+
+
 class RecordEncoder:
     """Encodes trace records; keep one per writer so its caches stay warm."""
 
@@ -126,9 +162,9 @@ class RecordEncoder:
 
     def __init__(self) -> None:
         self._names: dict[str, bytes] = {}
-        # (tuple, its text) as one attribute: one assignment, so threads sharing the
-        # encoder can never pair a tuple with another tuple's text.
-        self._last_next_obs: tuple[tuple[float, ...] | None, bytes] = (None, b"")
+        # (tuple, its float32 view) as one attribute: one assignment, so threads sharing the
+        # encoder can never pair a tuple with another tuple's values.
+        self._last_next_obs: tuple[tuple[float, ...] | None, np.ndarray | None] = (None, None)
 
     def _name(self, name: str) -> bytes:
         text = self._names.get(name)
@@ -165,12 +201,39 @@ class RecordEncoder:
             raise _not_encodable(s, exc) from None
 
     def _env_step(self, s: EnvStep) -> bytes:
-        obs = s.obs
-        last_obs, last_text = self._last_next_obs
-        obs_text = last_text if obs is last_obs and type(obs) is tuple else vector_json(obs)
-        next_obs = s.next_obs
-        next_obs_text = vector_json(next_obs)
-        self._last_next_obs = (next_obs, next_obs_text) if type(next_obs) is tuple else (None, b"")
+        if (
+            type(s.episode) is not int
+            or type(s.step) is not int
+            or type(s.version) is not int
+            or type(s.ecm) is not str
+        ):
+            return self._env_step_template(s)
+        obs, next_obs = s.obs, s.next_obs
+        last_obs, last_view = self._last_next_obs
+        obs_view = last_view if obs is last_obs and type(obs) is tuple else float32_array(obs)
+        next_view = float32_array(next_obs)
+        self._last_next_obs = (next_obs, next_view) if type(next_obs) is tuple else (None, None)
+        payload = orjson.dumps(
+            {
+                "episode": s.episode,
+                "step": s.step,
+                "ecm": s.ecm,
+                "version": s.version,
+                "obs": obs_view,
+                "action": exact_or_float32(s.action),
+                "reward": float(s.reward),
+                "next_obs": next_view,
+                "terminated": bool(s.terminated),
+                "truncated": bool(s.truncated),
+                "is_success": bool(s.is_success),
+                "key_state": {k: exact_or_float32(v) for k, v in s.key_state.items()},
+            },
+            option=_NUMPY,
+        )
+        # No field of an env step is None: any null is a value the template must print.
+        return self._env_step_template(s) if b"null" in payload else payload
+
+    def _env_step_template(self, s: EnvStep) -> bytes:
         key_state = b""
         if s.key_state:
             key_state = b",".join(self._name(k) + b":" + vector_json(v) for k, v in s.key_state.items())
@@ -179,10 +242,10 @@ class RecordEncoder:
             s.step,
             self._name(s.ecm),
             s.version,
-            obs_text,
+            vector_json(s.obs),
             vector_json(s.action),
             _format_float(s.reward),
-            next_obs_text,
+            vector_json(s.next_obs),
             _BOOLS[bool(s.terminated)],
             _BOOLS[bool(s.truncated)],
             _BOOLS[bool(s.is_success)],
@@ -197,7 +260,40 @@ class RecordEncoder:
             raise _not_encodable(r, exc) from None
 
     def _invocation(self, r: EcmInvocation) -> bytes:
-        outcome = _OUTCOMES.get(r.outcome)  # a str enum: members and their values both hit
+        outcome = _OUTCOME_VALUES.get(r.outcome)  # a str enum: members and their values both hit
+        if (
+            outcome is None
+            or type(r.episode) is not int
+            or type(r.step) is not int
+            or type(r.version) is not int
+            or type(r.ecm) is not str
+        ):
+            return self._invocation_template(r)
+        output, error, inputs = r.output, r.error, r.input_state
+        last_obs, last_view = self._last_next_obs
+        input_view = last_view if inputs is last_obs and type(inputs) is tuple else float32_array(inputs)
+        output_view = None if output is None else exact_or_float32(output)
+        payload = orjson.dumps(
+            {
+                "episode": r.episode,
+                "step": r.step,
+                "ecm": r.ecm,
+                "version": r.version,
+                "input_state": input_view,
+                "output": output_view,
+                "duration_s": float(r.duration_s),
+                "outcome": outcome,
+                "error": None if error is None else str(error),
+            },
+            option=_NUMPY,
+        )
+        # Nulls beyond the two None fields are values the template must print.
+        if payload.count(b"null") != (output is None) + (error is None):
+            return self._invocation_template(r)
+        return payload
+
+    def _invocation_template(self, r: EcmInvocation) -> bytes:
+        outcome = _OUTCOMES.get(r.outcome)
         if outcome is None:
             outcome = _OUTCOMES[Outcome(r.outcome)]  # ValueError for anything else
         return _INVOCATION_TEMPLATE % (

@@ -10,10 +10,11 @@ Wire conventions (see :mod:`capevo.runtime.traces.codec`):
 - A non-finite float (NaN, +-inf) is written as JSON ``null`` and read back as NaN, because
   JSON has no NaN; every float field's schema is therefore ``number | null``.
 - Vectors (obs, action, next_obs, key_state, input_state, output, original/result action)
-  are float32 data: they are written with 9 significant digits, which name a float32
-  uniquely, and ``from_dict`` rounds them to float32, so float32 values come back bit-exact
-  and a float64 value comes back as a float32 within one float32 ulp. Scalar floats
-  (reward, durations, total reward) are float64 and written exactly.
+  are float32 data. Observation vectors are written as the shortest text that names each
+  float32; the runtime's own float64 vectors (action, key_state, output) are written exactly
+  (see :mod:`capevo.runtime.traces.codec`). ``from_dict`` rounds every vector to float32, so
+  float32 values come back bit-exact and a float64 value comes back as a float32 within one
+  float32 ulp. Scalar floats (reward, durations, total reward) are float64 and written exactly.
 
 Invariants:
 1. For every record ``r`` whose floats are finite and whose vectors hold float32 values:
@@ -24,6 +25,8 @@ Invariants:
    returns it, and an unknown topic raises :class:`Invalid` listing the known topics.
 4. ``TraceMetadata.from_mcap(m.to_mcap()) == m``; every key and value in ``to_mcap()`` is a
    ``str`` (MCAP metadata records are string maps).
+5. Env steps and invocations compare and hash by value: a record whose vector is an array
+   equals the same record with the tuple of that array's values.
 """
 
 from __future__ import annotations
@@ -32,10 +35,11 @@ import enum
 import importlib.metadata
 import json
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
+import numpy.typing as npt
 
 from capevo.errors import Conflict, Corrupt, Invalid
 from capevo.registry.records import CapabilitySet
@@ -146,6 +150,43 @@ def _float(value: Any) -> float:
     return _NAN if value is None else float(value)
 
 
+FloatVector = tuple[float, ...] | npt.NDArray[np.float32]
+"""A vector field's value: a tuple of floats, or a 1-D float32 array nobody changes afterwards
+(the episode loop passes the env's own observation arrays, read-only: the writer prints them
+without a conversion)."""
+
+
+def _plain(value: Any) -> Any:
+    """``value`` with arrays as tuples of floats, so records compare and hash by value."""
+    if isinstance(value, np.ndarray):
+        return tuple(value.tolist())
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
+def _as_list(vector: FloatVector) -> list[float]:
+    return vector.tolist() if isinstance(vector, np.ndarray) else list(vector)
+
+
+class _ByValue:
+    """Equality and hashing by field values, an array equal to the tuple of its values (a
+    dataclass's own ``__eq__`` would compare arrays elementwise and fail)."""
+
+    __slots__ = ()
+
+    def _values(self) -> tuple[Any, ...]:
+        return tuple(_plain(getattr(self, f.name)) for f in fields(self))  # type: ignore[arg-type]
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        return self._values() == other._values()  # type: ignore[attr-defined, no-any-return]
+
+    def __hash__(self) -> int:
+        return hash(self._values())
+
+
 # ---------------------------------------------------------------------------------------
 # Topic registry
 # ---------------------------------------------------------------------------------------
@@ -239,8 +280,8 @@ class PlanStep:
 
 
 @register_topic
-@dataclass(frozen=True, slots=True, kw_only=True)
-class EcmInvocation:
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class EcmInvocation(_ByValue):
     """One call of an ECM version: what went in, what came out, how long it took, how it ended.
 
     ``output`` is None when the ECM produced nothing usable (timeout, exception); for
@@ -273,7 +314,7 @@ class EcmInvocation:
     step: int
     ecm: str
     version: int
-    input_state: tuple[float, ...]
+    input_state: FloatVector
     output: tuple[float, ...] | None
     duration_s: float
     outcome: Outcome = Outcome.OK
@@ -285,7 +326,7 @@ class EcmInvocation:
             "step": self.step,
             "ecm": self.ecm,
             "version": self.version,
-            "input_state": list(self.input_state),
+            "input_state": _as_list(self.input_state),
             "output": None if self.output is None else list(self.output),
             "duration_s": self.duration_s,
             "outcome": Outcome(self.outcome).value,
@@ -381,12 +422,13 @@ class Intervention:
 
 
 @register_topic
-@dataclass(frozen=True, slots=True, kw_only=True)
-class EnvStep:
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class EnvStep(_ByValue):
     """One environment transition, as executed (after governance).
 
-    Vectors are float sequences; pass tuples (``tuple(arr.tolist())``). Passing the previous
-    step's ``next_obs`` object as this step's ``obs`` lets the writer reuse its encoding.
+    Vectors are tuples of floats; ``obs`` and ``next_obs`` may also be 1-D float32 arrays that
+    nobody changes afterwards (see :data:`FloatVector`). Passing the previous step's
+    ``next_obs`` tuple as this step's ``obs`` lets the writer reuse its conversion.
     ``key_state`` holds a few named vectors worth plotting, e.g. ``arm0_eef_pos``.
     """
 
@@ -419,10 +461,10 @@ class EnvStep:
     step: int
     ecm: str
     version: int
-    obs: tuple[float, ...]
+    obs: FloatVector
     action: tuple[float, ...]
     reward: float
-    next_obs: tuple[float, ...]
+    next_obs: FloatVector
     terminated: bool = False
     truncated: bool = False
     is_success: bool = False
@@ -438,10 +480,10 @@ class EnvStep:
             "step": self.step,
             "ecm": self.ecm,
             "version": self.version,
-            "obs": list(self.obs),
+            "obs": _as_list(self.obs),
             "action": list(self.action),
             "reward": self.reward,
-            "next_obs": list(self.next_obs),
+            "next_obs": _as_list(self.next_obs),
             "terminated": self.terminated,
             "truncated": self.truncated,
             "is_success": self.is_success,

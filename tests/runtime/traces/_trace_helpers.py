@@ -144,6 +144,19 @@ def count_messages(path: Path) -> int:
     return sum(isinstance(r, Message) for r in McapScan(path))
 
 
-def same_floats(a: Iterable[float], b: Iterable[float]) -> bool:
+def same_floats(a: Iterable[float], b: Iterable[float], *, ulps: int = 0) -> bool:
+    """Equal lengths and values, NaN matching NaN; with ``ulps``, finite values may differ by that
+    many float32 ulps (beyond float32's range, by nine significant digits)."""
     a, b = list(a), list(b)
-    return len(a) == len(b) and all(x == y or (math.isnan(x) and math.isnan(y)) for x, y in zip(a, b, strict=True))
+    if len(a) != len(b):
+        return False
+    for x, y in zip(a, b, strict=True):
+        if x == y or (math.isnan(x) and math.isnan(y)):
+            continue
+        if not (ulps and math.isfinite(x) and math.isfinite(y)):
+            return False
+        m = max(abs(x), abs(y))
+        tolerance = ulps * float(np.spacing(np.float32(m))) if m < 3.4e38 else m * 1e-8
+        if abs(x - y) > tolerance:
+            return False
+    return True

@@ -188,37 +188,121 @@ def test_nan_output_of_a_failed_invocation_is_strict_json() -> None:
 
 
 def test_obs_cache_is_one_attribute() -> None:
-    # Invariant 4 under threads: the cached tuple and its text are replaced together.
+    # Invariant 4 under threads: the cached tuple and its float32 values are replaced together.
     enc = codec.RecordEncoder()
     s = make_env_step()
     enc.encode(s)
-    cached_obs, cached_text = enc._last_next_obs
-    assert cached_obs is s.next_obs and cached_text == codec.vector_json(s.next_obs)
+    cached_obs, cached_values = enc._last_next_obs
+    assert cached_obs is s.next_obs and cached_values is not None
+    assert cached_values.tolist() == list(s.next_obs)
 
 
 def test_obs_cache_reuses_only_the_same_tuple() -> None:
-    # Invariant 4: reuse by identity of a tuple; a mutated list is never served stale.
+    # Invariant 4: reuse by identity of a tuple; a mutated list or array is never served stale.
     enc = codec.RecordEncoder()
     a = make_env_step(0, 0)
     b = make_env_step(0, 1, obs=a.next_obs)
     enc.encode(a)
     encoded_b = enc.encode(b)
-    assert encoded_b == codec.RecordEncoder().encode(b)  # the cached text is the right text
+    assert encoded_b == codec.RecordEncoder().encode(b)  # the cached values are the right values
     assert codec.decode(EnvStep.TOPIC, encoded_b) == b
 
-    shared: list[float] = [1.0, 2.0]
-    enc = codec.RecordEncoder()
-    enc.encode(make_env_step(0, 0, obs=(0.0, 0.0), next_obs=shared))  # type: ignore[arg-type]
-    shared[0] = 99.0
-    d = strict_loads(enc.encode(make_env_step(0, 1, obs=shared, next_obs=(5.0, 5.0))))  # type: ignore[arg-type]
-    assert d["obs"] == [99.0, 2.0]
+    for shared in ([1.0, 2.0], np.array([1.0, 2.0], dtype=np.float32)):
+        enc = codec.RecordEncoder()
+        enc.encode(make_env_step(0, 0, obs=(0.0, 0.0), next_obs=shared))  # type: ignore[arg-type]
+        shared[0] = 99.0
+        d = strict_loads(enc.encode(make_env_step(0, 1, obs=shared, next_obs=(5.0, 5.0))))  # type: ignore[arg-type]
+        assert d["obs"] == [99.0, 2.0]
 
 
-def test_numpy_inputs_encode_like_tuples() -> None:
+def test_float32_arrays_encode_like_their_tuples() -> None:
+    # The runtime passes the env's float32 arrays: the same bytes as the tuple of their values.
     arr = np.asarray([0.1, -2.0, 3.5], dtype=np.float32)
-    s_np = make_env_step(obs=arr, next_obs=arr, action=arr)  # type: ignore[arg-type]
-    s_t = make_env_step(obs=tuple(arr.tolist()), next_obs=tuple(arr.tolist()), action=tuple(arr.tolist()))
+    as_tuple = tuple(arr.tolist())
+    s_np = make_env_step(obs=arr, next_obs=arr[::-1])
+    s_t = make_env_step(obs=as_tuple, next_obs=as_tuple[::-1])
     assert codec.encode(s_np) == codec.encode(s_t)
+    assert s_np == s_t and codec.decode(EnvStep.TOPIC, codec.encode(s_np)) == s_t
+    assert codec.float32_array(arr) is arr  # no copy, no conversion
+    r_np = EcmInvocation(episode=0, step=0, ecm="reach", version=1, input_state=arr, output=None, duration_s=0.5)
+    r_t = dataclasses.replace(r_np, input_state=as_tuple)
+    assert codec.encode(r_np) == codec.encode(r_t) and r_np == r_t and hash(r_np) == hash(r_t)
+
+
+def test_other_arrays_and_sequences_encode_like_tuples() -> None:
+    # float64, int and strided arrays and lists take the conversion; they decode like tuples.
+    base = np.asarray([0.1, -2.0, 3.5, 7.0], dtype=np.float64)
+    for vector in (base, base.astype(np.float32)[::2], base.astype(np.int64), base.tolist()):
+        values = tuple(float(v) for v in vector)
+        s = make_env_step(obs=vector, next_obs=vector, action=vector)  # type: ignore[arg-type]
+        back = codec.decode(EnvStep.TOPIC, codec.encode(s))
+        want = codec.decode(EnvStep.TOPIC, codec.encode(make_env_step(obs=values, next_obs=values, action=values)))
+        assert back == want
+
+
+def test_short_float_tuples_are_printed_exactly() -> None:
+    # The runtime's own float64 vectors (action, key state, output) are printed as they are.
+    action = (0.1, -0.2, 1 / 3, 0.0, -0.0, 1e-300, 2.5e38)
+    d = strict_loads(codec.encode(make_env_step(action=action, key_state={"p": (1 / 7, 2.0, 3.0)})))
+    assert tuple(d["action"]) == action and d["key_state"]["p"] == [1 / 7, 2.0, 3.0]
+    assert math.copysign(1.0, d["action"][4]) == -1.0
+
+
+env_step_parts = st.fixed_dictionaries(
+    {
+        "obs": st.lists(f64_in_f32_range, max_size=50).map(tuple),
+        "next_obs": st.lists(f64_in_f32_range, max_size=50).map(tuple),
+        "action": st.lists(any_floats, max_size=12).map(tuple),
+        "reward": any_floats,
+        "key_state": st.dictionaries(names, st.lists(any_floats, max_size=6).map(tuple), max_size=3),
+    }
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(env_step_parts, st.booleans())
+def test_fast_path_and_template_decode_alike(parts: dict[str, Any], as_arrays: bool) -> None:
+    # Invariant 2: the one-call fast path and the template path decode to the same record
+    # (vectors within one float32 ulp; non-finite values as NaN); arrays like tuples.
+    if as_arrays:
+        arrays = {k: np.asarray(parts[k], np.float32) for k in ("obs", "next_obs")}
+        parts = {**parts, **arrays}
+    s = make_env_step(**parts)
+    enc = codec.RecordEncoder()
+    fast = strict_loads(enc.encode(s))
+    template = strict_loads(enc._env_step_template(s))
+    assert ENV_STEP_VALIDATOR.is_valid(fast)
+    a, b = EnvStep.from_dict(fast), EnvStep.from_dict(template)
+    assert list(a.key_state) == list(b.key_state)
+    pairs = [(a.obs, b.obs), (a.action, b.action), (a.next_obs, b.next_obs)]
+    pairs += [(a.key_state[k], b.key_state[k]) for k in a.key_state]
+    for x, y in pairs:
+        assert same_floats(x, y, ulps=1), (x, y)
+    assert same_floats((a.reward,), (b.reward,), ulps=0)
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.lists(f64_in_f32_range, max_size=30).map(tuple),
+    st.none() | st.lists(any_floats, max_size=12).map(tuple),
+    any_floats,
+    st.none() | st.text(max_size=20),
+)
+def test_invocation_fast_path_and_template_decode_alike(
+    inputs: tuple[float, ...], output: tuple[float, ...] | None, duration: float, error: str | None
+) -> None:
+    r = EcmInvocation(
+        episode=1, step=2, ecm="reach", version=3, input_state=inputs, output=output, duration_s=duration, error=error
+    )
+    enc = codec.RecordEncoder()
+    fast = strict_loads(enc.encode(r))
+    a = EcmInvocation.from_dict(fast)
+    b = EcmInvocation.from_dict(strict_loads(enc._invocation_template(r)))
+    assert a.error == b.error and a.outcome == b.outcome and same_floats((a.duration_s,), (b.duration_s,), ulps=0)
+    assert same_floats(a.input_state, b.input_state, ulps=1)
+    assert (a.output is None) == (b.output is None)
+    if a.output is not None and b.output is not None:
+        assert same_floats(a.output, b.output, ulps=1)
 
 
 def test_wrong_field_types_are_invalid() -> None:

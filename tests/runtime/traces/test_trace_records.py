@@ -1,4 +1,4 @@
-"""Records, schemas, topic registry and metadata (capevo.runtime.traces.records invariants 1-4)."""
+"""Records, schemas, topic registry and metadata (capevo.runtime.traces.records invariants 1-5)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import json
 import math
 
 import jsonschema
+import numpy as np
 import pytest
 from _trace_helpers import make_env_step, make_metadata, one_of_each
 
@@ -234,3 +235,31 @@ def test_terminated_outcome_round_trips() -> None:
     )
     assert codec.decode(EcmInvocation.TOPIC, codec.encode(done)) == done
     jsonschema.validate(done.to_dict(), EcmInvocation.SCHEMA)
+
+
+def test_records_with_arrays_compare_and_hash_by_value() -> None:
+    # Invariant 5: an array field equals the tuple of its values, both ways, and a changed value differs.
+    obs = np.asarray([0.5, -1.25, 3.0], dtype=np.float32)
+    with_array = make_env_step(obs=obs, next_obs=obs[::-1].copy())
+    with_tuples = make_env_step(obs=(0.5, -1.25, 3.0), next_obs=(3.0, -1.25, 0.5))
+    assert with_array == with_tuples and with_tuples == with_array
+    assert with_array != make_env_step(obs=(0.5, -1.25, 3.5), next_obs=(3.0, -1.25, 0.5))
+    assert with_array != PlanStep(episode=0, step=0, ecm="reach", version=2)
+    call = EcmInvocation(episode=0, step=1, ecm="reach", version=2, input_state=obs, output=(0.1,), duration_s=0.0)
+    same = EcmInvocation(
+        episode=0, step=1, ecm="reach", version=2, input_state=(0.5, -1.25, 3.0), output=(0.1,), duration_s=0.0
+    )
+    assert call == same and hash(call) == hash(same) and len({call, same}) == 1
+
+
+def test_records_with_arrays_give_plain_json_dicts() -> None:
+    # Invariants 1 and 2 with array fields: to_dict holds plain floats only (standard json
+    # encodes it) and round trips to an equal record.
+    obs = np.asarray([0.5, -1.25, 3.0], dtype=np.float32)
+    s = make_env_step(obs=obs, next_obs=obs)
+    d = s.to_dict()
+    jsonschema.validate(d, EnvStep.SCHEMA)
+    assert all(type(v) is float for v in d["obs"] + d["next_obs"])
+    assert EnvStep.from_dict(json.loads(json.dumps(d))) == s
+    call = EcmInvocation(episode=0, step=1, ecm="reach", version=2, input_state=obs, output=None, duration_s=0.0)
+    assert EcmInvocation.from_dict(json.loads(json.dumps(call.to_dict()))) == call
