@@ -148,7 +148,7 @@ def float32_array(values: Sequence[float] | np.ndarray) -> np.ndarray:
     return np.frombuffer(array("f", values), dtype=_FLOAT32)
 
 
-def exact_or_float32(values: Sequence[float]) -> Any:
+def _exact_or_float32(values: Sequence[float]) -> Any:
     """``values`` itself if it is a tuple of floats (orjson prints each exactly), else float32."""
     if type(values) is tuple and set(map(type, values)) <= _PLAIN_FLOAT:
         return values
@@ -220,13 +220,13 @@ class RecordEncoder:
                 "ecm": s.ecm,
                 "version": s.version,
                 "obs": obs_view,
-                "action": exact_or_float32(s.action),
+                "action": _exact_or_float32(s.action),
                 "reward": float(s.reward),
                 "next_obs": next_view,
                 "terminated": bool(s.terminated),
                 "truncated": bool(s.truncated),
                 "is_success": bool(s.is_success),
-                "key_state": {k: exact_or_float32(v) for k, v in s.key_state.items()},
+                "key_state": {k: _exact_or_float32(v) for k, v in s.key_state.items()},
             },
             option=_NUMPY,
         )
@@ -272,7 +272,7 @@ class RecordEncoder:
         output, error, inputs = r.output, r.error, r.input_state
         last_obs, last_view = self._last_next_obs
         input_view = last_view if inputs is last_obs and type(inputs) is tuple else float32_array(inputs)
-        output_view = None if output is None else exact_or_float32(output)
+        output_view = None if output is None else _exact_or_float32(output)
         payload = orjson.dumps(
             {
                 "episode": r.episode,

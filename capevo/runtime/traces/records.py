@@ -179,6 +179,8 @@ class _ByValue:
         return tuple(_plain(getattr(self, f.name)) for f in fields(self))  # type: ignore[arg-type]
 
     def __eq__(self, other: object) -> bool:
+        if other is self:
+            return True  # a record holding NaN equals itself, as a dataclass's does
         if type(other) is not type(self):
             return NotImplemented
         return self._values() == other._values()  # type: ignore[attr-defined, no-any-return]

@@ -250,6 +250,8 @@ def test_records_with_arrays_compare_and_hash_by_value() -> None:
         episode=0, step=1, ecm="reach", version=2, input_state=(0.5, -1.25, 3.0), output=(0.1,), duration_s=0.0
     )
     assert call == same and hash(call) == hash(same) and len({call, same}) == 1
+    with_nan = make_env_step(obs=np.asarray([np.nan, 1.0], dtype=np.float32))
+    assert with_nan == with_nan  # reflexive, as a dataclass's equality is
 
 
 def test_records_with_arrays_give_plain_json_dicts() -> None:
