@@ -1,10 +1,13 @@
-"""Builds the fused governance kernel; everything else about the package is in pyproject.toml."""
+"""Builds the C parts (the fused governance kernel, the trace writer's hot path); everything else
+about the package is in pyproject.toml."""
 
 from pathlib import Path
 
 from setuptools import Extension, setup
 
 CSRC = Path("capevo/runtime/governance/csrc")
+TRACES_CSRC = Path("capevo/runtime/traces/csrc")
+C_FLAGS = ["-O2", "-std=c11", "-Wall"]
 
 setup(
     ext_modules=[
@@ -21,6 +24,14 @@ setup(
                 "-Wall",
                 "-Wno-unused-function",
             ],
-        )
+        ),
+        # The trace writer's hot path: its queue and the rows' splicer (writer.py, codec.py and
+        # queue.py have the Python versions they follow).
+        Extension(
+            "capevo.runtime.traces._native",
+            sources=sorted(str(p) for p in TRACES_CSRC.glob("*.c")),
+            depends=[str(TRACES_CSRC / "traces.h")],
+            extra_compile_args=C_FLAGS,
+        ),
     ]
 )

@@ -3,24 +3,31 @@
 ``bench_traces.py`` times the writer in tight loops (warm caches) and after a synthetic cache
 sweep. This runs a task's v0 skills (the untuned code ECMs every evolution starts from)
 through the real episode loop (``TaskEnv``, ``LoadedCapabilitySet``, ``DecompositionPolicy``,
-an enforcing paper-Φ governor, perturbations on) and measures two things per env step, each
+an enforcing paper-Φ governor, perturbations on) and measures three things per env step, each
 seed once per variant, back to back, the order alternating by seed, so a slow phase of a shared
 machine hits every variant alike:
 
 - **write calls**: every ``write_*`` call of a real ``TraceWriter`` clocked with the calling
-  thread's CPU clock. That clock is a system call here (about 0.7 µs on the reference VM), so
-  each seed also runs through a sink whose methods do nothing, behind the same clock: its figure
-  is the harness's own floor, and ``net`` subtracts it.
-- **building**: what the loop does only for traces, outside the write calls: the ``EnvStep``,
-  ``EcmInvocation`` and ``Intervention`` records, the ECM's input vector and the key state. The
-  benchmark shadows those names in :mod:`capevo.runtime.episode` with clocked wrappers (the
-  wrapper's argument repacking is counted, so this errs high), floor subtracted per call.
-  With every robosuite step evicting the CPU caches, building a frozen record costs far more
-  than it does warm. ``whole`` is write calls plus building, both net of the clock.
+  thread's CPU clock (the env step and invocation rows' calls are the writer's C queue, whose
+  full batches and due flushes encode, frame, compress and write inside the call). That clock
+  is a system call here (about 0.7 µs on the reference VM), so each seed also runs through a
+  sink whose methods do nothing, behind the same clock: its figure is the harness's own floor,
+  and ``net`` subtracts it.
+- **building**: what the loop does only for traces, outside the write calls: the ECM's input
+  vector (one C call, :func:`capevo.runtime.traces.rows.input_state_of`) and the records it
+  still builds (interventions, and invocations of ECMs that cannot run). The benchmark shadows
+  those names in :mod:`capevo.runtime.episode` with clocked wrappers (the wrapper's argument
+  repacking is counted, so this errs high), floor subtracted per call. The row tuples
+  themselves are built inline in the loop and are not clocked (a tuple display of locals).
+- **flush thread**: the CPU time of the writer's background flush thread over the episode
+  (its idle wake-ups included); in a busy loop the write calls find the flush due first.
 
-``% of env step`` divides by the CPU time of the same episodes' ``TaskEnv.step`` calls. The
-writer's background flush thread is not in the figures; in a busy loop it finds nothing to do
-(every write checks the flush interval itself).
+Each variant keeps one sink for the whole run, as the runtime worker keeps one writer per
+capability set: the flush thread's start and the file's summary are paid once per file, not
+in the figures.
+
+``whole`` is the three together. ``% of env step`` divides by the CPU time of the same
+episodes' ``TaskEnv.step`` calls.
 
     .venv/bin/python benchmarks/bench_traces_loop.py [--task T1] [--seeds 8] [--batches 1 64]
 """
@@ -55,11 +62,21 @@ from capevo.runtime.tasks import make_task
 from capevo.runtime.traces import RUNTIME_BATCH, TraceMetadata, TraceWriter
 
 TARGET_US = 20.0
-WRITES = ("write_plan_step", "write_invocation", "write_intervention", "write_env_step", "write_episode_summary")
+WRITES = (
+    "write_plan_step",
+    "write_invocation",
+    "write_invocation_row",
+    "write_intervention",
+    "write_env_step",
+    "write_env_step_row",
+    "write_episode_summary",
+)
 
 
 BUILDERS = ("EnvStep", "EcmInvocation", "TraceIntervention", "_key_state", "_input_state")
-"""The names the episode loop calls only to build trace records (see the module docstring)."""
+"""The names the episode loop calls only to build trace records (see the module docstring); those
+it does not have (the loop hands rows, not records, since the rows change) are skipped, so the
+script also measures the code from before it (``PYTHONPATH`` at an older checkout)."""
 
 
 def clocked(inner: Callable[..., Any], spent: list[int]) -> Callable[..., Any]:
@@ -79,13 +96,14 @@ def clocked(inner: Callable[..., Any], spent: list[int]) -> Callable[..., Any]:
 def clock_writes(writer: Any, spent: list[int]) -> None:
     """Shadow the writer's ``write_*`` methods with clocked ones (see :func:`clocked`)."""
     for name in WRITES:
-        setattr(writer, name, clocked(getattr(writer, name), spent))
+        if hasattr(writer, name):
+            setattr(writer, name, clocked(getattr(writer, name), spent))
 
 
 @contextlib.contextmanager
 def clock_building(spent: list[int]) -> Iterator[None]:
     """Shadow the loop's record builders with clocked ones for the duration of the block."""
-    originals = {name: getattr(episode_loop, name) for name in BUILDERS}
+    originals = {name: getattr(episode_loop, name) for name in BUILDERS if hasattr(episode_loop, name)}
     try:
         for name, inner in originals.items():
             setattr(episode_loop, name, clocked(inner, spent))
@@ -93,6 +111,14 @@ def clock_building(spent: list[int]) -> Iterator[None]:
     finally:
         for name, inner in originals.items():
             setattr(episode_loop, name, inner)
+
+
+def flush_thread_ns(sink: Any) -> int:
+    """CPU ns the writer's background flush thread has spent so far (0 for a sink without one)."""
+    thread = getattr(sink, "_thread", None)
+    if thread is None or thread.ident is None:
+        return 0
+    return time.clock_gettime_ns(time.pthread_getcpuclockid(thread.ident))
 
 
 class NoOpSink:
@@ -105,6 +131,7 @@ class NoOpSink:
         pass
 
     write_invocation = write_intervention = write_env_step = write_episode_summary = write_plan_step
+    write_env_step_row = write_invocation_row = write_plan_step
 
     def flush(self) -> None:
         pass
@@ -157,26 +184,39 @@ def measure(task: str, seeds: int, batches: list[int]) -> dict[str, Any]:
             agent_identity_hash="0" * 64,
             seeds=tuple(range(seeds)),
         )
-        for i in range(seeds):
-            for variant in variants if i % 2 == 0 else variants[::-1]:
-                path = tmp / f"b{variant}-s{i}.mcap"
-                writes, building = [0, 0], [0, 0]
-                step_ns[0] = 0
-                sink: Any = (NoOpSink if variant == NOOP else TraceWriter)(path, metadata, batch=variant)
-                with sink, clock_building(building):
-                    clock_writes(sink, writes)
-                    outcome = run_episode(env, caps, policy, governor, sink, seed=1000 + i, episode=i)
-                runs[variant].append(
-                    {
-                        "steps": outcome.steps,
-                        "write_ns": writes[0],
-                        "write_calls": writes[1],
-                        "build_ns": building[0],
-                        "build_calls": building[1],
-                        "step_ns": step_ns[0],
-                        "bytes": path.stat().st_size if path.exists() else 0,
-                    }
-                )
+        # One sink per variant for the whole run, as a worker keeps one writer per capability set
+        # (its flush thread started once, its file finished once, outside the figures).
+        sinks: dict[int, Any] = {}
+        spent: dict[int, list[int]] = {}
+        for variant in variants:
+            path = tmp / f"b{variant}.mcap"
+            sinks[variant] = (NoOpSink if variant == NOOP else TraceWriter)(path, metadata, batch=variant)
+            spent[variant] = [0, 0]
+            clock_writes(sinks[variant], spent[variant])
+        try:
+            for i in range(seeds):
+                for variant in variants if i % 2 == 0 else variants[::-1]:
+                    sink, writes, building = sinks[variant], spent[variant], [0, 0]
+                    writes[:] = [0, 0]
+                    step_ns[0] = 0
+                    background_before = flush_thread_ns(sink)
+                    with clock_building(building):
+                        outcome = run_episode(env, caps, policy, governor, sink, seed=1000 + i, episode=i)
+                    runs[variant].append(
+                        {
+                            "steps": outcome.steps,
+                            "write_ns": writes[0],
+                            "write_calls": writes[1],
+                            "build_ns": building[0],
+                            "build_calls": building[1],
+                            "background_ns": flush_thread_ns(sink) - background_before,
+                            "step_ns": step_ns[0],
+                        }
+                    )
+        finally:
+            for sink in sinks.values():
+                sink.close()
+        file_bytes = {v: (tmp / f"b{v}.mcap").stat().st_size if v != NOOP else 0 for v in variants}
         del env.step
     finally:
         if caps is not None:
@@ -198,7 +238,8 @@ def measure(task: str, seeds: int, batches: list[int]) -> dict[str, Any]:
         step_us = sum(r["step_ns"] for r in rs) / steps / 1000
         writes = [net(r, "write") for r in rs]
         building = [net(r, "build") for r in rs]
-        whole = [w + b for w, b in zip(writes, building, strict=True)]
+        background = [r["background_ns"] / r["steps"] / 1000 for r in rs]
+        whole = [w + b + t for w, b, t in zip(writes, building, background, strict=True)]
         rows.append(
             {
                 "batch": batch,
@@ -207,11 +248,12 @@ def measure(task: str, seeds: int, batches: list[int]) -> dict[str, Any]:
                 "gross_write_us_per_step_median": statistics.median(r["write_ns"] / r["steps"] / 1000 for r in rs),
                 "write_us_per_step_median": statistics.median(writes),
                 "build_us_per_step_median": statistics.median(building),
+                "background_us_per_step_median": statistics.median(background),
                 "whole_us_per_step_median": statistics.median(whole),
                 "whole_us_per_step_per_episode": [round(x, 1) for x in whole],
                 "env_step_cpu_ms": step_us / 1000,
                 "whole_pct_of_env_step": 100 * statistics.median(whole) / step_us,
-                "bytes_per_step": sum(r["bytes"] for r in rs) / steps,
+                "bytes_per_step": file_bytes[batch] / steps,
             }
         )
     return {"task": task, "clock_floor_us_per_call": floor_ns / 1000, "rows": rows}
@@ -233,6 +275,7 @@ def main(argv: list[str] | None = None) -> int:
             "write calls, gross",
             "write calls, net",
             "building, net",
+            "flush thread",
             "whole (µs/step)",
             "whole, per episode",
             "% of env step",
@@ -246,6 +289,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{r['gross_write_us_per_step_median']:.1f}",
                 f"{r['write_us_per_step_median']:.1f}",
                 f"{r['build_us_per_step_median']:.1f}",
+                f"{r['background_us_per_step_median']:.1f}",
                 f"{r['whole_us_per_step_median']:.1f}",
                 ", ".join(f"{x:.0f}" for x in r["whole_us_per_step_per_episode"]),
                 f"{r['whole_pct_of_env_step']:.2f} %",

@@ -101,7 +101,14 @@ class _TimedSink:
     """A TraceSink that forwards to ``inner``, clocking every write."""
 
     def __init__(self, inner: Any, timed: _Timed) -> None:
-        for name in ("write_plan_step", "write_invocation", "write_intervention", "write_env_step"):
+        for name in (
+            "write_plan_step",
+            "write_invocation",
+            "write_invocation_row",
+            "write_intervention",
+            "write_env_step",
+            "write_env_step_row",
+        ):
             setattr(self, name, timed.wrap(getattr(inner, name), "trace writes"))
         self.write_episode_summary = timed.wrap(inner.write_episode_summary, "trace: episode summary + flush")
         self.flush, self.close = inner.flush, inner.close

@@ -98,7 +98,8 @@ SCHEMA: Mapping[str, Any] = {
             },
         },
         "media_type": {"type": ["string", "null"], "pattern": r"^[\w.+-]+/[\w.+-]+$", "maxLength": 128},
-        "parent": {"type": ["integer", "null"], "minimum": 0},
+        # Versions are SQLite INTEGERs (int64): a larger parent is no version, not an internal error.
+        "parent": {"type": ["integer", "null"], "minimum": 0, "maximum": 2**63 - 1},
         "origin": {"enum": [o.value for o in Origin]},
         "provenance": {
             "type": ["object", "null"],

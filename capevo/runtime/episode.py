@@ -67,14 +67,13 @@ from capevo.runtime.state import ActionLayout, RobotState
 from capevo.runtime.traces import (
     NOT_ENFORCED_PREFIX,
     EcmInvocation,
-    EnvStep,
     EpisodeSummary,
-    FloatVector,
     PlanStep,
     TraceSink,
 )
 from capevo.runtime.traces import Intervention as TraceIntervention
 from capevo.runtime.traces import Outcome as TraceOutcome
+from capevo.runtime.traces.rows import input_state_of as _input_state
 
 log = logging.getLogger(__name__)
 
@@ -327,17 +326,18 @@ def run_episode_detailed(
         for a in result.attempts:
             if a.status in FAILURES:
                 failures += 1
-            sink.write_invocation(
-                EcmInvocation(
-                    episode=episode,
-                    step=steps,
-                    ecm=a.ecm,
-                    version=a.version,
-                    input_state=input_state,
-                    output=a.action,
-                    duration_s=a.duration_s,
-                    outcome=_TRACE_OUTCOME[a.status],
-                    error=a.error,
+            # A row, not a record: see capevo.runtime.traces.rows for why.
+            sink.write_invocation_row(
+                (
+                    episode,
+                    steps,
+                    a.ecm,
+                    a.version,
+                    input_state,
+                    a.action,
+                    a.duration_s,
+                    _TRACE_OUTCOME[a.status],
+                    a.error,
                 )
             )
 
@@ -481,20 +481,20 @@ def run_episode_detailed(
             total_reward += reward
         success = bool(info.get("is_success", success))
         if sink is not None:
-            sink.write_env_step(
-                EnvStep(
-                    episode=episode,
-                    step=steps,
-                    ecm=source[0],
-                    version=source[1],
-                    obs=obs_t,
-                    action=executed,
-                    reward=reward,
-                    next_obs=next_t,
-                    terminated=bool(terminated),
-                    truncated=bool(truncated),
-                    is_success=success,
-                    key_state=_key_state(state),
+            sink.write_env_step_row(
+                (
+                    episode,
+                    steps,
+                    source[0],
+                    source[1],
+                    obs_t,
+                    executed,
+                    reward,
+                    next_t,
+                    bool(terminated),
+                    bool(truncated),
+                    success,
+                    state.arms,
                 )
             )
         obs_t = next_t
@@ -585,22 +585,3 @@ run_episode = _outcome_only(
 def _read_only(values: np.ndarray) -> np.ndarray:
     values.flags.writeable = False
     return values
-
-
-def _input_state(obs: Mapping[str, np.ndarray], keys: tuple[str, ...]) -> FloatVector:
-    """The flat input an ECM with inputs ``keys`` saw, for its invocation record (read-only)."""
-    parts = [obs[k] for k in keys if k in obs]
-    # axis=None flattens as it concatenates: one numpy call, not one ravel per key.
-    return _read_only(np.concatenate(parts, axis=None)) if parts else ()
-
-
-def _key_state(state: RobotState) -> dict[str, tuple[float, ...]]:
-    arms = state.arms
-    if len(arms) == 1:  # every task but T6: one dict display (the loop and its f-strings cost 2x)
-        arm = arms[0]
-        return {"arm0_eef_pos": arm.eef_pos, "arm0_eef_force": arm.eef_force}
-    out: dict[str, tuple[float, ...]] = {}
-    for i, arm in enumerate(arms):
-        out[f"arm{i}_eef_pos"] = arm.eef_pos
-        out[f"arm{i}_eef_force"] = arm.eef_force
-    return out

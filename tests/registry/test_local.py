@@ -568,3 +568,11 @@ def test_property_lookups_raise_only_invalid_or_not_found(shared_reg: LocalRegis
         assert exc.code in (ErrorCode.INVALID, ErrorCode.NOT_FOUND)
     else:
         assert rec.name == validate_name(name) and (version is None or rec.version == version)
+
+
+@pytest.mark.parametrize("parent", [2**63, 9.223372036854776e18, 10**30])
+def test_a_parent_beyond_int64_is_invalid_not_an_internal_error(parent: object) -> None:
+    # Found by the Zenoh fuzz test: a parent SQLite cannot hold reached the store and failed there.
+    with pytest.raises(Invalid) as exc:
+        parse_publish_spec(f"kind: code\ndescription: d\nparent: {parent}\n")
+    assert exc.value.details.get("field") == "parent"

@@ -15,6 +15,13 @@ calls as they can (benchmarks/bench_traces.py, bench_traces_loop.py):
 
 Records' ``from_dict`` rounds every vector to float32, the precision the runtime works in.
 
+Rows (:mod:`capevo.runtime.traces.rows`, what the episode loop hands the writer) are encoded a
+batch at a time by :meth:`RecordEncoder.rows`: one ``orjson.dumps`` prints every vector of the
+batch once (one step's ``next_obs`` is the next step's ``obs`` and often an ECM's input), and
+each payload is spliced from those texts, the payload of the row's record (invariant 6). The
+splicing is C (``csrc/rows.c``) where it is built; :meth:`RecordEncoder.rows_in_python` is its
+specification.
+
 Whatever the fast path cannot print exactly goes through the template path instead, which
 splices per-field text into one bytes template: a record whose ints or names are not exactly
 ``int``/``str``, and any payload that would contain ``null`` where the record has no None (a
@@ -36,6 +43,10 @@ Invariants:
    (immutable) that the encoder keeps alive, so the key cannot be reused for other content.
 5. A vector component that is not a real number (a string, None, a sequence, a complex
    number) fails the encoding, as it would fail ``%g``.
+6. ``rows(batch)[i]`` is ``env_step(env_step_of(row))`` or ``invocation(invocation_of(row))``
+   for the ``i``-th row, or the :class:`Invalid` those raise, with the C splicer and without;
+   only where a name or an error's text holds ``null`` (which sends a record to the template
+   path) are the bytes other ones that decode to the same record.
 """
 
 from __future__ import annotations
@@ -50,6 +61,7 @@ import numpy as np
 import orjson
 
 from capevo.errors import Corrupt, Invalid
+from capevo.runtime.traces.native import NATIVE
 from capevo.runtime.traces.records import (
     EcmInvocation,
     EnvStep,
@@ -58,6 +70,7 @@ from capevo.runtime.traces.records import (
     TraceRecord,
     record_type,
 )
+from capevo.runtime.traces.rows import EnvStepRow, InvocationRow, arm_keys, env_step_of, invocation_of
 
 _ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False, check_circular=False, ensure_ascii=False)
 
@@ -70,6 +83,15 @@ _ENV_STEP_TEMPLATE = (
 )
 _INVOCATION_TEMPLATE = (
     b'{"episode":%d,"step":%d,"ecm":%b,"version":%d,"input_state":%b,"output":%b,'
+    b'"duration_s":%b,"outcome":%b,"error":%b}'
+)
+# The row path's templates: vectors arrive as the text between their brackets.
+_ENV_STEP_ROW_TEMPLATE = (
+    b'{"episode":%d,"step":%d,"ecm":%b,"version":%d,"obs":[%b],"action":[%b],"reward":%b,'
+    b'"next_obs":[%b],"terminated":%b,"truncated":%b,"is_success":%b,"key_state":{%b}}'
+)
+_INVOCATION_ROW_TEMPLATE = (
+    b'{"episode":%d,"step":%d,"ecm":%b,"version":%d,"input_state":[%b],"output":%b,'
     b'"duration_s":%b,"outcome":%b,"error":%b}'
 )
 _INTERVENTION_TEMPLATE = (
@@ -136,7 +158,8 @@ def _not_encodable(record: object, exc: Exception) -> Invalid:
 def float32_array(values: Sequence[float] | np.ndarray) -> np.ndarray:
     """``values`` rounded to float32 (one conversion; orjson prints the result).
 
-    A 1-D C-contiguous float32 array (the env's observations) is returned as it is.
+    A 1-D C-contiguous float32 array (the env's observations) is returned as it is; ``bytes``
+    are read as packed native float32 values (ValueError unless a whole number of them).
 
     Raises:
         TypeError: a component is not a real number (``array("f")`` accepts exactly what ``%g``
@@ -145,6 +168,8 @@ def float32_array(values: Sequence[float] | np.ndarray) -> np.ndarray:
     """
     if type(values) is np.ndarray and values.dtype == _FLOAT32 and values.ndim == 1 and values.flags.c_contiguous:
         return values
+    if type(values) is bytes:  # an invocation row's packed input (capevo.runtime.traces.rows)
+        return np.frombuffer(values, dtype=_FLOAT32)
     return np.frombuffer(array("f", values), dtype=_FLOAT32)
 
 
@@ -155,12 +180,31 @@ def _exact_or_float32(values: Sequence[float]) -> Any:
     return float32_array(values)
 
 
+def _error_json(error: object) -> bytes:
+    return orjson.dumps(str(error))
+
+
+_native = NATIVE  # None in a source tree nobody built: RecordEncoder.rows_in_python does the work
+if _native is not None:
+    _native.configure_rows(orjson.dumps, _NUMPY, float32_array, _exact_or_float32, _OUTCOMES, _error_json, np.ndarray)
+
+
+def rows_kernel_available() -> bool:
+    """Whether the C row splicer is built (else rows are spliced in Python, slower)."""
+    return _native is not None
+
+
 class RecordEncoder:
-    """Encodes trace records; keep one per writer so its caches stay warm."""
+    """Encodes trace records; keep one per writer so its caches stay warm.
 
-    __slots__ = ("_last_next_obs", "_names")
+    Args:
+        kernel: Splice rows with the C splicer where it is built (False: in Python, to compare).
+    """
 
-    def __init__(self) -> None:
+    __slots__ = ("_kernel", "_last_next_obs", "_names")
+
+    def __init__(self, *, kernel: bool = True) -> None:
+        self._kernel = kernel
         self._names: dict[str, bytes] = {}
         # (tuple, its float32 view) as one attribute: one assignment, so threads sharing the
         # encoder can never pair a tuple with another tuple's values.
@@ -308,6 +352,131 @@ class RecordEncoder:
             b"null" if r.error is None else orjson.dumps(str(r.error)),
         )
 
+    def rows(self, rows: Sequence[tuple[bool, EnvStepRow | InvocationRow]]) -> list[bytes | Invalid]:
+        """The payloads of a batch of rows, in order: env step rows (``True``) and invocation
+        rows (``False``); a row that does not encode gets its :class:`Invalid` instead.
+
+        One :func:`orjson.dumps` call prints every vector of the batch (a vector shared by rows,
+        such as one step's ``next_obs`` as the next step's ``obs`` and an ECM's input, once),
+        and each payload is spliced from those texts, the bytes :meth:`env_step` and
+        :meth:`invocation` give the rows' records; what they would send to the template path
+        goes there too. The splicing runs in C (``csrc/rows.c``) where it is built;
+        :meth:`rows_in_python` is its specification.
+        """
+        if _native is None or not self._kernel:
+            return self.rows_in_python(rows)
+        batch = rows if type(rows) is list else list(rows)
+        payloads: list[Any] = _native.encode_rows(batch, self._name)
+        for i, payload in enumerate(payloads):
+            if payload is None:
+                payloads[i] = self._row_through_record(*batch[i])
+        return payloads
+
+    def rows_in_python(self, rows: Sequence[tuple[bool, EnvStepRow | InvocationRow]]) -> list[bytes | Invalid]:
+        """:meth:`rows` without the C splicer: the same payloads, several µs more per row."""
+        vectors: list[Any] = []
+        observations: dict[int, int] = {}  # id of an observation vector -> its index in vectors
+        runtime: dict[int, int] = {}  # id of a runtime (exact) vector -> its index
+        add = vectors.append
+
+        def observation(v: Any) -> int:
+            i = observations.get(id(v))
+            if i is None:
+                converted = float32_array(v)  # before the entry: a vector that fails must fail every row it is in
+                i = observations[id(v)] = len(vectors)
+                add(converted)
+            return i
+
+        def exact(v: Any) -> int:
+            i = runtime.get(id(v))
+            if i is None:
+                converted = _exact_or_float32(v)  # before the entry: a vector that fails must fail every row it is in
+                i = runtime[id(v)] = len(vectors)
+                add(converted)
+            return i
+
+        plans: list[tuple[Any, ...] | None] = []
+        for is_step, row in rows:
+            try:
+                episode, step, ecm, version = row[:4]
+                if type(episode) is not int or type(step) is not int or type(version) is not int:
+                    plans.append(None)
+                    continue
+                if (episode | step | version) >> 63:  # negative or beyond int64: the record path decides
+                    plans.append(None)
+                    continue
+                if type(ecm) is not str:
+                    plans.append(None)
+                    continue
+                if is_step:
+                    obs, action, reward, next_obs, terminated, truncated, success, arms = row[4:]
+                    keys = []
+                    for arm in arms:
+                        keys.append(exact(arm.eef_pos))
+                        keys.append(exact(arm.eef_force))
+                    o, a, n = observation(obs), exact(action), observation(next_obs)
+                    r = len(vectors)
+                    add((float(reward),))
+                    slots = (o, a, r, n, *keys)
+                    flags = (_BOOLS[bool(terminated)], _BOOLS[bool(truncated)], _BOOLS[bool(success)])
+                    plans.append((slots, episode, step, self._name(ecm), version, flags))
+                else:
+                    inputs, output, duration, outcome, error = row[4:]
+                    outcome_text = _OUTCOMES.get(outcome)
+                    if outcome_text is None:
+                        plans.append(None)
+                        continue
+                    i = observation(inputs)
+                    out = None if output is None else exact(output)
+                    d = len(vectors)
+                    add((float(duration),))
+                    slots = (i, d) if out is None else (i, d, out)
+                    error_text = b"null" if error is None else _error_json(error)
+                    plans.append((slots, episode, step, self._name(ecm), version, (outcome_text, error_text)))
+            except (TypeError, ValueError, OverflowError, AttributeError):
+                plans.append(None)
+
+        text = orjson.dumps(vectors, option=_NUMPY)
+        # Every vector is flat, so "],[" only ever separates two of them.
+        parts = text[2:-2].split(b"],[") if vectors else []
+        with_null = {i for i, part in enumerate(parts) if b"null" in part} if b"null" in text else None
+        payloads: list[bytes | Invalid] = []
+        for plan, (is_step, row) in zip(plans, rows, strict=True):
+            if plan is None or (with_null and not with_null.isdisjoint(plan[0])):
+                payloads.append(self._row_through_record(is_step, row))
+                continue
+            slots, episode, step, name, version, texts = plan
+            if is_step:
+                o, a, r, n, *keys = slots
+                payloads.append(
+                    _ENV_STEP_ROW_TEMPLATE
+                    % (
+                        episode,
+                        step,
+                        name,
+                        version,
+                        parts[o],
+                        parts[a],
+                        parts[r],
+                        parts[n],
+                        *texts,
+                        _key_state_template(len(keys) // 2) % tuple(parts[k] for k in keys),
+                    )
+                )
+            else:
+                output = b"null" if len(slots) == 2 else b"[" + parts[slots[2]] + b"]"
+                payloads.append(
+                    _INVOCATION_ROW_TEMPLATE
+                    % (episode, step, name, version, parts[slots[0]], output, parts[slots[1]], *texts)
+                )
+        return payloads
+
+    def _row_through_record(self, is_step: bool, row: Any) -> bytes | Invalid:
+        try:
+            return self.env_step(env_step_of(row)) if is_step else self.invocation(invocation_of(row))
+        except Invalid as exc:
+            return exc
+
     def _intervention(self, r: Intervention) -> bytes:
         return _INTERVENTION_TEMPLATE % (
             r.episode,
@@ -318,6 +487,18 @@ class RecordEncoder:
             orjson.dumps(str(r.reason)),
             _BOOLS[bool(r.enforced)],
         )
+
+
+_KEY_STATE_TEMPLATES: dict[int, bytes] = {}
+
+
+def _key_state_template(arms: int) -> bytes:
+    """``"arm0_eef_pos":[%b],"arm0_eef_force":[%b],...`` for ``arms`` arms (cached)."""
+    template = _KEY_STATE_TEMPLATES.get(arms)
+    if template is None:
+        names = [orjson.dumps(name) for i in range(arms) for name in arm_keys(i)]
+        template = _KEY_STATE_TEMPLATES[arms] = b",".join(name + b":[%b]" for name in names)
+    return template
 
 
 def _finite_or_none(value: Any) -> Any:

@@ -20,6 +20,8 @@ Invariants:
 2. A chunk is finished when its uncompressed records reach ``chunk_size`` bytes or when
    ``flush()`` is called while it holds a message; no empty chunk is ever written.
 3. Every byte written goes through ``_emit``; ``position`` always equals the stream offset.
+4. ``add_messages(ms)`` leaves the file ``add_message`` leaves for each of ``ms`` in order (the
+   same records, chunk boundaries and indexes), framed in C where the C part is built.
 """
 
 from __future__ import annotations
@@ -47,6 +49,9 @@ from mcap.records import (
 )
 
 from capevo.errors import Invalid
+from capevo.runtime.traces.native import NATIVE
+
+_native = NATIVE
 
 MAGIC = bytes((0x89, 0x4D, 0x43, 0x41, 0x50, 0x30, 0x0D, 0x0A))
 
@@ -96,12 +101,14 @@ class McapFileWriter:
         stream: Writable binary stream positioned at its start.
         chunk_size: Finish a chunk once its uncompressed records reach this many bytes.
         compression: ``"lz4"``, ``"zstd"`` or ``""`` for none.
+        native: Frame :meth:`add_messages` batches in C where it is built (False: in Python).
 
     Raises:
         Invalid: unknown compression.
     """
 
-    def __init__(self, stream: BinaryIO, *, chunk_size: int, compression: str) -> None:
+    def __init__(self, stream: BinaryIO, *, chunk_size: int, compression: str, native: bool = True) -> None:
+        self._native = native
         self._stream = stream
         self._chunk_size = chunk_size
         self._compression = compression
@@ -178,6 +185,24 @@ class McapFileWriter:
         self._chunk_messages += 1
         if len(chunk) >= self._chunk_size:
             self.finish_chunk()
+
+    def add_messages(self, messages: list[tuple[int, int, int, bytes]]) -> None:
+        """:meth:`add_message` for each ``(channel id, log time, sequence, payload)`` in order,
+        publish time = log time; one C call per chunk where the C part is built."""
+        if _native is None or not self._native:
+            for channel_id, log_time, sequence, data in messages:
+                self.add_message(channel_id, log_time, log_time, sequence, data)
+            return
+        while messages:
+            framed, first, last = _native.frame_messages(self._chunk, self._index, messages, self._chunk_size)
+            if self._chunk_messages == 0:
+                self._chunk_start, self._chunk_end = first, last
+            else:
+                self._chunk_start, self._chunk_end = min(self._chunk_start, first), max(self._chunk_end, last)
+            self._chunk_messages += framed
+            if len(self._chunk) >= self._chunk_size:
+                self.finish_chunk()
+            messages = messages[framed:]
 
     # -- chunks --------------------------------------------------------------------------------
 

@@ -6,8 +6,9 @@ The runtime depends on :class:`TraceSink` only; production passes a
 
 Invariants:
 1. :class:`MemoryTraceSink` accepts exactly what :class:`TraceWriter` accepts: each record
-   must be of its method's type (else :class:`Invalid`) and must encode (it is run through
-   the same codec), and writing after ``close()`` raises :class:`Conflict`.
+   must be of its method's type, each row a tuple of its length (else :class:`Invalid`), and
+   must encode (it is run through the same codec), and writing after ``close()`` raises
+   :class:`Conflict`. A row is kept as the record it stands for.
 2. :class:`MemoryTraceSink` keeps records in write order; ``by_topic`` preserves that order.
 """
 
@@ -26,6 +27,15 @@ from capevo.runtime.traces.records import (
     TraceMetadata,
     TraceRecord,
 )
+from capevo.runtime.traces.rows import (
+    ENV_STEP_ROW_LEN,
+    INVOCATION_ROW_LEN,
+    EnvStepRow,
+    InvocationRow,
+    check_row,
+    env_step_of,
+    invocation_of,
+)
 
 
 @runtime_checkable
@@ -39,6 +49,14 @@ class TraceSink(Protocol):
     def write_intervention(self, record: Intervention) -> None: ...
 
     def write_env_step(self, record: EnvStep) -> None: ...
+
+    def write_env_step_row(self, row: EnvStepRow) -> None:
+        """``write_env_step(env_step_of(row))``, without building the record in the loop."""
+        ...
+
+    def write_invocation_row(self, row: InvocationRow) -> None:
+        """``write_invocation(invocation_of(row))``, without building the record in the loop."""
+        ...
 
     def write_episode_summary(self, record: EpisodeSummary) -> None: ...
 
@@ -87,6 +105,21 @@ class MemoryTraceSink:
 
     def write_env_step(self, record: EnvStep) -> None:
         self._add(record, EnvStep, "write_env_step")
+
+    def write_env_step_row(self, row: EnvStepRow) -> None:
+        self._add_row(row, True, ENV_STEP_ROW_LEN, "write_env_step_row")
+
+    def write_invocation_row(self, row: InvocationRow) -> None:
+        self._add_row(row, False, INVOCATION_ROW_LEN, "write_invocation_row")
+
+    def _add_row(self, row: Any, is_step: bool, length: int, method: str) -> None:
+        if self.closed:
+            raise Conflict(f"trace sink is closed; cannot {method}")
+        check_row(row, length, method)
+        (payload,) = codec.RecordEncoder().rows([(is_step, row)])
+        if not isinstance(payload, bytes):
+            raise payload
+        self.records.append(env_step_of(row) if is_step else invocation_of(row))
 
     def write_episode_summary(self, record: EpisodeSummary) -> None:
         self._add(record, EpisodeSummary, "write_episode_summary")

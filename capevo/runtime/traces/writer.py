@@ -10,10 +10,16 @@ the constructor, so even a worker killed at once leaves a file naming its run.
 Batching: with ``batch > 1`` records are kept as they are written and encoded and framed
 ``batch`` at a time, back to back. Inside an episode loop every robosuite step between two
 writes evicts the encoder from the CPU caches, so encoding a record where it is written costs
-several times what it costs warm (benchmarks/bench_traces_loop.py: about 190 µs per T1 step
-unbatched, 70 with batches of 64). A kept record is as safe as one in the open chunk: both reach
-the OS at the next flush. The runtime's writers use :data:`RUNTIME_BATCH`; the default, 1,
-encodes each record at once.
+several times what it costs warm (benchmarks/bench_traces_loop.py). A kept record is as safe as
+one in the open chunk: both reach the OS at the next flush. The runtime's writers use
+:data:`RUNTIME_BATCH`; the default, 1, encodes each record at once.
+
+The hot path is C where it is built (``csrc/``, :mod:`capevo.runtime.traces.queue`): the episode
+loop's ``write_env_step_row``/``write_invocation_row`` are the queue's own append (the wall-clock
+stamp, the entry, the batch and deadline checks, one call), and a batch's rows are spliced
+(:meth:`~capevo.runtime.traces.codec.RecordEncoder.rows`) and framed
+(:meth:`~capevo.runtime.traces.mcapfile.McapFileWriter.add_messages`) in one C call each.
+``native=False``, or a source tree nobody built, runs their Python versions: the same file.
 
 Crash safety: a chunk is finished and handed to the OS when it reaches ``chunk_size`` bytes
 and at least every ``flush_interval_s`` seconds while it holds data, checked on every write
@@ -29,13 +35,15 @@ Invariants:
    long as the process lives; after ``flush()`` returns, every record written before it is.
 3. ``close()`` is idempotent, leaves a finished MCAP (summary, footer, closing magic) and
    stops the background thread; writes after it raise :class:`Conflict`.
-4. Each ``write_*`` method accepts only its record type (:class:`Invalid` otherwise, at
-   once) and writes it to its own topic; messages get the wall-clock time of the write call
-   as log and publish time and a per-channel sequence number starting at 0, in write order.
-   A record whose fields do not encode is dropped with :class:`Invalid`: with ``batch=1``
-   raised by its own write call; otherwise by the call that encodes its batch (a later
-   write, ``flush()`` or ``close()``, the next of them if the background thread did), after
-   every other record of the batch is written.
+4. Each ``write_*`` method accepts only its record type, or for ``write_*_row`` a tuple of
+   its row's length (:class:`Invalid` otherwise, at once), and writes it to its own topic;
+   messages get the wall-clock time of the write call as log and publish time and a
+   per-channel sequence number starting at 0, in write order. A row's message is its
+   record's (:meth:`~capevo.runtime.traces.codec.RecordEncoder.rows`). A record or row whose
+   fields do not encode is dropped with :class:`Invalid`: with ``batch=1`` raised by its own
+   write call; otherwise by the call that encodes its batch (a later write, ``flush()`` or
+   ``close()``, the next of them if the background thread did), after every other record of
+   the batch is written.
 5. An existing file is never overwritten unless ``overwrite=True`` (:class:`Conflict`).
 """
 
@@ -45,7 +53,7 @@ import json
 import os
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -54,6 +62,7 @@ from mcap.writer import LIBRARY_IDENTIFIER
 from capevo.errors import CapevoError, Conflict, Invalid, Unavailable
 from capevo.runtime.traces import codec
 from capevo.runtime.traces.mcapfile import McapFileWriter
+from capevo.runtime.traces.queue import make_queue
 from capevo.runtime.traces.records import (
     MESSAGE_ENCODING,
     SCHEMA_ENCODING,
@@ -65,6 +74,11 @@ from capevo.runtime.traces.records import (
     TraceMetadata,
     record_type,
     topics,
+)
+from capevo.runtime.traces.rows import (
+    EnvStepRow,
+    InvocationRow,
+    check_row,
 )
 from capevo.runtime.traces.sink import check_record
 
@@ -107,6 +121,8 @@ class TraceWriter:
         background_flush: Run the thread that flushes while no writes arrive.
         overwrite: Replace an existing file instead of raising :class:`Conflict`.
         batch: Encode records this many at a time (see the module docstring); 1: each at once.
+        native: Keep records in the C queue and splice rows in C where they are built (False:
+            their Python versions, to compare).
 
     Raises:
         Invalid: bad chunk size, interval, compression name or batch.
@@ -126,6 +142,7 @@ class TraceWriter:
         background_flush: bool = True,
         overwrite: bool = False,
         batch: int = 1,
+        native: bool = True,
     ) -> None:
         if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size <= 0:
             raise Invalid(f"chunk_size must be a positive integer, got {chunk_size!r}", details={"field": "chunk_size"})
@@ -153,15 +170,15 @@ class TraceWriter:
         self._messages = 0
         self._flushes = 0
         self._dirty = False
-        self._encoder = codec.RecordEncoder()
+        self._encoder = codec.RecordEncoder(kernel=native)
         self.batch = batch
-        # (channel id, encode function, record, wall-clock ns of the write), in write order.
-        self._pending: list[tuple[int, Callable[[Any], bytes], Any, int]] = []
         # A kept record that failed to encode in the background thread, for the owner's next call.
         self._undelivered: Invalid | None = None
         self._file = self._open(self.path, overwrite)
         try:
-            self._mcap = McapFileWriter(self._file, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
+            self._mcap = McapFileWriter(
+                self._file, chunk_size=chunk_size, compression=COMPRESSIONS[compression], native=native
+            )
             self._mcap.start(profile="", library=_library())
             for name, data in metadata.to_mcap().items():
                 self._mcap.add_metadata(name, data)
@@ -176,13 +193,27 @@ class TraceWriter:
                 )
             # Channel ids are 1..n in registration order; a list index beats a dict lookup per write.
             self._sequences = [0] * (len(self._channels) + 1)
+            self._step_channel = self._channels[EnvStep.TOPIC]
+            self._queue = make_queue(
+                native=native,
+                step_channel=self._step_channel,
+                call_channel=self._channels[EcmInvocation.TOPIC],
+                batch=batch,
+                on_full=self._on_full,
+                refuse=self._refuse,
+                check_row=check_row,
+            )
+            # The loop's hot path is the queue's own append, without a Python frame of ours
+            # (the methods of the same name below do the same, one frame slower).
+            self.write_env_step_row = self._queue.step  # type: ignore[method-assign]
+            self.write_invocation_row = self._queue.call  # type: ignore[method-assign]
             self._file.flush()
             if fsync_on_flush:
                 os.fsync(self._file.fileno())
         except OSError as exc:
             self._file.close()
             raise Unavailable(f"cannot write trace file {self.path}: {exc.strerror or exc}") from None
-        self._last_flush = time.monotonic()
+        self._flushed_at(time.monotonic())
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         if background_flush:
@@ -207,44 +238,68 @@ class TraceWriter:
         if self._closed or self._error is not None:
             raise self._error or Conflict(f"trace writer for {self.path} is closed")
 
-    def _write(self, topic: str, encode: Callable[[Any], bytes], record: Any) -> None:
-        now = time.time_ns()
+    def _refuse(self, method: str) -> None:
+        """The queue's callback for an append to a closed or failed writer: raise why."""
+        self._check_open()
+        raise Conflict(f"trace writer for {self.path} refuses {method}")  # pragma: no cover - closed implies raised
+
+    def _fail(self, error: CapevoError) -> CapevoError:
+        """Record the error that ends this writer; every later write raises it."""
+        self._error = error
+        self._queue.closed = True
+        return error
+
+    def _flushed_at(self, monotonic: float) -> None:
+        self._last_flush = monotonic
+        self._arm_deadline()
+
+    def _arm_deadline(self) -> None:
+        # The queue calls back at the next timed flush, or at the next write when a record the
+        # background thread encoded failed: that write raises it.
+        due = 1 if self._undelivered is not None else int((self._last_flush + self.flush_interval_s) * 1e9)
+        self._queue.deadline_ns = due
+
+    def _on_full(self) -> None:
+        """The queue's callback when a batch is full or a timed flush is due."""
         with self._lock:
-            if self._closed or self._error is not None:  # _check_open, inlined: once per record
-                raise self._error or Conflict(f"trace writer for {self.path} is closed")
-            pending = self._pending
-            pending.append((self._channels[topic], encode, record, now))
+            if self._closed or self._error is not None:
+                return  # close() encodes what is left; a failed writer refuses the next write
             try:
                 due = time.monotonic() - self._last_flush >= self.flush_interval_s
-                if due or len(pending) >= self.batch:
-                    try:
-                        self._encode_pending_locked()
-                    finally:
-                        if due:
-                            self._flush_locked(self.fsync_on_flush)
+                try:
+                    self._encode_pending_locked()
+                finally:
+                    if due:
+                        self._flush_locked(self.fsync_on_flush)
             except OSError as exc:
-                self._error = Unavailable(f"writing trace file {self.path} failed: {exc.strerror or exc}")
-                raise self._error from None
-            if self._undelivered is not None:
-                self._raise_undelivered()
+                raise self._fail(Unavailable(f"writing trace file {self.path} failed: {exc.strerror or exc}")) from None
+            self._raise_undelivered()
 
     def _encode_pending_locked(self) -> None:
-        pending = self._pending
+        pending = self._queue.take()
         if not pending:
             return
-        self._pending = []
-        add, sequences = self._mcap.add_message, self._sequences
+        sequences = self._sequences
         failed: Invalid | None = None
+        step_channel = self._step_channel
+        rows = [(channel_id == step_channel, item) for channel_id, encode, item, _ in pending if encode is None]
+        row_payloads = iter(self._encoder.rows(rows) if rows else ())
+        messages: list[tuple[int, int, int, bytes]] = []
         for channel_id, encode, record, now in pending:
             try:
-                payload = encode(record)
+                payload = next(row_payloads) if encode is None else encode(record)
             except Invalid as exc:
                 failed = failed or exc
                 continue
+            if type(payload) is not bytes:  # a row's Invalid, in its place
+                failed = failed or payload
+                continue
             sequence = sequences[channel_id]
             sequences[channel_id] = (sequence + 1) % _SEQUENCE_MOD
-            add(channel_id, now, now, sequence, payload)
-            self._messages += 1
+            messages.append((channel_id, now, sequence, payload))
+        if messages:
+            self._mcap.add_messages(messages)
+            self._messages += len(messages)
             self._dirty = True
         if failed is not None:
             raise failed
@@ -252,35 +307,46 @@ class TraceWriter:
     def _raise_undelivered(self) -> None:
         failed, self._undelivered = self._undelivered, None
         if failed is not None:
+            self._arm_deadline()
             raise failed
 
     def write_plan_step(self, record: PlanStep) -> None:
         """Append a plan step to ``/plan``."""
         check_record(record, PlanStep, "write_plan_step")
-        self._write(PlanStep.TOPIC, self._encoder.encode, record)
+        self._queue.record(self._channels[PlanStep.TOPIC], self._encoder.encode, record, "write_plan_step")
 
     def write_invocation(self, record: EcmInvocation) -> None:
         """Append an ECM invocation to ``/ecm/invocation``."""
         if type(record) is not EcmInvocation:
             check_record(record, EcmInvocation, "write_invocation")
-        self._write(EcmInvocation.TOPIC, self._encoder.invocation, record)
+        self._queue.record(self._channels[EcmInvocation.TOPIC], self._encoder.invocation, record, "write_invocation")
 
     def write_intervention(self, record: Intervention) -> None:
         """Append a governance intervention to ``/governance/intervention``."""
         check_record(record, Intervention, "write_intervention")
-        self._write(Intervention.TOPIC, self._encoder.encode, record)
+        self._queue.record(self._channels[Intervention.TOPIC], self._encoder.encode, record, "write_intervention")
 
     def write_env_step(self, record: EnvStep) -> None:
         """Append an env step to ``/env/step`` (the hot path: one call per control step)."""
         if type(record) is not EnvStep:
             check_record(record, EnvStep, "write_env_step")
-        self._write(EnvStep.TOPIC, self._encoder.env_step, record)
+        self._queue.record(self._step_channel, self._encoder.env_step, record, "write_env_step")
+
+    def write_env_step_row(self, row: EnvStepRow) -> None:
+        """Append an env step given as a row (:mod:`~capevo.runtime.traces.rows`) to ``/env/step``:
+        the episode loop's hot path. The same message as ``write_env_step(env_step_of(row))``."""
+        self._queue.step(row)
+
+    def write_invocation_row(self, row: InvocationRow) -> None:
+        """Append an ECM invocation given as a row to ``/ecm/invocation``; the same message as
+        ``write_invocation(invocation_of(row))``."""
+        self._queue.call(row)
 
     def write_episode_summary(self, record: EpisodeSummary) -> None:
         """Append an episode summary to ``/episode/summary`` and flush: episodes are the unit
         learners consume, so a finished episode should not wait for the timer."""
         check_record(record, EpisodeSummary, "write_episode_summary")
-        self._write(EpisodeSummary.TOPIC, self._encoder.encode, record)
+        self._queue.record(self._channels[EpisodeSummary.TOPIC], self._encoder.encode, record, "write_episode_summary")
         self.flush()
 
     # -- flushing --------------------------------------------------------------------------
@@ -290,7 +356,7 @@ class TraceWriter:
         self._mcap.flush()
         if fsync:
             os.fsync(self._file.fileno())
-        self._last_flush = time.monotonic()
+        self._flushed_at(time.monotonic())
         self._dirty = False
         self._flushes += 1
 
@@ -312,17 +378,23 @@ class TraceWriter:
                 finally:
                     self._flush_locked(self.fsync_on_flush if fsync is None else fsync)
             except OSError as exc:
-                self._error = Unavailable(f"flushing trace file {self.path} failed: {exc.strerror or exc}")
-                raise self._error from None
+                failure = Unavailable(f"flushing trace file {self.path} failed: {exc.strerror or exc}")
+                raise self._fail(failure) from None
             self._raise_undelivered()
 
     def _flush_loop(self) -> None:
-        tick = self.flush_interval_s / 4
-        while not self._stop.wait(tick):
+        # Wakes a grace (a quarter of the interval) after each due time, so a busy writer, whose
+        # own writes flush at the deadline, finds it done; while nothing is kept, once an interval.
+        interval = self.flush_interval_s
+        grace = interval / 4
+        wait = grace
+        while not self._stop.wait(wait):
             with self._lock:
                 if self._closed or self._error is not None:
                     return
-                if (self._dirty or self._pending) and time.monotonic() - self._last_flush >= self.flush_interval_s:
+                now = time.monotonic()
+                kept = self._dirty or len(self._queue) > 0
+                if kept and now - self._last_flush >= interval:
                     try:
                         try:
                             self._encode_pending_locked()
@@ -331,8 +403,10 @@ class TraceWriter:
                         self._flush_locked(self.fsync_on_flush)
                     except OSError as exc:
                         # Surfaces on the next write/flush/close of the owning thread.
-                        self._error = Unavailable(f"flushing trace file {self.path} failed: {exc.strerror or exc}")
+                        self._fail(Unavailable(f"flushing trace file {self.path} failed: {exc.strerror or exc}"))
                         return
+                    kept = False
+                wait = max(self._last_flush + interval + grace - now, grace) if kept else interval
 
     # -- closing ---------------------------------------------------------------------------
 
@@ -351,6 +425,7 @@ class TraceWriter:
             if self._closed:
                 return
             self._closed = True
+            self._queue.closed = True
             error: CapevoError | None = self._error
             try:
                 if error is None:
@@ -365,7 +440,10 @@ class TraceWriter:
             except OSError as exc:
                 error = Unavailable(f"finishing trace file {self.path} failed: {exc.strerror or exc}")
             finally:
-                self._file.close()
+                try:
+                    self._file.close()
+                except OSError as exc:  # the buffered tail the OS refused: the error is already ours
+                    error = error or Unavailable(f"closing trace file {self.path} failed: {exc.strerror or exc}")
         if error is None:
             error, self._undelivered = self._undelivered, None
         if error is not None:

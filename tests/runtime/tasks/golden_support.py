@@ -15,22 +15,36 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import mujoco
 import numpy as np
 import pytest
 from numpy.core._multiarray_umath import __cpu_features__
+from threadpoolctl import threadpool_info
 
 RECORDED_BEFORE_FINGERPRINTS = "recorded before fingerprints"
 """Key of the digests of the machine the suite was first written on, whose fingerprint is unknown."""
 
 
+def blas_kernels() -> str:
+    """The kernel set numpy's BLAS picked for this CPU: OpenBLAS dispatches on its own, so two
+    CPUs with the same numpy features can differ here (Zen 4 gets AVX-512 kernels from OpenBLAS
+    0.3.23, Zen 5, which it does not know, AVX2 ones) and round matrix products differently."""
+    # numpy's wheel bundles its OpenBLAS in numpy.libs; scipy's and torch's BLAS live elsewhere.
+    numpy_libs = str(Path(np.__file__).resolve().parent.parent / "numpy.libs")
+    for lib in threadpool_info():
+        if lib.get("user_api") == "blas" and str(lib.get("filepath", "")).startswith(numpy_libs):
+            return f"{lib.get('internal_api')} {lib.get('version')} {lib.get('architecture')}"
+    return "unknown"
+
+
 def machine_fingerprint() -> str:
-    """What a digest depends on besides the code: numpy's and MuJoCo's versions and the CPU
-    features numpy dispatches on."""
+    """What a digest depends on besides the code: numpy's and MuJoCo's versions, the CPU
+    features numpy dispatches on, and the kernels its BLAS picked."""
     features = ",".join(sorted(name for name, enabled in __cpu_features__.items() if enabled))
-    text = f"numpy {np.__version__}; mujoco {mujoco.__version__}; cpu {features}"
+    text = f"numpy {np.__version__}; mujoco {mujoco.__version__}; cpu {features}; blas {blas_kernels()}"
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 

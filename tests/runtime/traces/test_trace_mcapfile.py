@@ -94,3 +94,52 @@ def test_unknown_compression_is_invalid(tmp_path: Path) -> None:
     with pytest.raises(Invalid) as exc:
         McapFileWriter(io.BytesIO(), chunk_size=10, compression="brotli")
     assert "unknown MCAP chunk compression 'brotli'" in exc.value.message
+
+
+def build_batched(
+    msgs: list[tuple[int, int, int, bytes]], *, chunk_size: int, batch: int, native: bool, batched: bool
+) -> bytes:
+    """The file ``msgs`` make (publish time = log time), added ``batch`` at a time with
+    add_messages, or one by one with add_message."""
+    buf = io.BytesIO()
+    w = McapFileWriter(buf, chunk_size=chunk_size, compression="lz4", native=native)
+    w.start(profile="p", library="test")
+    sid = w.register_schema(name="s", encoding="jsonschema", data=b'{"type":"object"}')
+    for topic in ("/a", "/b", "/c"):
+        w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
+    for i in range(0, len(msgs), batch):
+        if batched:
+            w.add_messages(msgs[i : i + batch])
+        else:
+            for channel, t, seq, data in msgs[i : i + batch]:
+                w.add_message(channel, t, t, seq, data)
+        w.flush()
+    w.finish()
+    assert w.messages == len(msgs)
+    return buf.getvalue()
+
+
+@settings(max_examples=80, deadline=None)
+@given(messages, st.sampled_from([64, 1024, 1 << 20]), st.integers(1, 40), st.booleans())
+def test_add_messages_writes_the_bytes_add_message_writes(
+    msgs: list[tuple[int, int, int, bytes]], chunk_size: int, batch: int, native: bool
+) -> None:
+    # Same records, chunk boundaries, indexes and summary, in C (native) and in Python.
+    want = build_batched(msgs, chunk_size=chunk_size, batch=batch, native=native, batched=False)
+    assert build_batched(msgs, chunk_size=chunk_size, batch=batch, native=native, batched=True) == want
+
+
+def test_the_c_framing_refuses_what_is_not_a_message() -> None:
+    from capevo.runtime.traces.native import NATIVE
+
+    assert NATIVE is not None, "the C parts are not built"
+    for bad, error in (
+        ([(1, 2, 3)], TypeError),
+        ([(1, 2, 3, "text")], TypeError),
+        ([(70_000, 2, 3, b"x")], OverflowError),
+        ([(1, -2, 3, b"x")], OverflowError),
+    ):
+        chunk = bytearray()
+        with pytest.raises(error):
+            NATIVE.frame_messages(chunk, {}, bad, 1 << 20)
+        assert chunk == bytearray()  # nothing framed

@@ -26,6 +26,9 @@ from capevo.runtime.traces import (
 from capevo.runtime.traces.records import MESSAGE_ENCODING, SCHEMA_ENCODING
 from capevo.runtime.traces.scan import McapScan, has_footer
 
+# Every test here runs with the writer's C parts and with their Python versions (conftest.py).
+pytestmark = pytest.mark.usefixtures("writer_parts")
+
 
 def test_round_trip_of_every_record_type(tmp_path: Path) -> None:
     records = one_of_each(0) + one_of_each(1)
@@ -402,3 +405,24 @@ def test_the_background_thread_encodes_an_idle_writers_records(tmp_path: Path) -
             w.write_env_step(make_env_step(0, 6))
         w.write_env_step(make_env_step(0, 7))
     assert [s.step for s in TraceReader(path).env_steps()] == [0, 1, 2, 3, 4, 6, 7]
+
+
+def test_a_write_the_os_refuses_ends_the_writer_with_unavailable(tmp_path: Path) -> None:
+    # The OS refusing a write (here: the file descriptor closed under the writer) surfaces as
+    # Unavailable from the call that flushed, and every later write raises the same error.
+    import os
+
+    from capevo.errors import Unavailable
+
+    w = TraceWriter(tmp_path / "run.mcap", make_metadata(), batch=2, flush_interval_s=3600, background_flush=False)
+    w.write_env_step(make_env_step(0, 0))
+    os.close(w._file.fileno())
+    with pytest.raises(Unavailable, match="failed") as first:
+        w.write_env_step(make_env_step(0, 1))  # fills the batch; the chunk is small, so flush
+        w.flush()
+    with pytest.raises(Unavailable) as later:
+        w.write_env_step_row((0, 2, "reach", 1, (), (), 0.0, (), False, False, False, ()))
+    assert later.value is first.value
+    with pytest.raises(Unavailable):
+        w.close()
+    assert w.closed

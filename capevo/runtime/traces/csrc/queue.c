@@ -1,0 +1,212 @@
+/* Queue: TraceWriter's kept records and rows, in write order (writer.py's _PythonQueue is its
+ * specification).
+ *
+ * Queue(step_channel, call_channel, batch, on_full, refuse, check_row)
+ *   step(row), call(row)           keep an env step / invocation row: (channel, None, row, now)
+ *   record(channel, encode, rec)   keep a record with its encode function
+ *   take()                         every kept entry, oldest first; the queue is empty after it
+ *   closed                         set: every append calls refuse(method), which raises
+ *   deadline_ns                    CLOCK_MONOTONIC ns at which a timed flush is due (0: never)
+ * ``now`` is CLOCK_REALTIME ns, what time.time_ns() reads. After an append that fills the batch
+ * or finds the deadline passed, the queue calls on_full() and returns what it raises. A row that
+ * is not a tuple of its length goes to check_row(row, length, method), which raises Invalid.
+ *
+ * An append runs no Python code before its entry is kept, so under the GIL it is atomic against
+ * take() from another thread: the writer's lock guards encoding, not appending (a free-threaded
+ * CPython would need a mutex here; capevo runs on the GIL builds).
+ */
+#include "traces.h" /* first: Python.h sets the POSIX feature macros clock_gettime needs */
+
+#include <time.h>
+
+typedef struct {
+    PyObject_HEAD
+    PyObject *entries; /* list of (channel id, encode or None, record or row, wall-clock ns) */
+    PyObject *step_channel, *call_channel;
+    PyObject *on_full, *refuse, *check_row;
+    Py_ssize_t batch;
+    long long deadline_ns;
+    int closed;
+} Queue;
+
+static long long clock_ns(clockid_t clock) {
+    struct timespec ts;
+    clock_gettime(clock, &ts);
+    return (long long)ts.tv_sec * 1000000000LL + ts.tv_nsec;
+}
+
+static int initialised(Queue *q) {
+    if (q->entries != NULL) return 1;
+    PyErr_SetString(PyExc_RuntimeError, "Queue.__init__ was not called");
+    return 0;
+}
+
+static PyObject *keep(Queue *q, PyObject *channel, PyObject *encode, PyObject *item, const char *method) {
+    if (!initialised(q)) return NULL;
+    if (q->closed) {
+        PyObject *r = PyObject_CallFunction(q->refuse, "s", method);
+        if (r == NULL) return NULL;
+        Py_DECREF(r);
+        PyErr_Format(PyExc_RuntimeError, "%s: the trace writer is closed", method);
+        return NULL;
+    }
+    PyObject *now = PyLong_FromLongLong(clock_ns(CLOCK_REALTIME));
+    if (now == NULL) return NULL;
+    PyObject *entry = PyTuple_Pack(4, channel, encode, item, now);
+    Py_DECREF(now);
+    if (entry == NULL) return NULL;
+    int failed = PyList_Append(q->entries, entry);
+    Py_DECREF(entry);
+    if (failed) return NULL;
+    if (PyList_GET_SIZE(q->entries) >= q->batch || (q->deadline_ns && clock_ns(CLOCK_MONOTONIC) >= q->deadline_ns))
+        return PyObject_CallNoArgs(q->on_full);
+    Py_RETURN_NONE;
+}
+
+static PyObject *keep_row(Queue *q, PyObject *row, Py_ssize_t length, PyObject *channel, const char *method) {
+    if (!PyTuple_CheckExact(row) || PyTuple_GET_SIZE(row) != length) {
+        PyObject *r = PyObject_CallFunction(q->check_row, "Ons", row, length, method);
+        if (r == NULL) return NULL;
+        Py_DECREF(r);
+        PyErr_Format(PyExc_TypeError, "%s takes a tuple of %zd fields", method, length);
+        return NULL;
+    }
+    return keep(q, channel, Py_None, row, method);
+}
+
+static PyObject *queue_step(Queue *q, PyObject *row) {
+    return keep_row(q, row, 12, q->step_channel, "write_env_step_row");
+}
+
+static PyObject *queue_call(Queue *q, PyObject *row) {
+    return keep_row(q, row, 9, q->call_channel, "write_invocation_row");
+}
+
+static PyObject *queue_record(Queue *q, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 4 || !PyUnicode_Check(args[3])) {
+        PyErr_SetString(PyExc_TypeError, "record(channel, encode, record, method) takes 4 arguments");
+        return NULL;
+    }
+    return keep(q, args[0], args[1], args[2], PyUnicode_AsUTF8(args[3]));
+}
+
+static PyObject *queue_take(Queue *q, PyObject *unused) {
+    (void)unused;
+    if (!initialised(q)) return NULL;
+    PyObject *fresh = PyList_New(0);
+    if (fresh == NULL) return NULL;
+    PyObject *taken = q->entries;
+    q->entries = fresh;
+    return taken;
+}
+
+static Py_ssize_t queue_len(Queue *q) { return initialised(q) ? PyList_GET_SIZE(q->entries) : -1; }
+
+static int queue_init(Queue *q, PyObject *args, PyObject *kwargs) {
+    static char *names[] = {"step_channel", "call_channel", "batch", "on_full", "refuse", "check_row", NULL};
+    PyObject *step_channel, *call_channel, *on_full, *refuse, *check_row;
+    Py_ssize_t batch;
+    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "O!O!nOOO:Queue", names, &PyLong_Type, &step_channel,
+                                     &PyLong_Type, &call_channel, &batch, &on_full, &refuse, &check_row))
+        return -1;
+    if (batch < 1) {
+        PyErr_SetString(PyExc_ValueError, "batch must be positive");
+        return -1;
+    }
+    PyObject *entries = PyList_New(0);
+    if (entries == NULL) return -1;
+    Py_XSETREF(q->entries, entries);
+    Py_XSETREF(q->step_channel, Py_NewRef(step_channel));
+    Py_XSETREF(q->call_channel, Py_NewRef(call_channel));
+    Py_XSETREF(q->on_full, Py_NewRef(on_full));
+    Py_XSETREF(q->refuse, Py_NewRef(refuse));
+    Py_XSETREF(q->check_row, Py_NewRef(check_row));
+    q->batch = batch;
+    q->deadline_ns = 0;
+    q->closed = 0;
+    return 0;
+}
+
+/* The writer holds the queue and the queue holds the writer's bound methods: a cycle for the GC. */
+static int queue_traverse(Queue *q, visitproc visit, void *arg) {
+    Py_VISIT(q->entries);
+    Py_VISIT(q->on_full);
+    Py_VISIT(q->refuse);
+    Py_VISIT(q->check_row);
+    return 0;
+}
+
+static int queue_clear(Queue *q) {
+    Py_CLEAR(q->entries);
+    Py_CLEAR(q->step_channel);
+    Py_CLEAR(q->call_channel);
+    Py_CLEAR(q->on_full);
+    Py_CLEAR(q->refuse);
+    Py_CLEAR(q->check_row);
+    return 0;
+}
+
+static void queue_dealloc(Queue *q) {
+    PyObject_GC_UnTrack(q);
+    queue_clear(q);
+    Py_TYPE(q)->tp_free((PyObject *)q);
+}
+
+static PyObject *get_closed(Queue *q, void *unused) {
+    (void)unused;
+    return PyBool_FromLong(q->closed);
+}
+
+static int set_closed(Queue *q, PyObject *value, void *unused) {
+    (void)unused;
+    int truth = value == NULL ? 0 : PyObject_IsTrue(value);
+    if (truth < 0) return -1;
+    q->closed = truth;
+    return 0;
+}
+
+static PyObject *get_deadline(Queue *q, void *unused) {
+    (void)unused;
+    return PyLong_FromLongLong(q->deadline_ns);
+}
+
+static int set_deadline(Queue *q, PyObject *value, void *unused) {
+    (void)unused;
+    long long ns = value == NULL ? 0 : PyLong_AsLongLong(value);
+    if (ns == -1 && PyErr_Occurred()) return -1;
+    q->deadline_ns = ns;
+    return 0;
+}
+
+static PyMethodDef queue_methods[] = {
+    {"step", (PyCFunction)queue_step, METH_O, "step(row): keep an env step row"},
+    {"call", (PyCFunction)queue_call, METH_O, "call(row): keep an invocation row"},
+    {"record", (PyCFunction)(void (*)(void))queue_record, METH_FASTCALL,
+     "record(channel, encode, record, method): keep a record"},
+    {"take", (PyCFunction)queue_take, METH_NOARGS, "take() -> every kept entry, oldest first"},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyGetSetDef queue_getset[] = {
+    {"closed", (getter)get_closed, (setter)set_closed, "appends call refuse(method)", NULL},
+    {"deadline_ns", (getter)get_deadline, (setter)set_deadline, "monotonic ns of the next timed flush (0: none)",
+     NULL},
+    {NULL, NULL, NULL, NULL, NULL},
+};
+
+static PySequenceMethods queue_sequence = {.sq_length = (lenfunc)queue_len};
+
+PyTypeObject cv_queue_type = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "capevo.runtime.traces._native.Queue",
+    .tp_basicsize = sizeof(Queue),
+    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC,
+    .tp_doc = "TraceWriter's kept records and rows, in write order (see queue.c).",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)queue_init,
+    .tp_dealloc = (destructor)queue_dealloc,
+    .tp_traverse = (traverseproc)queue_traverse,
+    .tp_clear = (inquiry)queue_clear,
+    .tp_methods = queue_methods,
+    .tp_getset = queue_getset,
+    .tp_as_sequence = &queue_sequence,
+};
