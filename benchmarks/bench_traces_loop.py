@@ -60,17 +60,10 @@ from capevo.runtime.episode import make_governor, run_episode
 from capevo.runtime.governance import Phi
 from capevo.runtime.tasks import make_task
 from capevo.runtime.traces import RUNTIME_BATCH, TraceMetadata, TraceWriter
+from capevo.runtime.traces.sink import WRITE_METHODS
 
 TARGET_US = 20.0
-WRITES = (
-    "write_plan_step",
-    "write_invocation",
-    "write_invocation_row",
-    "write_intervention",
-    "write_env_step",
-    "write_env_step_row",
-    "write_episode_summary",
-)
+WRITES = WRITE_METHODS
 
 
 BUILDERS = ("EnvStep", "EcmInvocation", "TraceIntervention", "_key_state", "_input_state")

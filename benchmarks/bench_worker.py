@@ -65,6 +65,7 @@ from capevo.runtime.episode import make_governor, run_episode
 from capevo.runtime.governance import Phi
 from capevo.runtime.tasks import lean_stepping, make_task
 from capevo.runtime.traces import RUNTIME_BATCH, MemoryTraceSink, TraceMetadata, TraceWriter
+from capevo.runtime.traces.sink import WRITE_METHODS
 
 TARGET_OVERHEAD_PCT = 3.0
 CLOCKS = ("wall", "cpu")
@@ -101,14 +102,7 @@ class _TimedSink:
     """A TraceSink that forwards to ``inner``, clocking every write."""
 
     def __init__(self, inner: Any, timed: _Timed) -> None:
-        for name in (
-            "write_plan_step",
-            "write_invocation",
-            "write_invocation_row",
-            "write_intervention",
-            "write_env_step",
-            "write_env_step_row",
-        ):
+        for name in (m for m in WRITE_METHODS if m != "write_episode_summary"):  # that one is clocked below
             setattr(self, name, timed.wrap(getattr(inner, name), "trace writes"))
         self.write_episode_summary = timed.wrap(inner.write_episode_summary, "trace: episode summary + flush")
         self.flush, self.close = inner.flush, inner.close

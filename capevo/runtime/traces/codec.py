@@ -379,21 +379,19 @@ class RecordEncoder:
         runtime: dict[int, int] = {}  # id of a runtime (exact) vector -> its index
         add = vectors.append
 
-        def observation(v: Any) -> int:
-            i = observations.get(id(v))
-            if i is None:
-                converted = float32_array(v)  # before the entry: a vector that fails must fail every row it is in
-                i = observations[id(v)] = len(vectors)
-                add(converted)
-            return i
+        def slotter(slots: dict[int, int], convert: Any) -> Any:
+            def slot(v: Any) -> int:
+                i = slots.get(id(v))
+                if i is None:
+                    converted = convert(v)  # before the entry: a vector that fails must fail every row it is in
+                    i = slots[id(v)] = len(vectors)
+                    add(converted)
+                return i  # type: ignore[no-any-return]
 
-        def exact(v: Any) -> int:
-            i = runtime.get(id(v))
-            if i is None:
-                converted = _exact_or_float32(v)  # before the entry: a vector that fails must fail every row it is in
-                i = runtime[id(v)] = len(vectors)
-                add(converted)
-            return i
+            return slot
+
+        observation = slotter(observations, float32_array)
+        exact = slotter(runtime, _exact_or_float32)
 
         plans: list[tuple[Any, ...] | None] = []
         for is_step, row in rows:

@@ -65,6 +65,18 @@ class TraceSink(Protocol):
     def close(self) -> None: ...
 
 
+WRITE_METHODS: tuple[str, ...] = (
+    "write_plan_step",
+    "write_invocation",
+    "write_invocation_row",
+    "write_intervention",
+    "write_env_step",
+    "write_env_step_row",
+    "write_episode_summary",
+)
+"""The :class:`TraceSink` methods that take a record or a row (for wrappers that clock or count them)."""
+
+
 def check_record(record: Any, expected: type[Any], method: str) -> None:
     """Raise :class:`Invalid` unless ``record`` is an ``expected`` (shared by the sinks)."""
     if not isinstance(record, expected):
