@@ -18,7 +18,8 @@ machine hits every variant alike:
   still builds (interventions, and invocations of ECMs that cannot run). The benchmark shadows
   those names in :mod:`capevo.runtime.episode` with clocked wrappers (the wrapper's argument
   repacking is counted, so this errs high), floor subtracted per call. The row tuples
-  themselves are built inline in the loop and are not clocked (a tuple display of locals).
+  themselves are built inline in the loop and are not clocked (1–3 µs each, cold, by a
+  one-off: see BENCHMARKS.md).
 - **flush thread**: the CPU time of the writer's background flush thread over the episode
   (its idle wake-ups included); in a busy loop the write calls find the flush due first.
 
