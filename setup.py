@@ -25,8 +25,8 @@ setup(
                 "-Wno-unused-function",
             ],
         ),
-        # The trace writer's hot path: its queue and the rows' splicer (writer.py, codec.py and
-        # queue.py have the Python versions they follow).
+        # The trace writer's hot path: its queue, the rows' splicer, MCAP framing and input packing
+        # (queue.py, codec.py, mcapfile.py and rows.py have the Python versions they follow).
         Extension(
             "capevo.runtime.traces._native",
             sources=sorted(str(p) for p in TRACES_CSRC.glob("*.c")),

@@ -17,8 +17,8 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
   "$VENV/bin/python" -m pip install --quiet -e "$ROOT[${CAPEVO_EXTRAS:-test}]" >&2
   echo "$WANT" > "$STAMP"
 fi
-# The C parts (the governance kernel in capevo/runtime/governance/csrc, the trace rows' splicer in
-# capevo/runtime/traces/csrc): rebuild them in place whenever a source changed since the last
+# The C parts (the governance kernel in capevo/runtime/governance/csrc, the trace writer's hot path
+# in capevo/runtime/traces/csrc): rebuild them in place whenever a source changed since the last
 # build, so a pull or an edit never runs a stale one.
 KSTAMP="$VENV/.capevo-kernel-stamp"
 KWANT="$(cat "$ROOT/setup.py" "$ROOT"/capevo/runtime/governance/csrc/* "$ROOT"/capevo/runtime/traces/csrc/* | sha256sum | cut -d' ' -f1)"

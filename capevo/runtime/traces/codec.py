@@ -377,6 +377,9 @@ class RecordEncoder:
         vectors: list[Any] = []
         observations: dict[int, int] = {}  # id of an observation vector -> its index in vectors
         runtime: dict[int, int] = {}  # id of a runtime (exact) vector -> its index
+        # The tables key by id: hold each keyed vector, or a freed one (an arm's property makes
+        # a new tuple per read) could hand its id, and so its text, to the next.
+        keyed: list[Any] = []
         add = vectors.append
 
         def slotter(slots: dict[int, int], convert: Any) -> Any:
@@ -384,6 +387,7 @@ class RecordEncoder:
                 i = slots.get(id(v))
                 if i is None:
                     converted = convert(v)  # before the entry: a vector that fails must fail every row it is in
+                    keyed.append(v)
                     i = slots[id(v)] = len(vectors)
                     add(converted)
                 return i  # type: ignore[no-any-return]
@@ -397,13 +401,13 @@ class RecordEncoder:
         for is_step, row in rows:
             try:
                 episode, step, ecm, version = row[:4]
-                if type(episode) is not int or type(step) is not int or type(version) is not int:
-                    plans.append(None)
-                    continue
-                if (episode | step | version) >> 63:  # negative or beyond int64: the record path decides
-                    plans.append(None)
-                    continue
-                if type(ecm) is not str:
+                if (
+                    type(episode) is not int
+                    or type(step) is not int
+                    or type(version) is not int
+                    or type(ecm) is not str
+                    or (episode | step | version) >> 63  # negative or beyond int64: the record path decides
+                ):
                     plans.append(None)
                     continue
                 if is_step:

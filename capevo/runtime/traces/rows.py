@@ -3,8 +3,8 @@
 Every robosuite step evicts the CPU caches, so whatever the loop runs for traces between two
 steps runs cold: building a frozen 12-field record there cost about 20 µs per step, a tuple of
 the same fields a fraction of that (benchmarks/bench_traces_loop.py). The loop therefore hands
-sinks rows (:meth:`~capevo.runtime.traces.sink.TraceSink.env_step_row`,
-:meth:`~capevo.runtime.traces.sink.TraceSink.invocation_row`); the writer encodes them in
+sinks rows (:meth:`~capevo.runtime.traces.sink.TraceSink.write_env_step_row`,
+:meth:`~capevo.runtime.traces.sink.TraceSink.write_invocation_row`); the writer encodes them in
 batches, warm, and only what reads a trace back ever sees a record.
 
 A row holds its fields in the record's field order, except that an env step row ends with the
@@ -73,13 +73,10 @@ InvocationRow: TypeAlias = tuple[
 ENV_STEP_ROW_LEN = 12
 INVOCATION_ROW_LEN = 9
 
-ARM_KEYS: tuple[tuple[str, str], ...] = tuple((f"arm{i}_eef_pos", f"arm{i}_eef_force") for i in range(8))
-"""Key-state names of arm ``i``, for the arms a scene can have (a Panda pair uses two)."""
-
 
 def arm_keys(i: int) -> tuple[str, str]:
-    """The key-state names of arm ``i``."""
-    return ARM_KEYS[i] if i < len(ARM_KEYS) else (f"arm{i}_eef_pos", f"arm{i}_eef_force")
+    """The key-state names of arm ``i`` (csrc/rows.c spells them too)."""
+    return f"arm{i}_eef_pos", f"arm{i}_eef_force"
 
 
 def key_state_of(arms: Sequence[ArmVectors]) -> dict[str, tuple[float, ...]]:

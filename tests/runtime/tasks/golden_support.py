@@ -29,9 +29,10 @@ RECORDED_BEFORE_FINGERPRINTS = "recorded before fingerprints"
 
 
 def blas_kernels() -> str:
-    """The kernel set numpy's BLAS picked for this CPU: OpenBLAS dispatches on its own, so two
-    CPUs with the same numpy features can differ here (Zen 4 gets AVX-512 kernels from OpenBLAS
-    0.3.23, Zen 5, which it does not know, AVX2 ones) and round matrix products differently."""
+    """The kernel set numpy's BLAS picked: OpenBLAS chooses on its own, by CPU or by the
+    ``OPENBLAS_CORETYPE`` variable, so two machines with the same numpy features can differ here
+    (a Zen 4 got its AVX-512 Cooperlake kernels; a Zen 5 whose environment sets
+    ``OPENBLAS_CORETYPE=Haswell`` gets AVX2 ones) and round matrix products differently."""
     # numpy's wheel bundles its OpenBLAS in numpy.libs; scipy's and torch's BLAS live elsewhere.
     numpy_libs = str(Path(np.__file__).resolve().parent.parent / "numpy.libs")
     for lib in threadpool_info():

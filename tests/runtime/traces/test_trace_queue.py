@@ -148,5 +148,4 @@ def test_the_c_queue_needs_its_init() -> None:
     with pytest.raises(RuntimeError, match="__init__ was not called"):
         bare.take()
     with pytest.raises(ValueError, match="batch must be positive"):
-        make_bad = trace_queue.NativeQueue
-        make_bad(step_channel=1, call_channel=2, batch=0, on_full=print, refuse=print, check_row=print)
+        trace_queue.NativeQueue(step_channel=1, call_channel=2, batch=0, on_full=print, refuse=print, check_row=print)

@@ -267,3 +267,33 @@ def test_packed_input_bytes_encode_as_their_array(kernel: bool) -> None:
     assert encoder.rows([(False, as_bytes)]) == encoder.rows([(False, as_array)])
     (bad,) = encoder.rows([(False, (0, 2, "grasp", 3, b"\x00" * 5, None, 0.0, Outcome.OK, None))])
     assert isinstance(bad, Invalid) and "not whole float32 values" in bad.message
+
+
+class FreshVectorsArm:
+    """An arm whose vectors are properties making a new tuple per read, of ints (so the codec
+    converts each): what a batch keys by identity is freed at once unless the batch holds it."""
+
+    def __init__(self, i: int) -> None:
+        self.i = i
+
+    @property
+    def eef_pos(self) -> tuple[int, ...]:
+        return (self.i, self.i + 1, self.i + 2)
+
+    @property
+    def eef_force(self) -> tuple[int, ...]:
+        return (-self.i, 0, 1)
+
+
+@pytest.mark.parametrize("kernel", [True, False], ids=["c", "python"])
+def test_vectors_made_per_read_never_lend_their_text_to_others(kernel: bool) -> None:
+    obs = np.asarray([0.5, 1.5], dtype=np.float32)
+    batch = [
+        (True, (0, i, "reach", 1, obs, (0.25,), 0.0, obs, False, False, False, (FreshVectorsArm(i),)))
+        for i in range(50)
+    ]
+    payloads = codec.RecordEncoder(kernel=kernel).rows(batch)  # type: ignore[arg-type]
+    for (_, row), payload in zip(batch, payloads, strict=True):
+        assert payload == through_record(True, row)
+        i = row[1]
+        assert json.loads(payload)["key_state"] == {"arm0_eef_pos": [i, i + 1, i + 2], "arm0_eef_force": [-i, 0, 1]}

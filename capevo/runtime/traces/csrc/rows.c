@@ -74,6 +74,7 @@ static int recoverable(void) {
 
 typedef struct {
     PyObject *vectors; /* list handed to dumps */
+    PyObject *keys;    /* every vector the tables key by address, alive until the batch is done */
     slot_table observations, runtime;
 } batch;
 
@@ -92,7 +93,10 @@ static Py_ssize_t vector_index(batch *b, PyObject *v, int observation) {
     int failed = PyList_Append(b->vectors, converted);
     Py_DECREF(converted);
     if (failed) return -1;
-    /* Entered only once converted: a vector that fails fails every row it is in. */
+    /* Entered only once converted: a vector that fails fails every row it is in. The key is an
+     * address: hold the vector, or a freed one (an arm's property makes a new tuple per read)
+     * could hand its address, and so its text, to the next. */
+    if (PyList_Append(b->keys, v) < 0) return -1;
     e->key = v;
     e->index = index;
     return index;
@@ -203,8 +207,7 @@ static int plan_row(batch *b, plan *p, index_list *keys, int is_step, PyObject *
             for (int k = 0; k < 2 && result == 1; k++) {
                 PyObject *vector = PyObject_GetAttr(arm, k == 0 ? s_eef_pos : s_eef_force);
                 Py_ssize_t index = vector == NULL ? -1 : vector_index(b, vector, 0);
-                /* The table keys the vector by address: the arm keeps it alive, as the row keeps the arm. */
-                Py_XDECREF(vector);
+                Py_XDECREF(vector); /* vector_index holds it while the batch runs */
                 if (index < 0 || index_push(keys, index) < 0) result = recoverable() ? (PyErr_Clear(), 0) : -1;
             }
         }
@@ -361,8 +364,8 @@ PyObject *cv_rows_encode(PyObject *self, PyObject *args) {
     buffer out = {0};
     parts ps = {0};
     char *null_parts = NULL;
-    batch b = {.vectors = PyList_New(0)};
-    if (plans == NULL || b.vectors == NULL || table_init(&b.observations, n_rows * 3) < 0 ||
+    batch b = {.vectors = PyList_New(0), .keys = PyList_New(0)};
+    if (plans == NULL || b.vectors == NULL || b.keys == NULL || table_init(&b.observations, n_rows * 3) < 0 ||
         table_init(&b.runtime, n_rows * 5) < 0) {
         PyErr_NoMemory();
         goto done;
@@ -444,6 +447,7 @@ done:
     PyMem_Free(b.observations.entries);
     PyMem_Free(b.runtime.entries);
     Py_XDECREF(b.vectors);
+    Py_XDECREF(b.keys);
     Py_XDECREF(text);
     Py_XDECREF(last_name);
     return result;
