@@ -73,6 +73,7 @@ from capevo.runtime.traces import (
 )
 from capevo.runtime.traces import Intervention as TraceIntervention
 from capevo.runtime.traces import Outcome as TraceOutcome
+from capevo.runtime.traces.rows import concatenated_input, observation_index
 from capevo.runtime.traces.rows import input_state_of as _input_state
 
 log = logging.getLogger(__name__)
@@ -189,6 +190,7 @@ class _Running:
         "attempt",
         "ecm",
         "end_after_step",
+        "input_index",
         "input_keys",
         "invoker",
         "record",
@@ -197,7 +199,9 @@ class _Running:
         "termination",
     )
 
-    def __init__(self, record: EcmVersion, invoker: EcmInvoker, start_step: int) -> None:
+    def __init__(
+        self, record: EcmVersion, invoker: EcmInvoker, start_step: int, env: EpisodeEnv, obs: np.ndarray
+    ) -> None:
         self.record = record
         self.ecm = record.name
         self.invoker = invoker
@@ -205,7 +209,30 @@ class _Running:
         self.steps = 0
         self.end_after_step: StepEnd | None = None
         self.input_keys = tuple(s.name for s in record.interface.inputs)
+        self.input_index = _input_index(env, obs, self.input_keys)
         self.termination = record.descriptor.termination
+
+
+def _input_index(env: EpisodeEnv, flat: np.ndarray, keys: tuple[str, ...]) -> tuple[int, ...] | None:
+    """Where an ECM's inputs sit in the flat observation, for its invocation rows (see
+    :mod:`capevo.runtime.traces.rows`): a TaskEnv's flat observation is its ``obs_dict``'s
+    observation keys concatenated, so the trace selects the input from it instead of the loop
+    packing a copy every step. Checked once per activation against the packed input; None (the
+    loop packs) for an env where the two differ, or inputs outside the flat observation."""
+    flat_keys = getattr(env.task_spec, "observation_keys", None)
+    if not keys or not flat_keys:
+        return None
+    obs = env.obs_dict
+    try:
+        index = observation_index(obs, flat_keys, keys)
+    except KeyError:
+        return None
+    if index is None or not all(i < flat.size for i in index):
+        return None
+    same = np.array_equal(
+        np.asarray(flat).reshape(-1)[list(index)], np.asarray(concatenated_input(obs, keys)).reshape(-1)
+    )
+    return index if same else None
 
 
 def run_episode_detailed(
@@ -322,7 +349,9 @@ def run_episode_detailed(
         if sink is None:
             failures += sum(1 for a in result.attempts if a.status in FAILURES)
             return
-        input_state = _input_state(env.obs_dict, run.input_keys) if run.input_keys else obs_t
+        input_state, input_index = obs_t, run.input_index
+        if input_index is None and run.input_keys:
+            input_state = _input_state(env.obs_dict, run.input_keys)
         for a in result.attempts:
             if a.status in FAILURES:
                 failures += 1
@@ -334,6 +363,7 @@ def run_episode_detailed(
                     a.ecm,
                     a.version,
                     input_state,
+                    input_index,
                     a.action,
                     a.duration_s,
                     _TRACE_OUTCOME[a.status],
@@ -392,7 +422,7 @@ def run_episode_detailed(
                     )
                 plan_step += 1
                 invoker = capabilities.make_invoker(record.name, step_budget=step_budget_per_ecm, timeout_s=timeout_s)
-                running = _Running(record, invoker, steps)
+                running = _Running(record, invoker, steps, env, obs_t)
             run = running
             termination = run.termination
             if termination.all and predicate_holds(termination, current_signals()):

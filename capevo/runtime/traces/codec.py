@@ -18,9 +18,10 @@ Records' ``from_dict`` rounds every vector to float32, the precision the runtime
 Rows (:mod:`capevo.runtime.traces.rows`, what the episode loop hands the writer) are encoded a
 batch at a time by :meth:`RecordEncoder.rows`: one ``orjson.dumps`` prints every vector of the
 batch once (one step's ``next_obs`` is the next step's ``obs`` and often an ECM's input), and
-each payload is spliced from those texts, the payload of the row's record (invariant 6). The
-splicing is C (``csrc/rows.c``) where it is built; :meth:`RecordEncoder.rows_in_python` is its
-specification.
+each payload is spliced from those texts, the payload of the row's record (invariant 6); an
+ECM input the row gives as positions in the observation is cut from the observation's text.
+The splicing is C (``csrc/rows.c``) where it is built; :meth:`RecordEncoder.rows_in_python` is
+its specification.
 
 Whatever the fast path cannot print exactly goes through the template path instead, which
 splices per-field text into one bytes template: a record whose ints or names are not exactly
@@ -210,7 +211,8 @@ class RecordEncoder:
         # encoder can never pair a tuple with another tuple's values.
         self._last_next_obs: tuple[tuple[float, ...] | None, np.ndarray | None] = (None, None)
 
-    def _name(self, name: str) -> bytes:
+    def name_json(self, name: str) -> bytes:
+        """The JSON string of ``name`` (cached for the names a run repeats)."""
         text = self._names.get(name)
         if text is None:
             if not isinstance(name, str):
@@ -280,11 +282,11 @@ class RecordEncoder:
     def _env_step_template(self, s: EnvStep) -> bytes:
         key_state = b""
         if s.key_state:
-            key_state = b",".join(self._name(k) + b":" + vector_json(v) for k, v in s.key_state.items())
+            key_state = b",".join(self.name_json(k) + b":" + vector_json(v) for k, v in s.key_state.items())
         return _ENV_STEP_TEMPLATE % (
             s.episode,
             s.step,
-            self._name(s.ecm),
+            self.name_json(s.ecm),
             s.version,
             vector_json(s.obs),
             vector_json(s.action),
@@ -343,7 +345,7 @@ class RecordEncoder:
         return _INVOCATION_TEMPLATE % (
             r.episode,
             r.step,
-            self._name(r.ecm),
+            self.name_json(r.ecm),
             r.version,
             vector_json(r.input_state),
             b"null" if r.output is None else vector_json(r.output),
@@ -366,10 +368,10 @@ class RecordEncoder:
         if _native is None or not self._kernel:
             return self.rows_in_python(rows)
         batch = rows if type(rows) is list else list(rows)
-        payloads: list[Any] = _native.encode_rows(batch, self._name)
+        payloads: list[Any] = _native.encode_rows(batch, self.name_json)
         for i, payload in enumerate(payloads):
             if payload is None:
-                payloads[i] = self._row_through_record(*batch[i])
+                payloads[i] = self.record_path(*batch[i])
         return payloads
 
     def rows_in_python(self, rows: Sequence[tuple[bool, EnvStepRow | InvocationRow]]) -> list[bytes | Invalid]:
@@ -421,20 +423,25 @@ class RecordEncoder:
                     add((float(reward),))
                     slots = (o, a, r, n, *keys)
                     flags = (_BOOLS[bool(terminated)], _BOOLS[bool(truncated)], _BOOLS[bool(success)])
-                    plans.append((slots, episode, step, self._name(ecm), version, flags))
+                    plans.append((slots, slots, episode, step, self.name_json(ecm), version, flags))
                 else:
-                    inputs, output, duration, outcome, error = row[4:]
+                    inputs, selection, output, duration, outcome, error = row[4:]
                     outcome_text = _OUTCOMES.get(outcome)
-                    if outcome_text is None:
+                    if outcome_text is None or (
+                        selection is not None and (type(selection) is not tuple or not _is_float32_vector(inputs))
+                    ):
                         plans.append(None)
                         continue
+                    error_text = b"null" if error is None else _error_json(error)
                     i = observation(inputs)
                     out = None if output is None else exact(output)
                     d = len(vectors)
                     add((float(duration),))
                     slots = (i, d) if out is None else (i, d, out)
-                    error_text = b"null" if error is None else _error_json(error)
-                    plans.append((slots, episode, step, self._name(ecm), version, (outcome_text, error_text)))
+                    # A selection's values are checked for null in its own text, not its vector's.
+                    checked = slots if selection is None else slots[1:]
+                    texts = (outcome_text, error_text, selection)
+                    plans.append((slots, checked, episode, step, self.name_json(ecm), version, texts))
             except (TypeError, ValueError, OverflowError, AttributeError):
                 plans.append(None)
 
@@ -444,10 +451,10 @@ class RecordEncoder:
         with_null = {i for i, part in enumerate(parts) if b"null" in part} if b"null" in text else None
         payloads: list[bytes | Invalid] = []
         for plan, (is_step, row) in zip(plans, rows, strict=True):
-            if plan is None or (with_null and not with_null.isdisjoint(plan[0])):
-                payloads.append(self._row_through_record(is_step, row))
+            if plan is None or (with_null and not with_null.isdisjoint(plan[1])):
+                payloads.append(self.record_path(is_step, row))
                 continue
-            slots, episode, step, name, version, texts = plan
+            slots, _, episode, step, name, version, texts = plan
             if is_step:
                 o, a, r, n, *keys = slots
                 payloads.append(
@@ -466,14 +473,21 @@ class RecordEncoder:
                     )
                 )
             else:
+                outcome_text, error_text, selection = texts
+                inputs = parts[slots[0]] if selection is None else _selected_text(parts[slots[0]], selection)
+                if inputs is None:
+                    payloads.append(self.record_path(is_step, row))
+                    continue
                 output = b"null" if len(slots) == 2 else b"[" + parts[slots[2]] + b"]"
                 payloads.append(
                     _INVOCATION_ROW_TEMPLATE
-                    % (episode, step, name, version, parts[slots[0]], output, parts[slots[1]], *texts)
+                    % (episode, step, name, version, inputs, output, parts[slots[1]], outcome_text, error_text)
                 )
         return payloads
 
-    def _row_through_record(self, is_step: bool, row: Any) -> bytes | Invalid:
+    def record_path(self, is_step: bool, row: Any) -> bytes | Invalid:
+        """The payload of a row's record (what :meth:`rows` gives a row it cannot splice), or its
+        :class:`Invalid`."""
         try:
             return self.env_step(env_step_of(row)) if is_step else self.invocation(invocation_of(row))
         except Invalid as exc:
@@ -483,12 +497,27 @@ class RecordEncoder:
         return _INTERVENTION_TEMPLATE % (
             r.episode,
             r.step,
-            self._name(r.constraint),
+            self.name_json(r.constraint),
             vector_json(r.original_action),
             b"null" if r.result_action is None else vector_json(r.result_action),
             orjson.dumps(str(r.reason)),
             _BOOLS[bool(r.enforced)],
         )
+
+
+def _is_float32_vector(values: Any) -> bool:
+    return type(values) is np.ndarray and values.dtype == _FLOAT32 and values.ndim == 1 and values.flags.c_contiguous
+
+
+def _selected_text(vector_text: bytes, selection: tuple[Any, ...]) -> bytes | None:
+    """The text of the vector's values at the positions ``selection``, cut from the vector's
+    text; None where the record path decides (a position that is not an int in the vector, or a
+    null among the values)."""
+    elements = vector_text.split(b",") if vector_text else []
+    if not all(type(k) is int and 0 <= k < len(elements) for k in selection):
+        return None
+    text = b",".join([elements[k] for k in selection])
+    return None if b"n" in text else text
 
 
 _KEY_STATE_TEMPLATES: dict[int, bytes] = {}

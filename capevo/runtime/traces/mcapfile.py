@@ -17,16 +17,17 @@ Invariants:
 1. A finished file is a valid MCAP: ``mcap.reader.make_reader`` reads its summary, its
    statistics count every message once, and ``iter_messages`` returns every message with
    the channel, times, sequence and payload it was added with.
-2. A chunk is finished when its uncompressed records reach ``chunk_size`` bytes or when
-   ``flush()`` is called while it holds a message; no empty chunk is ever written.
+2. A chunk is finished when ``flush()`` is called while it holds a message, and at the end of
+   the ``add_message``/``add_messages``/``add_framed`` call with which its uncompressed records
+   reach ``chunk_size`` bytes (a batch is never split); no empty chunk is ever written.
 3. Every byte written goes through ``_emit``; ``position`` always equals the stream offset.
-4. ``add_messages(ms)`` leaves the file ``add_message`` leaves for each of ``ms`` in order (the
-   same records, chunk boundaries and indexes), framed in C where the C part is built.
+4. ``add_framed`` leaves the file ``add_messages`` leaves for the same messages, where the framer
+   appends what :meth:`McapFileWriter.add_messages` appends (the writer's C batch framer,
+   ``csrc/frame.c``, is tested against it byte for byte).
 """
 
 from __future__ import annotations
 
-import itertools
 import struct
 import zlib
 from collections.abc import Callable, Mapping
@@ -49,9 +50,6 @@ from mcap.records import (
 )
 
 from capevo.errors import Invalid
-from capevo.runtime.traces.native import NATIVE
-
-_native = NATIVE
 
 MAGIC = bytes((0x89, 0x4D, 0x43, 0x41, 0x50, 0x30, 0x0D, 0x0A))
 
@@ -65,13 +63,19 @@ _MESSAGE_FIXED = _MESSAGE.size - 9
 _CHUNK_HEAD = struct.Struct("<BQQQQII")
 _CHUNK_FIXED = 8 + 8 + 8 + 4 + 4 + 8
 _U64 = struct.Struct("<Q")
+# A MessageIndex record up to its entries: opcode, length, channel id, entries' byte length.
+_INDEX_HEAD = struct.Struct("<BQHI")
+_INDEX_PAIR = struct.Struct("<QQ")
+INDEX_PAIR_SIZE = _INDEX_PAIR.size
+
+Framer = Callable[[bytearray, dict[int, bytearray]], tuple[int, int, int]]
+"""Appends whole Message records to an open chunk and each one's packed (log time, offset) pair
+to ``index[channel id]``; returns (messages, smallest log time, largest log time)."""
 
 
-def _message_index(channel_id: int, entries: list[tuple[int, int]]) -> bytes:
-    """A MessageIndex record: channel id, then (log time, offset in chunk) pairs."""
-    flat = list(itertools.chain.from_iterable(entries))
-    body = struct.pack(f"<HI{len(flat)}Q", channel_id, 8 * len(flat), *flat)
-    return struct.pack("<BQ", Opcode.MESSAGE_INDEX, len(body)) + body
+def _message_index(channel_id: int, pairs: bytearray) -> bytes:
+    """A MessageIndex record: channel id, then its packed (log time, offset in chunk) pairs."""
+    return _INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 6 + len(pairs), channel_id, len(pairs)) + pairs
 
 
 def _compressor(name: str) -> Callable[[bytearray], bytes]:
@@ -101,14 +105,12 @@ class McapFileWriter:
         stream: Writable binary stream positioned at its start.
         chunk_size: Finish a chunk once its uncompressed records reach this many bytes.
         compression: ``"lz4"``, ``"zstd"`` or ``""`` for none.
-        native: Frame :meth:`add_messages` batches in C where it is built (False: in Python).
 
     Raises:
         Invalid: unknown compression.
     """
 
-    def __init__(self, stream: BinaryIO, *, chunk_size: int, compression: str, native: bool = True) -> None:
-        self._native = native
+    def __init__(self, stream: BinaryIO, *, chunk_size: int, compression: str) -> None:
         self._stream = stream
         self._chunk_size = chunk_size
         self._compression = compression
@@ -126,7 +128,8 @@ class McapFileWriter:
 
     def _new_chunk(self) -> None:
         self._chunk = bytearray()
-        self._index: dict[int, list[tuple[int, int]]] = {}
+        # channel id -> its messages' packed (log time, offset in chunk) pairs, in order
+        self._index: dict[int, bytearray] = {}
         self._chunk_messages = 0
         self._chunk_start = 0
         self._chunk_end = 0
@@ -168,41 +171,45 @@ class McapFileWriter:
         return channel.id
 
     def add_message(self, channel_id: int, log_time: int, publish_time: int, sequence: int, data: bytes) -> None:
-        """Append one message to the open chunk (the hot path)."""
-        chunk = self._chunk
-        index = self._index.get(channel_id)
-        if index is None:
-            index = self._index[channel_id] = []
-        index.append((log_time, len(chunk)))
-        chunk += _MESSAGE.pack(Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id, sequence, log_time, publish_time)
-        chunk += data
-        if self._chunk_messages == 0:
-            self._chunk_start = self._chunk_end = log_time
-        elif log_time > self._chunk_end:
-            self._chunk_end = log_time
-        elif log_time < self._chunk_start:
-            self._chunk_start = log_time
-        self._chunk_messages += 1
-        if len(chunk) >= self._chunk_size:
-            self.finish_chunk()
+        """Append one message to the open chunk."""
+        self._frame(channel_id, log_time, publish_time, sequence, data)
+        self._finish_if_full()
 
     def add_messages(self, messages: list[tuple[int, int, int, bytes]]) -> None:
         """:meth:`add_message` for each ``(channel id, log time, sequence, payload)`` in order,
-        publish time = log time; one C call per chunk where the C part is built."""
-        if _native is None or not self._native:
-            for channel_id, log_time, sequence, data in messages:
-                self.add_message(channel_id, log_time, log_time, sequence, data)
-            return
-        while messages:
-            framed, first, last = _native.frame_messages(self._chunk, self._index, messages, self._chunk_size)
-            if self._chunk_messages == 0:
-                self._chunk_start, self._chunk_end = first, last
-            else:
-                self._chunk_start, self._chunk_end = min(self._chunk_start, first), max(self._chunk_end, last)
-            self._chunk_messages += framed
-            if len(self._chunk) >= self._chunk_size:
-                self.finish_chunk()
-            messages = messages[framed:]
+        publish time = log time, in one chunk (finished after the last if it is full)."""
+        for channel_id, log_time, sequence, data in messages:
+            self._frame(channel_id, log_time, log_time, sequence, data)
+        self._finish_if_full()
+
+    def add_framed(self, frame: Framer) -> None:
+        """Let ``frame`` append messages to the open chunk and its index (see :data:`Framer`), as
+        :meth:`add_messages` would; then finish the chunk if it is full."""
+        count, first, last = frame(self._chunk, self._index)
+        if count:
+            self._note_times(count, first, last)
+        self._finish_if_full()
+
+    def _frame(self, channel_id: int, log_time: int, publish_time: int, sequence: int, data: bytes) -> None:
+        chunk = self._chunk
+        pairs = self._index.get(channel_id)
+        if pairs is None:
+            pairs = self._index[channel_id] = bytearray()
+        pairs += _INDEX_PAIR.pack(log_time, len(chunk))
+        chunk += _MESSAGE.pack(Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id, sequence, log_time, publish_time)
+        chunk += data
+        self._note_times(1, log_time, log_time)
+
+    def _note_times(self, count: int, first: int, last: int) -> None:
+        if self._chunk_messages == 0:
+            self._chunk_start, self._chunk_end = first, last
+        else:
+            self._chunk_start, self._chunk_end = min(self._chunk_start, first), max(self._chunk_end, last)
+        self._chunk_messages += count
+
+    def _finish_if_full(self) -> None:
+        if len(self._chunk) >= self._chunk_size:
+            self.finish_chunk()
 
     # -- chunks --------------------------------------------------------------------------------
 
@@ -230,10 +237,10 @@ class McapFileWriter:
         chunk_length = self.position - chunk_start
         index_offsets: dict[int, int] = {}
         index_start = self.position
-        for channel_id, entries in self._index.items():
+        for channel_id, pairs in self._index.items():
             index_offsets[channel_id] = self.position
-            self._emit(_message_index(channel_id, entries))
-            self._channel_counts[channel_id] = self._channel_counts.get(channel_id, 0) + len(entries)
+            self._emit(_message_index(channel_id, pairs))
+            self._channel_counts[channel_id] = self._channel_counts.get(channel_id, 0) + len(pairs) // INDEX_PAIR_SIZE
         self._chunk_indexes.append(
             ChunkIndex(
                 message_start_time=self._chunk_start,

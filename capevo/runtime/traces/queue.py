@@ -16,6 +16,10 @@ Invariants:
 4. While ``closed`` is set, an append keeps nothing and calls ``refuse(method)``, which raises.
 5. A row that is not a tuple of its length is passed to ``check_row(row, length, method)``,
    which raises, and is not kept.
+6. ``wait_due(interval_ns, grace_ns)`` returns True once entries are kept or ``dirty`` is set and
+   the monotonic clock is at or past ``flushed_ns + interval_ns + grace_ns``, False once ``stop()``
+   was called; the C queue waits without the GIL (the writer's flush thread: in a busy loop its
+   wakes find the writer flushed and never take the GIL).
 """
 
 from __future__ import annotations
@@ -34,6 +38,8 @@ Entry = tuple[int, Callable[[Any], bytes] | None, Any, int]
 class Queue(Protocol):
     closed: bool
     deadline_ns: int
+    flushed_ns: int
+    dirty: bool
 
     def step(self, row: Any) -> None: ...
 
@@ -42,6 +48,10 @@ class Queue(Protocol):
     def record(self, channel: int, encode: Callable[[Any], bytes], record: Any, method: str) -> None: ...
 
     def take(self) -> list[Entry]: ...
+
+    def wait_due(self, interval_ns: int, grace_ns: int) -> bool: ...
+
+    def stop(self) -> None: ...
 
     def __len__(self) -> int: ...
 
@@ -66,6 +76,10 @@ class PythonQueue:
         self._on_full, self._refuse, self._check_row = on_full, refuse, check_row
         self.closed = False
         self.deadline_ns = 0
+        self.flushed_ns = 0
+        self.dirty = False
+        self._stopping = False
+        self._wake = threading.Condition(threading.Lock())
 
     def _keep(self, channel: int, encode: Callable[[Any], bytes] | None, item: Any, method: str) -> None:
         if self.closed:
@@ -96,6 +110,26 @@ class PythonQueue:
         with self._lock:
             taken, self._entries = self._entries, []
         return taken
+
+    def wait_due(self, interval_ns: int, grace_ns: int) -> bool:
+        if interval_ns <= 0 or grace_ns < 0:
+            raise ValueError("interval_ns must be positive and grace_ns not negative")
+        with self._wake:
+            while not self._stopping:
+                now = time.monotonic_ns()
+                if self._entries or self.dirty:
+                    at = self.flushed_ns + interval_ns + grace_ns
+                    if now >= at:
+                        return True
+                else:
+                    at = now + interval_ns  # nothing waits: look again an interval on
+                self._wake.wait((at - now) / 1e9)
+            return False
+
+    def stop(self) -> None:
+        with self._wake:
+            self._stopping = True
+            self._wake.notify_all()
 
     def __len__(self) -> int:
         return len(self._entries)

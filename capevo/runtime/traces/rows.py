@@ -10,14 +10,22 @@ batches, warm, and only what reads a trace back ever sees a record.
 A row holds its fields in the record's field order, except that an env step row ends with the
 arms of the robot state (anything with ``eef_pos`` and ``eef_force`` vectors) instead of the
 key state built from them; :func:`key_state_of` builds it, wherever a record is needed. An
-invocation row's input may also be ``bytes`` of packed native float32 values, what
-:func:`input_state_of` makes in one C call; its record holds them as a read-only array.
+invocation row's input is given one of three ways, its record's ``input_state`` in each case a
+read-only float32 array or the vector itself:
+
+- the step's flat observation and ``input_index``, the positions of the ECM's inputs in it
+  (:func:`observation_index`, once per ECM activation): the input costs the loop nothing, and the
+  encoder prints it from the observation's text, which the env step prints anyway;
+- ``bytes`` of packed native float32 values, what :func:`input_state_of` makes in one C call
+  (``input_index`` None), where the inputs are not all in the flat observation;
+- any vector (``input_index`` None).
 
 Invariants:
 1. ``env_step_of(row)`` is the record the row stands for; its ``key_state`` is
    ``key_state_of(arms)``: ``arm{i}_eef_pos`` and ``arm{i}_eef_force`` for arm ``i``, in order.
-2. ``invocation_of(row)`` is ``EcmInvocation(*row)`` by field order, packed input bytes read
-   as a read-only float32 array.
+2. ``invocation_of(row)`` is ``EcmInvocation`` of the row's fields but ``input_index``, its input
+   ``input_state[list(input_index)]`` as float32 where ``input_index`` is not None, packed input
+   bytes read as a read-only float32 array.
 3. A row is read, never changed; its vectors must not change after the row is handed over
    (the loop passes read-only arrays and tuples).
 """
@@ -63,7 +71,8 @@ InvocationRow: TypeAlias = tuple[
     int,  # step
     str,  # ecm
     int,  # version
-    "FloatVector | bytes",  # input_state (bytes: packed native float32)
+    "FloatVector | bytes",  # input_state, or the observation input_index selects from (bytes: packed float32)
+    "tuple[int, ...] | None",  # input_index
     "tuple[float, ...] | None",  # output
     float,  # duration_s
     Outcome,  # outcome
@@ -71,7 +80,7 @@ InvocationRow: TypeAlias = tuple[
 ]
 
 ENV_STEP_ROW_LEN = 12
-INVOCATION_ROW_LEN = 9
+INVOCATION_ROW_LEN = 10
 
 
 def arm_keys(i: int) -> tuple[str, str]:
@@ -155,10 +164,13 @@ def invocation_of(row: InvocationRow) -> EcmInvocation:
     """The invocation record ``row`` stands for.
 
     Raises:
-        Invalid: packed input bytes whose length is not a whole number of float32 values.
+        Invalid: packed input bytes whose length is not a whole number of float32 values; an
+            ``input_index`` that is not a tuple of positions in the observation.
     """
-    episode, step, ecm, version, input_state, output, duration_s, outcome, error = row
-    if type(input_state) is bytes:
+    episode, step, ecm, version, input_state, input_index, output, duration_s, outcome, error = row
+    if input_index is not None:
+        input_state = select_input(input_state, input_index)
+    elif type(input_state) is bytes:
         if len(input_state) % 4:
             raise Invalid(
                 f"an invocation row's packed input holds {len(input_state)} bytes, not whole float32 values",
@@ -176,3 +188,46 @@ def invocation_of(row: InvocationRow) -> EcmInvocation:
         outcome=outcome,
         error=error,
     )
+
+
+def select_input(observation: Any, input_index: Any) -> np.ndarray:
+    """The float32 values of a flat ``observation`` at the positions ``input_index``, read-only.
+
+    Raises:
+        Invalid: ``input_index`` is not a tuple of ints, each a position in ``observation``.
+    """
+    try:
+        with np.errstate(over="ignore"):  # beyond float32's range: inf, as the codec rounds it
+            values = np.asarray(observation, dtype=np.float32).reshape(-1)
+        if type(input_index) is not tuple or not all(type(i) is int and 0 <= i < len(values) for i in input_index):
+            raise IndexError(f"{input_index!r} holds what is not a position in {len(values)} values")
+    except (TypeError, ValueError, IndexError) as exc:
+        raise Invalid(
+            f"an invocation row's input_index does not select from its observation: {exc}",
+            details={"field": "input_index"},
+        ) from None
+    selected = values[list(input_index)]
+    selected.flags.writeable = False
+    return selected
+
+
+def observation_index(
+    obs: Mapping[str, np.ndarray], flat_keys: Sequence[str], keys: tuple[str, ...]
+) -> tuple[int, ...] | None:
+    """The positions in the flat observation (``obs``'s ``flat_keys``, each flattened, concatenated)
+    of the values :func:`input_state_of` packs for ``keys``; None where one of the keys ``obs`` has
+    is not in the flat observation."""
+    offsets: dict[str, range] = {}
+    at = 0
+    for k in flat_keys:
+        size = int(np.size(obs[k]))
+        offsets[k] = range(at, at + size)
+        at += size
+    index: list[int] = []
+    for k in keys:
+        if k not in obs:
+            continue  # input_state_of leaves it out too
+        if k not in offsets:
+            return None
+        index.extend(offsets[k])
+    return tuple(index)

@@ -16,10 +16,11 @@ one in the open chunk: both reach the OS at the next flush. The runtime's writer
 
 The hot path is C where it is built (``csrc/``, :mod:`capevo.runtime.traces.queue`): the episode
 loop's ``write_env_step_row``/``write_invocation_row`` are the queue's own append (the wall-clock
-stamp, the entry, the batch and deadline checks, one call), and a batch's rows are spliced
-(:meth:`~capevo.runtime.traces.codec.RecordEncoder.rows`) and framed
-(:meth:`~capevo.runtime.traces.mcapfile.McapFileWriter.add_messages`) in one C call each.
-``native=False``, or a source tree nobody built, runs their Python versions: the same file.
+stamp, the entry, the batch and deadline checks, one call), and a batch is encoded and framed
+into the open chunk in one C call (``csrc/frame.c``: rows spliced as
+:meth:`~capevo.runtime.traces.codec.RecordEncoder.rows` splices them, other records through
+their encode functions, no Python object per message). ``native=False``, or a source tree
+nobody built, runs their Python versions: the same file.
 
 Crash safety: a chunk is finished and handed to the OS when it reaches ``chunk_size`` bytes
 and at least every ``flush_interval_s`` seconds while it holds data, checked on every write
@@ -62,7 +63,8 @@ from mcap.writer import LIBRARY_IDENTIFIER
 from capevo.errors import CapevoError, Conflict, Invalid, Unavailable
 from capevo.runtime.traces import codec
 from capevo.runtime.traces.mcapfile import McapFileWriter
-from capevo.runtime.traces.queue import make_queue
+from capevo.runtime.traces.native import NATIVE
+from capevo.runtime.traces.queue import Entry, make_queue
 from capevo.runtime.traces.records import (
     MESSAGE_ENCODING,
     SCHEMA_ENCODING,
@@ -121,8 +123,8 @@ class TraceWriter:
         background_flush: Run the thread that flushes while no writes arrive.
         overwrite: Replace an existing file instead of raising :class:`Conflict`.
         batch: Encode records this many at a time (see the module docstring); 1: each at once.
-        native: Keep records in the C queue and splice rows in C where they are built (False:
-            their Python versions, to compare).
+        native: Keep records in the C queue and encode and frame batches in C where they are
+            built (False: their Python versions, to compare).
 
     Raises:
         Invalid: bad chunk size, interval, compression name or batch.
@@ -169,16 +171,14 @@ class TraceWriter:
         self._error: CapevoError | None = None
         self._messages = 0
         self._flushes = 0
-        self._dirty = False
         self._encoder = codec.RecordEncoder(kernel=native)
+        self._frame_batch = NATIVE.frame_batch if native and NATIVE is not None else None
         self.batch = batch
         # A kept record that failed to encode in the background thread, for the owner's next call.
         self._undelivered: Invalid | None = None
         self._file = self._open(self.path, overwrite)
         try:
-            self._mcap = McapFileWriter(
-                self._file, chunk_size=chunk_size, compression=COMPRESSIONS[compression], native=native
-            )
+            self._mcap = McapFileWriter(self._file, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
             self._mcap.start(profile="", library=_library())
             for name, data in metadata.to_mcap().items():
                 self._mcap.add_metadata(name, data)
@@ -214,7 +214,6 @@ class TraceWriter:
             self._file.close()
             raise Unavailable(f"cannot write trace file {self.path}: {exc.strerror or exc}") from None
         self._flushed_at(time.monotonic())
-        self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         if background_flush:
             self._thread = threading.Thread(target=self._flush_loop, name=f"trace-flush:{self.path.name}", daemon=True)
@@ -251,6 +250,7 @@ class TraceWriter:
 
     def _flushed_at(self, monotonic: float) -> None:
         self._last_flush = monotonic
+        self._queue.flushed_ns = int(monotonic * 1e9)
         self._arm_deadline()
 
     def _arm_deadline(self) -> None:
@@ -279,6 +279,39 @@ class TraceWriter:
         pending = self._queue.take()
         if not pending:
             return
+        native = self._frame_batch is not None
+        failed = self._frame_natively(pending) if native else self._frame_in_python(pending)
+        self._queue.dirty = True
+        if failed is not None:
+            raise failed
+
+    def _frame_natively(self, pending: list[Entry]) -> Invalid | None:
+        framed: list[Any] = []
+
+        def frame(chunk: bytearray, index: dict[int, bytearray]) -> tuple[int, int, int]:
+            count, first, last, failed = self._frame_batch(
+                chunk, index, pending, self._step_channel, self._sequences, self._encoder.name_json, self._payload
+            )
+            framed[:] = (count, failed)
+            return count, first, last
+
+        self._mcap.add_framed(frame)
+        self._messages += framed[0]
+        return framed[1]  # type: ignore[no-any-return]
+
+    def _payload(self, entry: Entry) -> bytes | Invalid:
+        """An entry's payload where the C framer does not splice it: a record's, or a row's
+        through its record (frame.c's fallback); the :class:`Invalid` that drops it."""
+        channel_id, encode, item, _ = entry
+        if encode is None:
+            return self._encoder.record_path(channel_id == self._step_channel, item)
+        try:
+            return encode(item)
+        except Invalid as exc:
+            return exc
+
+    def _frame_in_python(self, pending: list[Entry]) -> Invalid | None:
+        """What the C framer (csrc/frame.c) does, in Python: its specification."""
         sequences = self._sequences
         failed: Invalid | None = None
         step_channel = self._step_channel
@@ -297,12 +330,9 @@ class TraceWriter:
             sequence = sequences[channel_id]
             sequences[channel_id] = (sequence + 1) % _SEQUENCE_MOD
             messages.append((channel_id, now, sequence, payload))
-        if messages:
-            self._mcap.add_messages(messages)
-            self._messages += len(messages)
-            self._dirty = True
-        if failed is not None:
-            raise failed
+        self._mcap.add_messages(messages)
+        self._messages += len(messages)
+        return failed
 
     def _raise_undelivered(self) -> None:
         failed, self._undelivered = self._undelivered, None
@@ -357,7 +387,7 @@ class TraceWriter:
         if fsync:
             os.fsync(self._file.fileno())
         self._flushed_at(time.monotonic())
-        self._dirty = False
+        self._queue.dirty = False
         self._flushes += 1
 
     def flush(self, *, fsync: bool | None = None) -> None:
@@ -383,18 +413,16 @@ class TraceWriter:
             self._raise_undelivered()
 
     def _flush_loop(self) -> None:
-        # Wakes a grace (a quarter of the interval) after each due time, so a busy writer, whose
-        # own writes flush at the deadline, finds it done; while nothing is kept, once an interval.
-        interval = self.flush_interval_s
-        grace = interval / 4
-        wait = grace
-        while not self._stop.wait(wait):
+        # The queue's wait_due sleeps, without the GIL, until a grace (a quarter of the interval)
+        # after the flush is due while records wait: a busy writer, whose own writes flush at the
+        # deadline, is never disturbed; an idle one's last records are flushed here.
+        interval_ns = int(self.flush_interval_s * 1e9)
+        while self._queue.wait_due(interval_ns, interval_ns // 4):
             with self._lock:
                 if self._closed or self._error is not None:
                     return
-                now = time.monotonic()
-                kept = self._dirty or len(self._queue) > 0
-                if kept and now - self._last_flush >= interval:
+                kept = self._queue.dirty or len(self._queue) > 0
+                if kept and time.monotonic() - self._last_flush >= self.flush_interval_s:
                     try:
                         try:
                             self._encode_pending_locked()
@@ -405,8 +433,6 @@ class TraceWriter:
                         # Surfaces on the next write/flush/close of the owning thread.
                         self._fail(Unavailable(f"flushing trace file {self.path} failed: {exc.strerror or exc}"))
                         return
-                    kept = False
-                wait = max(self._last_flush + interval + grace - now, grace) if kept else interval
 
     # -- closing ---------------------------------------------------------------------------
 
@@ -418,7 +444,7 @@ class TraceWriter:
                 and may need :func:`~capevo.runtime.traces.recover`.
             Invalid: a kept record did not encode; it is left out and the file is finished.
         """
-        self._stop.set()
+        self._queue.stop()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join()
         with self._lock:

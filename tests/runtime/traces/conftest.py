@@ -6,7 +6,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from capevo.runtime.traces import codec, mcapfile
+from capevo.runtime.traces import codec, writer
 from capevo.runtime.traces import queue as trace_queue
 
 
@@ -17,7 +17,7 @@ def writer_parts(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch
     if request.param == "python":
         monkeypatch.setattr(trace_queue, "NativeQueue", None)
         monkeypatch.setattr(codec, "_native", None)
-        monkeypatch.setattr(mcapfile, "_native", None)
+        monkeypatch.setattr(writer, "NATIVE", None)
     else:
         assert trace_queue.NativeQueue is not None and codec.rows_kernel_available(), "C parts not built"
     yield request.param

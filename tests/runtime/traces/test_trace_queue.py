@@ -1,4 +1,4 @@
-"""The trace writer's queue (capevo.runtime.traces.queue invariants 1-5), C and Python alike."""
+"""The trace writer's queue (capevo.runtime.traces.queue invariants 1-6), C and Python alike."""
 
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ def make(kind: str, calls: Calls, batch: int = 100) -> Any:
 
 
 STEP = (0, 1, "reach", 1, (), (), 0.0, (), False, False, False, ())
-CALL = (0, 1, "reach", 1, (), None, 0.0, "ok", None)
+CALL = (0, 1, "reach", 1, (), None, None, 0.0, "ok", None)
 
 
 def encode(record: object) -> bytes:
@@ -114,9 +114,9 @@ def test_a_closed_queue_keeps_nothing_and_asks_why(kind: str) -> None:
 @pytest.mark.parametrize("kind", KINDS)
 def test_a_row_of_the_wrong_shape_is_refused_by_check_row(kind: str) -> None:
     q = make(kind, Calls())
-    with pytest.raises(Invalid, match="write_env_step_row takes a tuple of 12 fields, got a tuple of 9"):
+    with pytest.raises(Invalid, match="write_env_step_row takes a tuple of 12 fields, got a tuple of 10"):
         q.step(CALL)
-    with pytest.raises(Invalid, match="write_invocation_row takes a tuple of 9 fields, got a list"):
+    with pytest.raises(Invalid, match="write_invocation_row takes a tuple of 10 fields, got a list"):
         q.call(list(CALL))
     assert len(q) == 0
 
@@ -149,3 +149,67 @@ def test_the_c_queue_needs_its_init() -> None:
         bare.take()
     with pytest.raises(ValueError, match="batch must be positive"):
         trace_queue.NativeQueue(step_channel=1, call_channel=2, batch=0, on_full=print, refuse=print, check_row=print)
+
+
+MS = 1_000_000
+
+
+def in_thread(fn: Any) -> tuple[threading.Thread, list[Any]]:
+    out: list[Any] = []
+    thread = threading.Thread(target=lambda: out.append(fn()))
+    thread.start()
+    return thread, out
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("waiting", ["entry", "dirty chunk"])
+def test_wait_due_returns_true_once_what_waits_is_a_grace_past_due(kind: str, waiting: str) -> None:
+    q = make(kind, Calls())
+    q.flushed_ns = time.monotonic_ns()
+    if waiting == "entry":
+        q.record(1, encode, "plan", "write_plan_step")
+    else:
+        q.dirty = True
+    assert q.wait_due(60 * MS, 20 * MS) is True
+    # Invariant 6: never before the flush is due plus the grace (the monotonic clock cannot lie).
+    assert time.monotonic_ns() >= q.flushed_ns + 80 * MS
+    # Already due: at once, every time, until the writer flushes.
+    assert q.wait_due(60 * MS, 20 * MS) is True
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_wait_due_sleeps_while_nothing_waits_and_stop_ends_it(kind: str) -> None:
+    q = make(kind, Calls())
+    q.flushed_ns = 0  # long ago: anything kept would be due at once
+    thread, out = in_thread(lambda: q.wait_due(20 * MS, 5 * MS))
+    # It looks again every interval and finds nothing; meanwhile this thread runs (no GIL held).
+    spins = 0
+    end = time.monotonic() + 0.15
+    while time.monotonic() < end:
+        spins += 1
+    assert thread.is_alive() and spins > 1000
+    q.stop()
+    thread.join(timeout=10)
+    assert out == [False]
+    assert q.wait_due(20 * MS, 5 * MS) is False  # stopped for good
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_wait_due_notices_what_comes_to_wait_and_a_flush_that_moves_the_due_time(kind: str) -> None:
+    q = make(kind, Calls())
+    q.flushed_ns = time.monotonic_ns()
+    thread, out = in_thread(lambda: q.wait_due(200 * MS, 10 * MS))
+    time.sleep(0.03)
+    q.record(1, encode, "plan", "write_plan_step")  # something waits now
+    time.sleep(0.02)
+    moved = q.flushed_ns = time.monotonic_ns()  # the writer flushed: due again only 210 ms on
+    thread.join(timeout=10)
+    assert out == [True] and time.monotonic_ns() >= moved + 210 * MS
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_wait_due_refuses_a_bad_interval(kind: str) -> None:
+    q = make(kind, Calls())
+    for interval, grace in ((0, 1), (-5, 1), (10, -1)):
+        with pytest.raises(ValueError, match="interval_ns must be positive"):
+            q.wait_due(interval, grace)

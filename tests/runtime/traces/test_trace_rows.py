@@ -49,6 +49,13 @@ def vectors(size: int = 40) -> st.SearchStrategy[Any]:
 
 
 arms = st.builds(lambda p, f: ArmState(eef_pos=p, eef_force=f), vectors(3), vectors(3))
+# Mostly positions in a vector of up to 40 values (the loop's selections from its observation),
+# sometimes past its end, negative or not a tuple of ints: the record path decides those.
+input_indexes = (
+    st.none()
+    | st.lists(st.integers(0, 40), max_size=8).map(tuple)
+    | st.sampled_from([(-1,), (0, 2**70), [0, 1], (True,), (1.5,), "0"])
+)
 arm_lists = st.lists(arms, max_size=2).map(tuple) | st.just((object(),))
 
 
@@ -69,7 +76,8 @@ def batches(draw: st.DrawFn) -> list[tuple[bool, tuple[Any, ...]]]:
             outcome = draw(st.sampled_from(Outcome) | st.sampled_from(["ok", "bogus"]))
             error = draw(st.none() | names)
             output = draw(st.none() | st.just(action))
-            rows.append((False, (*head, draw(shared), output, draw(any_floats), outcome, error)))
+            selects = draw(input_indexes)
+            rows.append((False, (*head, draw(shared), selects, output, draw(any_floats), outcome, error)))
     return rows
 
 
@@ -119,7 +127,7 @@ def test_null_in_a_name_or_error_decodes_alike() -> None:
     obs = np.asarray([0.5, -1.25], dtype=np.float32)
     arm = ArmState(eef_pos=(0.125, 0.25, 0.375), eef_force=(0.0, 0.0, 1.5))  # float32 values
     step = (0, 1, "nullify", 2, obs, (0.25, 0.5), 1.0, obs, False, False, True, (arm,))
-    call = (0, 1, "nullify", 2, obs, (0.25,), 0.001, Outcome.EXCEPTION, "null pointer")
+    call = (0, 1, "nullify", 2, obs, None, (0.25,), 0.001, Outcome.EXCEPTION, "null pointer")
     step_payload, call_payload = codec.RecordEncoder().rows([(True, step), (False, call)])
     assert isinstance(step_payload, bytes) and isinstance(call_payload, bytes)
     assert codec.decode(EnvStep.TOPIC, step_payload) == env_step_of(step)  # type: ignore[arg-type]
@@ -151,7 +159,8 @@ def loop_like_rows(steps: int, arms: int = 1) -> list[tuple[bool, tuple[Any, ...
             ArmState(eef_pos=f32(rng.standard_normal(3)), eef_force=(0.0, 0.0, float(i)))  # type: ignore[arg-type]
             for _ in range(arms)
         )
-        rows.append((False, (0, i, "reach", 1, obs, action, 0.002, Outcome.OK, None)))
+        selects = (3, 4, 5, 40, 41) if i % 2 else None  # the ECM's inputs in the observation, or all of it
+        rows.append((False, (0, i, "reach", 1, obs, selects, action, 0.002, Outcome.OK, None)))
         rows.append((True, (0, i, "reach", 1, obs, action, -0.5 * i, nxt, False, i == steps - 1, False, state)))
         obs = nxt
     return rows
@@ -208,8 +217,8 @@ def test_sinks_reject_a_row_of_the_wrong_shape_at_once(tmp_path: Path) -> None:
                 target.write_env_step_row((0, 1, "reach"))  # type: ignore[arg-type]
             assert exc.value.message == "write_env_step_row takes a tuple of 12 fields, got a tuple of 3"
             with pytest.raises(Invalid) as exc:
-                target.write_invocation_row([0] * 9)  # type: ignore[arg-type]
-            assert exc.value.message == "write_invocation_row takes a tuple of 9 fields, got a list"
+                target.write_invocation_row([0] * 10)  # type: ignore[arg-type]
+            assert exc.value.message == "write_invocation_row takes a tuple of 10 fields, got a list"
     assert w.messages_written == 0
 
 
@@ -242,9 +251,16 @@ def test_input_state_of_is_the_concatenation_of_the_keys_the_observation_has(pac
     got = pack(obs, ("b", "missing", "a"))
     assert (type(got) is bytes) == packed
     want = np.concatenate([obs["b"], obs["a"]], axis=None)
-    call = invocation_of((0, 0, "reach", 1, got, None, 0.0, Outcome.OK, None))
+    call = invocation_of((0, 0, "reach", 1, got, None, None, 0.0, Outcome.OK, None))
     assert isinstance(call.input_state, np.ndarray) and not call.input_state.flags.writeable
     assert call.input_state.tolist() == want.tolist()
+    # The same values, selected from the flat observation by their positions in it.
+    flat = np.concatenate([obs["c"], obs["b"], obs["a"]], axis=None)
+    index = rows_module.observation_index(obs, ("c", "b", "a"), ("b", "missing", "a"))
+    assert index == (1, 2, 3, 4, 5, 6, 7)
+    selected = invocation_of((0, 0, "reach", 1, flat, index, None, 0.0, Outcome.OK, None)).input_state
+    assert selected.tolist() == want.tolist() and not selected.flags.writeable  # type: ignore[union-attr]
+    assert rows_module.observation_index(obs, ("c", "a"), ("b",)) is None  # b is not in the flat observation
     assert pack(obs, ("missing",)) in ((), b"")
     # What is not a float32 array (or not a dict) takes numpy, whatever the build.
     mixed = {"a": np.arange(3, dtype=np.float64), "b": obs["b"]}
@@ -261,12 +277,32 @@ def test_input_state_of_is_the_concatenation_of_the_keys_the_observation_has(pac
 @pytest.mark.parametrize("kernel", [True, False], ids=["c", "python"])
 def test_packed_input_bytes_encode_as_their_array(kernel: bool) -> None:
     values = np.asarray([0.5, -1.25, 3.0], dtype=np.float32)
-    as_bytes = (0, 2, "grasp", 3, values.tobytes(), (0.25,), 0.001, Outcome.OK, None)
-    as_array = (0, 2, "grasp", 3, values, (0.25,), 0.001, Outcome.OK, None)
+    as_bytes = (0, 2, "grasp", 3, values.tobytes(), None, (0.25,), 0.001, Outcome.OK, None)
+    as_array = (0, 2, "grasp", 3, values, None, (0.25,), 0.001, Outcome.OK, None)
     encoder = codec.RecordEncoder(kernel=kernel)
     assert encoder.rows([(False, as_bytes)]) == encoder.rows([(False, as_array)])
-    (bad,) = encoder.rows([(False, (0, 2, "grasp", 3, b"\x00" * 5, None, 0.0, Outcome.OK, None))])
+    (bad,) = encoder.rows([(False, (0, 2, "grasp", 3, b"\x00" * 5, None, None, 0.0, Outcome.OK, None))])
     assert isinstance(bad, Invalid) and "not whole float32 values" in bad.message
+
+
+@pytest.mark.parametrize("kernel", [True, False], ids=["c", "python"])
+def test_an_input_index_encodes_the_values_it_selects(kernel: bool) -> None:
+    obs = np.asarray([0.5, -1.25, 3.0, 1e-7, float("nan")], dtype=np.float32)
+    obs.flags.writeable = False
+    encoder = codec.RecordEncoder(kernel=kernel)
+
+    def call(index: object, inputs: np.ndarray = obs) -> tuple[object, ...]:
+        return (0, 2, "grasp", 3, inputs, index, (0.25,), 0.001, Outcome.OK, None)
+
+    selected = encoder.rows([(False, call((2, 0, 3, 0)))])[0]
+    assert selected == encoder.rows([(False, call(None, obs[[2, 0, 3, 0]]))])[0]
+    assert json.loads(selected)["input_state"] == [3.0, 0.5, 1e-07, 0.5]
+    assert json.loads(encoder.rows([(False, call(()))])[0])["input_state"] == []
+    # A selected NaN is null, as in the record (the record path prints it); the NaN it skips is not read.
+    assert json.loads(encoder.rows([(False, call((4, 1)))])[0])["input_state"] == [None, -1.25]
+    for bad in ((5,), (-1,), (0, True), [0], (0.0,)):
+        (payload,) = encoder.rows([(False, call(bad))])
+        assert isinstance(payload, Invalid) and payload.details["field"] == "input_index"
 
 
 class FreshVectorsArm:

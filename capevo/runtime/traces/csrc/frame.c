@@ -1,11 +1,21 @@
-/* frame_messages: McapFileWriter.add_message (mcapfile.py) for a batch, in one C call.
+/* frame_batch: TraceWriter's batch, from the queue's entries to MCAP Message records, in one C call.
  *
- * frame_messages(chunk, index, messages, limit) appends to the bytearray ``chunk`` one MCAP
- * Message record per (channel id, log time, sequence, payload) of ``messages``, from the first,
- * with publish time = log time, and appends (log time, offset of the record in the chunk) to
- * ``index[channel id]`` (a new list for a new channel). It stops after the message with which the
- * chunk reaches ``limit`` bytes, so the caller finishes the chunk where add_message would, and
- * returns (messages framed, smallest log time, largest log time) of what it framed.
+ * frame_batch(chunk, index, pending, step_channel, sequences, name_of, fallback) takes what
+ * Queue.take() returned, a list of (channel id, encode or None, record or row, wall-clock ns), and
+ * appends to the bytearray ``chunk`` one Message record per entry that encodes, in order, with log
+ * and publish time the entry's time and the sequence ``sequences[channel id]`` (then incremented
+ * modulo 2**32). Rows (encode None; an env step row when the channel is ``step_channel``) are
+ * spliced by rows.c; every other entry, and every row rows.c leaves to the record path, is
+ * ``fallback(entry)``, which returns the payload bytes or the Invalid that drops the entry (no
+ * message, no sequence number). For each message it appends the packed little-endian u64 pair
+ * (log time, offset of the record in the chunk) to the bytearray ``index[channel id]`` (created
+ * for a new channel). Returns (messages framed, smallest log time, largest log time, the first
+ * fallback's Invalid or None).
+ *
+ * An exception while encoding (a fallback that raised, no memory) leaves chunk, index and
+ * sequences as they were. The Python version, its specification, is
+ * TraceWriter._encode_pending_locked with native=False (RecordEncoder.rows_in_python, then
+ * McapFileWriter.add_messages): the tests compare the files byte for byte.
  */
 #include <stdint.h>
 #include <string.h>
@@ -15,83 +25,159 @@
 #define MESSAGE_OPCODE 0x05
 #define MESSAGE_HEAD 31  /* opcode u8, record length u64, channel u16, sequence u32, two times u64 */
 #define MESSAGE_FIXED 22 /* the record length counts what follows it: head minus 9, plus the payload */
+#define INDEX_PAIR 16    /* (log time, offset) */
 
 static void put_le(unsigned char *at, uint64_t value, int bytes) {
     for (int i = 0; i < bytes; i++) at[i] = (unsigned char)(value >> (8 * i));
 }
 
 typedef struct {
-    unsigned long channel, sequence;
+    Py_ssize_t channel; /* index into sequences; -1: the entry was dropped */
     unsigned long long time;
-    PyObject *payload;
-} message;
+    Py_ssize_t at; /* offset of its record in the batch's framed bytes */
+} framed;
 
-static int read_message(PyObject *item, message *m) {
-    if (!PyTuple_CheckExact(item) || PyTuple_GET_SIZE(item) != 4 || !PyBytes_CheckExact(PyTuple_GET_ITEM(item, 3))) {
-        PyErr_SetString(PyExc_TypeError, "a message is (channel id, log time, sequence, payload bytes)");
+static int read_entry(PyObject *entry, Py_ssize_t channels, Py_ssize_t *channel, unsigned long long *time) {
+    if (!PyTuple_CheckExact(entry) || PyTuple_GET_SIZE(entry) != 4) {
+        PyErr_SetString(PyExc_TypeError, "an entry is (channel id, encode or None, record or row, time ns)");
         return -1;
     }
-    m->channel = PyLong_AsUnsignedLong(PyTuple_GET_ITEM(item, 0));
-    m->time = PyLong_AsUnsignedLongLong(PyTuple_GET_ITEM(item, 1));
-    m->sequence = PyLong_AsUnsignedLong(PyTuple_GET_ITEM(item, 2));
+    *channel = PyLong_AsSsize_t(PyTuple_GET_ITEM(entry, 0));
+    if (*channel == -1 && PyErr_Occurred()) return -1;
+    *time = PyLong_AsUnsignedLongLong(PyTuple_GET_ITEM(entry, 3));
     if (PyErr_Occurred()) return -1;
-    if (m->channel > 0xFFFF || m->sequence > 0xFFFFFFFFul) {
-        PyErr_SetString(PyExc_OverflowError, "channel id or sequence out of range");
+    if (*channel < 0 || *channel > 0xFFFF || *channel >= channels) {
+        PyErr_Format(PyExc_ValueError, "channel id %zd has no sequence", *channel);
         return -1;
     }
-    m->payload = PyTuple_GET_ITEM(item, 3);
     return 0;
 }
 
-PyObject *cv_frame_messages(PyObject *self, PyObject *args) {
-    (void)self;
-    PyObject *chunk, *index, *messages;
-    Py_ssize_t limit;
-    if (!PyArg_ParseTuple(args, "O!O!O!n:frame_messages", &PyByteArray_Type, &chunk, &PyDict_Type, &index,
-                          &PyList_Type, &messages, &limit))
-        return NULL;
-    Py_ssize_t n = PyList_GET_SIZE(messages), start = PyByteArray_GET_SIZE(chunk), size = start, count = 0;
-    unsigned long long first = 0, last = 0;
-    message m;
-    /* First pass: how many messages fit before the chunk reaches the limit, and their size. */
-    while (count < n) {
-        if (read_message(PyList_GET_ITEM(messages, count), &m) < 0) return NULL;
-        size += MESSAGE_HEAD + PyBytes_GET_SIZE(m.payload);
-        count++;
-        if (size >= limit) break;
-    }
-    if (PyByteArray_Resize(chunk, size) < 0) return NULL;
-    unsigned char *out = (unsigned char *)PyByteArray_AS_STRING(chunk);
-    Py_ssize_t at = start;
-    for (Py_ssize_t i = 0; i < count; i++) {
-        read_message(PyList_GET_ITEM(messages, i), &m); /* checked in the first pass */
-        Py_ssize_t length = PyBytes_GET_SIZE(m.payload);
-        unsigned char *head = out + at;
-        head[0] = MESSAGE_OPCODE;
-        put_le(head + 1, (uint64_t)(MESSAGE_FIXED + length), 8);
-        put_le(head + 9, m.channel, 2);
-        put_le(head + 11, m.sequence, 4);
-        put_le(head + 15, m.time, 8);
-        put_le(head + 23, m.time, 8);
-        memcpy(head + MESSAGE_HEAD, PyBytes_AS_STRING(m.payload), (size_t)length);
-        PyObject *key = PyTuple_GET_ITEM(PyList_GET_ITEM(messages, i), 0);
-        PyObject *entries = PyDict_GetItemWithError(index, key);
-        if (entries == NULL) {
-            if (PyErr_Occurred()) return NULL;
-            entries = PyList_New(0);
-            if (entries == NULL) return NULL;
-            int failed = PyDict_SetItem(index, key, entries);
-            Py_DECREF(entries); /* the dict holds it */
-            if (failed) return NULL;
+/* Append every framed message's index pair to index[channel]: what add_message does per message. */
+static int add_index(PyObject *index, PyObject *pending, const framed *ms, Py_ssize_t n, Py_ssize_t base) {
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (ms[i].channel < 0) continue;
+        PyObject *key = PyTuple_GET_ITEM(PyList_GET_ITEM(pending, i), 0);
+        PyObject *pairs = PyDict_GetItemWithError(index, key);
+        if (pairs == NULL) {
+            if (PyErr_Occurred()) return -1;
+            pairs = PyByteArray_FromStringAndSize(NULL, 0);
+            if (pairs == NULL) return -1;
+            int failed = PyDict_SetItem(index, key, pairs);
+            Py_DECREF(pairs); /* the dict holds it */
+            if (failed) return -1;
         }
-        PyObject *entry = Py_BuildValue("(KK)", m.time, (unsigned long long)at);
-        if (entry == NULL) return NULL;
-        int failed = PyList_Append(entries, entry);
-        Py_DECREF(entry);
-        if (failed) return NULL;
-        if (i == 0 || m.time < first) first = m.time;
-        if (i == 0 || m.time > last) last = m.time;
-        at += MESSAGE_HEAD + length;
+        if (!PyByteArray_Check(pairs)) {
+            PyErr_SetString(PyExc_TypeError, "index values must be bytearrays");
+            return -1;
+        }
+        Py_ssize_t size = PyByteArray_GET_SIZE(pairs);
+        if (PyByteArray_Resize(pairs, size + INDEX_PAIR) < 0) return -1;
+        unsigned char *at = (unsigned char *)PyByteArray_AS_STRING(pairs) + size;
+        put_le(at, ms[i].time, 8);
+        put_le(at + 8, (uint64_t)(base + ms[i].at), 8);
     }
-    return Py_BuildValue("(nKK)", count, first, last);
+    return 0;
+}
+
+PyObject *cv_frame_batch(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *chunk, *index, *pending, *sequences, *name_of, *fallback;
+    Py_ssize_t step_channel;
+    if (!PyArg_ParseTuple(args, "O!O!O!nO!OO:frame_batch", &PyByteArray_Type, &chunk, &PyDict_Type, &index,
+                          &PyList_Type, &pending, &step_channel, &PyList_Type, &sequences, &name_of, &fallback))
+        return NULL;
+    Py_ssize_t n = PyList_GET_SIZE(pending), channels = PyList_GET_SIZE(sequences), n_rows = 0, count = 0;
+    PyObject *result = NULL, *failure = NULL, **rows = NULL;
+    char *is_step = NULL;
+    Py_ssize_t *row_of = NULL;
+    unsigned long *seq = NULL;
+    framed *ms = NULL;
+    cv_rows *t = NULL;
+    cv_buffer out = {0};
+    unsigned long long first = 0, last = 0;
+    size_t slots = (size_t)(n ? n : 1);
+    rows = PyMem_Malloc(slots * sizeof(PyObject *));
+    is_step = PyMem_Malloc(slots);
+    row_of = PyMem_Malloc(slots * sizeof(Py_ssize_t));
+    ms = PyMem_Malloc(slots * sizeof(framed));
+    seq = PyMem_Malloc((size_t)(channels ? channels : 1) * sizeof(unsigned long));
+    if (rows == NULL || is_step == NULL || row_of == NULL || ms == NULL || seq == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    for (Py_ssize_t c = 0; c < channels; c++) {
+        seq[c] = PyLong_AsUnsignedLong(PyList_GET_ITEM(sequences, c));
+        if (PyErr_Occurred()) goto done;
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject *entry = PyList_GET_ITEM(pending, i);
+        if (read_entry(entry, channels, &ms[i].channel, &ms[i].time) < 0) goto done;
+        row_of[i] = -1;
+        if (PyTuple_GET_ITEM(entry, 1) == Py_None) {
+            is_step[n_rows] = ms[i].channel == step_channel;
+            rows[n_rows] = PyTuple_GET_ITEM(entry, 2);
+            row_of[i] = n_rows++;
+        }
+    }
+    t = cv_rows_prepare(rows, is_step, n_rows, name_of);
+    if (t == NULL) goto done;
+    static const char head[MESSAGE_HEAD] = {0};
+    for (Py_ssize_t i = 0; i < n; i++) {
+        Py_ssize_t at = out.size;
+        if (cv_put(&out, head, MESSAGE_HEAD) < 0) goto done;
+        int spliced = row_of[i] < 0 ? 0 : cv_rows_splice(t, row_of[i], &out);
+        if (spliced < 0) goto done;
+        if (spliced == 0) {
+            PyObject *payload = PyObject_CallOneArg(fallback, PyList_GET_ITEM(pending, i));
+            if (payload == NULL) goto done;
+            int kept = PyBytes_CheckExact(payload) && cv_put(&out, PyBytes_AS_STRING(payload), PyBytes_GET_SIZE(payload)) == 0;
+            if (!kept && PyErr_Occurred()) {
+                Py_DECREF(payload);
+                goto done;
+            }
+            if (!kept) { /* dropped: its Invalid, the first of the batch, goes back to the writer */
+                if (failure == NULL) failure = payload;
+                else Py_DECREF(payload);
+                out.size = at;
+                ms[i].channel = -1;
+                continue;
+            }
+            Py_DECREF(payload);
+        }
+        Py_ssize_t c = ms[i].channel;
+        unsigned char *h = (unsigned char *)out.data + at;
+        h[0] = MESSAGE_OPCODE;
+        put_le(h + 1, (uint64_t)(MESSAGE_FIXED + out.size - at - MESSAGE_HEAD), 8);
+        put_le(h + 9, (uint64_t)c, 2);
+        put_le(h + 11, seq[c], 4);
+        put_le(h + 15, ms[i].time, 8);
+        put_le(h + 23, ms[i].time, 8);
+        seq[c] = (seq[c] + 1) & 0xFFFFFFFFul;
+        ms[i].at = at;
+        if (count == 0 || ms[i].time < first) first = ms[i].time;
+        if (count == 0 || ms[i].time > last) last = ms[i].time;
+        count++;
+    }
+    /* Everything encoded: now the caller's state, the chunk first (an index pair must never point
+     * past it), then the sequences, then the index (which only an allocation can fail). */
+    Py_ssize_t base = PyByteArray_GET_SIZE(chunk);
+    if (PyByteArray_Resize(chunk, base + out.size) < 0) goto done;
+    memcpy(PyByteArray_AS_STRING(chunk) + base, out.data, (size_t)out.size);
+    for (Py_ssize_t c = 0; c < channels; c++) {
+        PyObject *value = PyLong_FromUnsignedLong(seq[c]);
+        if (value == NULL || PyList_SetItem(sequences, c, value) < 0) goto done; /* SetItem steals */
+    }
+    if (add_index(index, pending, ms, n, base) < 0) goto done;
+    result = Py_BuildValue("(nKKO)", count, first, last, failure == NULL ? Py_None : failure);
+done:
+    Py_XDECREF(failure);
+    cv_rows_free(t);
+    PyMem_Free(out.data);
+    PyMem_Free(rows);
+    PyMem_Free(is_step);
+    PyMem_Free(row_of);
+    PyMem_Free(ms);
+    PyMem_Free(seq);
+    return result;
 }

@@ -5,7 +5,9 @@
  *   is full or its flush is due: the episode loop's write calls run between two robosuite steps,
  *   with every cache cold, where each Python-level statement costs far more than it does warm.
  * - encode_rows (rows.c): RecordEncoder.rows's classifying, de-duplicating and splicing.
- * - frame_messages (frame.c): McapFileWriter.add_message for a whole batch.
+ * - frame_batch (frame.c): a batch the queue handed over, encoded (rows spliced by rows.c, the rest
+ *   by the writer's Python callback) and framed into the open MCAP chunk, with no Python object per
+ *   message.
  * - pack_float32 (pack.c): the ECM input of an invocation row, packed without a numpy call.
  *
  * Each has a Python version that is its specification (queue.py, codec.py, mcapfile.py); the tests
@@ -18,8 +20,9 @@ static PyMethodDef methods[] = {
      "configure_rows(dumps, option, float32_array, exact_or_float32, outcomes, error_json, ndarray_type)"},
     {"encode_rows", cv_rows_encode, METH_VARARGS,
      "encode_rows(rows, name_of) -> list of bytes or None (see codec.RecordEncoder.rows)"},
-    {"frame_messages", cv_frame_messages, METH_VARARGS,
-     "frame_messages(chunk, index, messages, limit) -> (framed, first time, last time); see frame.c"},
+    {"frame_batch", cv_frame_batch, METH_VARARGS,
+     "frame_batch(chunk, index, pending, step_channel, sequences, name_of, fallback) -> "
+     "(framed, first time, last time, failure or None); see frame.c"},
     {"configure_pack", cv_configure_pack, METH_O, "configure_pack(fallback): what pack_float32 returns otherwise"},
     {"pack_float32", (PyCFunction)(void (*)(void))cv_pack_float32, METH_FASTCALL,
      "pack_float32(obs, keys) -> the float32 values of obs[k] for k in keys, as bytes; see pack.c"},

@@ -5,8 +5,11 @@
  * RecordEncoder.rows, a list of (is_step, row), and returns a list with, per row, its payload
  * (bytes) or None where the Python path must decide (a field of another type, a vector the
  * helpers reject, a value printed as null). Float text comes from one call of the codec's
- * orjson dumps over every vector of the batch, as in the Python version; this file only
- * classifies, de-duplicates and splices, which is what costs microseconds per row in Python.
+ * orjson dumps over every vector (and scalar) of the batch, as in the Python version; this file
+ * only classifies, de-duplicates and splices, which is what costs microseconds per row in Python.
+ * An invocation's input selected from the observation (input_index) is cut from the
+ * observation's text, element by element. cv_rows_prepare and cv_rows_splice (traces.h) are the
+ * same work for frame.c, which splices into the MCAP chunk instead of into bytes per row.
  *
  * The Python version is the specification: for every input the two give the same bytes where
  * this one gives bytes (tests/runtime/traces/test_trace_rows.py).
@@ -102,15 +105,14 @@ static Py_ssize_t vector_index(batch *b, PyObject *v, int observation) {
     return index;
 }
 
+/* A scalar goes into the list as the float itself (no tuple: one container less per row, and
+ * dumps prints it bare, which split_parts reads). */
 static Py_ssize_t scalar_index(batch *b, PyObject *value) {
     PyObject *f = PyNumber_Float(value);
     if (f == NULL) return -1;
-    PyObject *one = PyTuple_Pack(1, f);
-    Py_DECREF(f);
-    if (one == NULL) return -1;
     Py_ssize_t index = PyList_GET_SIZE(b->vectors);
-    int failed = PyList_Append(b->vectors, one);
-    Py_DECREF(one);
+    int failed = PyList_Append(b->vectors, f);
+    Py_DECREF(f);
     return failed ? -1 : index;
 }
 
@@ -123,6 +125,7 @@ typedef struct {
     long long episode, step, version;
     PyObject *name;       /* bytes, owned */
     PyObject *extra[2];   /* step: unused; call: outcome text (owned), error text (owned) */
+    PyObject *selection;  /* call: input_index, positions in the input vector v[0] (owned), or NULL */
     Py_ssize_t v[4];      /* step: obs, action, reward, next_obs; call: input, duration, output or -1 */
     char flags[3];        /* step: terminated, truncated, is_success */
     Py_ssize_t keys;      /* index of this row's first arm vector in the key list */
@@ -130,6 +133,7 @@ typedef struct {
 } plan;
 
 static void plan_clear(plan *p) {
+    Py_CLEAR(p->selection);
     Py_CLEAR(p->name);
     Py_CLEAR(p->extra[0]);
     Py_CLEAR(p->extra[1]);
@@ -169,7 +173,7 @@ static int index_push(index_list *l, Py_ssize_t value) {
 /* Fill p from row; returns 1 planned, 0 record path (no exception), -1 error to propagate. */
 static int plan_row(batch *b, plan *p, index_list *keys, int is_step, PyObject *row, PyObject *name_of,
                     PyObject **last_ecm, PyObject **last_name) {
-    Py_ssize_t want = is_step ? 12 : 9;
+    Py_ssize_t want = is_step ? 12 : 10;
     if (!PyTuple_CheckExact(row) || PyTuple_GET_SIZE(row) != want) return 0;
     PyObject *const *f = &PyTuple_GET_ITEM(row, 0);
     /* Beyond int64 the record path decides (orjson takes up to uint64, then refuses). */
@@ -216,19 +220,25 @@ static int plan_row(batch *b, plan *p, index_list *keys, int is_step, PyObject *
         if (result == 1) p->kind = PLAN_STEP;
         return result;
     }
-    PyObject *outcome = PyDict_GetItemWithError(g_outcomes, f[7]);
+    /* call: input, input_index, output, duration, outcome, error */
+    PyObject *outcome = PyDict_GetItemWithError(g_outcomes, f[8]);
     if (outcome == NULL) return PyErr_Occurred() ? (recoverable() ? (PyErr_Clear(), 0) : -1) : 0;
     p->extra[0] = Py_NewRef(outcome);
-    if (f[8] == Py_None) {
+    if (f[9] == Py_None) {
         p->extra[1] = NULL;
     } else {
-        p->extra[1] = PyObject_CallOneArg(g_error_json, f[8]);
+        p->extra[1] = PyObject_CallOneArg(g_error_json, f[9]);
         if (p->extra[1] == NULL) return recoverable() ? (PyErr_Clear(), 0) : -1;
         if (!PyBytes_CheckExact(p->extra[1])) return 0;
     }
+    if (f[5] != Py_None) {
+        /* A selection from the observation: only from the loop's own arrays, by a tuple. */
+        if (!PyTuple_CheckExact(f[5]) || !is_float32_vector(f[4])) return 0;
+        p->selection = Py_NewRef(f[5]);
+    }
     Py_ssize_t i = vector_index(b, f[4], 1), out = -1, d = -1;
-    if (i >= 0 && f[5] != Py_None) out = vector_index(b, f[5], 0);
-    if (i >= 0 && (f[5] == Py_None || out >= 0)) d = scalar_index(b, f[6]);
+    if (i >= 0 && f[6] != Py_None) out = vector_index(b, f[6], 0);
+    if (i >= 0 && (f[6] == Py_None || out >= 0)) d = scalar_index(b, f[7]);
     if (d < 0) return recoverable() ? (PyErr_Clear(), 0) : -1;
     p->v[0] = i, p->v[1] = d, p->v[2] = out;
     p->kind = PLAN_CALL;
@@ -237,12 +247,7 @@ static int plan_row(batch *b, plan *p, index_list *keys, int is_step, PyObject *
 
 /* -- splicing ---------------------------------------------------------------------------------- */
 
-typedef struct {
-    char *data;
-    Py_ssize_t size, capacity;
-} buffer;
-
-static int put(buffer *out, const char *data, Py_ssize_t n) {
+int cv_put(cv_buffer *out, const char *data, Py_ssize_t n) {
     if (out->size + n > out->capacity) {
         Py_ssize_t capacity = out->capacity ? out->capacity : 4096;
         while (capacity < out->size + n) capacity *= 2;
@@ -259,15 +264,23 @@ static int put(buffer *out, const char *data, Py_ssize_t n) {
     return 0;
 }
 
+#define put cv_put
 #define PUT_LITERAL(out, s) put((out), (s), (Py_ssize_t)(sizeof(s) - 1))
 
-static int put_int(buffer *out, long long v) {
+/* %lld by hand: snprintf's format parsing was a tenth of a batch's splice (perf). */
+static int put_int(cv_buffer *out, long long v) {
     char digits[24];
-    int n = snprintf(digits, sizeof digits, "%lld", v);
-    return put(out, digits, n);
+    char *end = digits + sizeof digits, *at = end;
+    unsigned long long u = v < 0 ? 0ull - (unsigned long long)v : (unsigned long long)v;
+    do {
+        *--at = (char)('0' + u % 10);
+        u /= 10;
+    } while (u);
+    if (v < 0) *--at = '-';
+    return put(out, at, end - at);
 }
 
-static int put_bytes(buffer *out, PyObject *bytes) {
+static int put_bytes(cv_buffer *out, PyObject *bytes) {
     return put(out, PyBytes_AS_STRING(bytes), PyBytes_GET_SIZE(bytes));
 }
 
@@ -276,13 +289,12 @@ typedef struct {
     Py_ssize_t *start, *length;
 } parts;
 
-static int put_part(buffer *out, const parts *ps, Py_ssize_t i) {
+static int put_part(cv_buffer *out, const parts *ps, Py_ssize_t i) {
     return put(out, ps->text + ps->start[i], ps->length[i]);
 }
 
-static int splice_step(buffer *out, const plan *p, const parts *ps, const Py_ssize_t *keys) {
+static int splice_step(cv_buffer *out, const plan *p, const parts *ps, const Py_ssize_t *keys) {
     static const char *flags[2] = {"false", "true"};
-    char name[48];
     if (PUT_LITERAL(out, "{\"episode\":") || put_int(out, p->episode) || PUT_LITERAL(out, ",\"step\":") ||
         put_int(out, p->step) || PUT_LITERAL(out, ",\"ecm\":") || put_bytes(out, p->name) ||
         PUT_LITERAL(out, ",\"version\":") || put_int(out, p->version) || PUT_LITERAL(out, ",\"obs\":[") ||
@@ -294,17 +306,20 @@ static int splice_step(buffer *out, const plan *p, const parts *ps, const Py_ssi
         put(out, flags[(int)p->flags[2]], p->flags[2] ? 4 : 5) || PUT_LITERAL(out, ",\"key_state\":{"))
         return -1;
     for (Py_ssize_t k = 0; k < p->n_keys; k++) {
-        int n = snprintf(name, sizeof name, "%s\"arm%zd_eef_%s\":[", k ? "," : "", k / 2, k % 2 ? "force" : "pos");
-        if (put(out, name, n) || put_part(out, ps, keys[p->keys + k]) || PUT_LITERAL(out, "]")) return -1;
+        if ((k && PUT_LITERAL(out, ",")) || PUT_LITERAL(out, "\"arm") || put_int(out, k / 2) ||
+            (k % 2 ? PUT_LITERAL(out, "_eef_force\":[") : PUT_LITERAL(out, "_eef_pos\":[")) ||
+            put_part(out, ps, keys[p->keys + k]) || PUT_LITERAL(out, "]"))
+            return -1;
     }
     return PUT_LITERAL(out, "}}");
 }
 
-static int splice_call(buffer *out, const plan *p, const parts *ps) {
+static int splice_call(cv_buffer *out, const plan *p, const parts *ps, const cv_buffer *selected) {
     if (PUT_LITERAL(out, "{\"episode\":") || put_int(out, p->episode) || PUT_LITERAL(out, ",\"step\":") ||
         put_int(out, p->step) || PUT_LITERAL(out, ",\"ecm\":") || put_bytes(out, p->name) ||
         PUT_LITERAL(out, ",\"version\":") || put_int(out, p->version) || PUT_LITERAL(out, ",\"input_state\":[") ||
-        put_part(out, ps, p->v[0]) || PUT_LITERAL(out, "],\"output\":"))
+        (selected ? put(out, selected->data, selected->size) : put_part(out, ps, p->v[0])) ||
+        PUT_LITERAL(out, "],\"output\":"))
         return -1;
     if (p->v[2] < 0 ? PUT_LITERAL(out, "null")
                     : (PUT_LITERAL(out, "[") || put_part(out, ps, p->v[2]) || PUT_LITERAL(out, "]")))
@@ -316,18 +331,30 @@ static int splice_call(buffer *out, const plan *p, const parts *ps) {
     return PUT_LITERAL(out, "}");
 }
 
-/* Cut dumps' "[[..],[..],...]" into the text inside each vector's brackets; -1 if it is not that. */
+/* Cut dumps' "[[..],1.5,[..],...]" into each element's text: inside a vector's brackets, or the
+ * bare number of a scalar; -1 if it is not that. */
 static int split_parts(const char *text, Py_ssize_t size, Py_ssize_t count, parts *ps) {
     Py_ssize_t at = 1;
     for (Py_ssize_t i = 0; i < count; i++) {
-        if (at >= size || text[at] != '[') return -1;
-        const char *close = memchr(text + at + 1, ']', (size_t)(size - at - 1));
-        if (close == NULL) return -1;
-        Py_ssize_t end = close - text;
-        if (end + 1 >= size || text[end + 1] != (i + 1 < count ? ',' : ']')) return -1;
-        ps->start[i] = at + 1;
-        ps->length[i] = end - (at + 1);
-        at = end + 2; /* past "]," or "]]" */
+        if (at >= size) return -1;
+        Py_ssize_t start, end, next;
+        if (text[at] == '[') {
+            const char *close = memchr(text + at + 1, ']', (size_t)(size - at - 1));
+            if (close == NULL) return -1;
+            start = at + 1;
+            end = close - text;
+            next = end + 1;
+        } else {
+            start = at;
+            end = at;
+            while (end < size && text[end] != ',' && text[end] != ']' && text[end] != '[') end++;
+            if (end == start) return -1;
+            next = end;
+        }
+        if (next >= size || text[next] != (i + 1 < count ? ',' : ']')) return -1;
+        ps->start[i] = start;
+        ps->length[i] = end - start;
+        at = next + 1; /* past the ',' or the closing ']' */
     }
     return (count == 0 ? size == 2 : at == size) ? 0 : -1;
 }
@@ -340,7 +367,7 @@ static int part_has_null(const parts *ps, Py_ssize_t i) {
 static int plan_has_null(const plan *p, const parts *ps, const char *null_parts, const Py_ssize_t *keys) {
     if (null_parts == NULL) return 0;
     int used = p->kind == PLAN_STEP ? 4 : (p->v[2] < 0 ? 2 : 3);
-    for (int k = 0; k < used; k++)
+    for (int k = p->selection != NULL; k < used; k++)
         if (null_parts[p->v[k]]) return 1;
     if (p->kind == PLAN_STEP)
         for (Py_ssize_t k = 0; k < p->n_keys; k++)
@@ -349,24 +376,145 @@ static int plan_has_null(const plan *p, const parts *ps, const char *null_parts,
     return 0;
 }
 
-PyObject *cv_rows_encode(PyObject *self, PyObject *args) {
-    (void)self;
-    PyObject *rows, *name_of;
-    if (!PyArg_ParseTuple(args, "O!O:encode_rows", &PyList_Type, &rows, &name_of)) return NULL;
+/* -- a batch's texts: planned rows, the vectors' text, split ------------------------------------ */
+
+struct cv_rows {
+    Py_ssize_t n_rows;
+    plan *plans;
+    index_list keys;
+    batch b;
+    PyObject *text;   /* dumps' bytes */
+    parts ps;
+    char *null_parts; /* per vector: its text holds a null (NULL: none does) */
+};
+
+void cv_rows_free(cv_rows *t) {
+    if (t == NULL) return;
+    if (t->plans != NULL)
+        for (Py_ssize_t r = 0; r < t->n_rows; r++) plan_clear(&t->plans[r]);
+    PyMem_Free(t->plans);
+    PyMem_Free(t->keys.items);
+    PyMem_Free(t->ps.start);
+    PyMem_Free(t->ps.length);
+    PyMem_Free(t->null_parts);
+    PyMem_Free(t->b.observations.entries);
+    PyMem_Free(t->b.runtime.entries);
+    Py_XDECREF(t->b.vectors);
+    Py_XDECREF(t->b.keys);
+    Py_XDECREF(t->text);
+    PyMem_Free(t);
+}
+
+cv_rows *cv_rows_prepare(PyObject *const *rows, const char *is_step, Py_ssize_t n_rows, PyObject *name_of) {
     if (g_dumps == NULL) {
         PyErr_SetString(PyExc_RuntimeError, "_native.configure_rows() was not called");
         return NULL;
     }
+    cv_rows *t = PyMem_Calloc(1, sizeof(cv_rows));
+    if (t == NULL) return (cv_rows *)PyErr_NoMemory();
+    PyObject *last_ecm = NULL, *last_name = NULL;
+    t->n_rows = n_rows;
+    t->plans = PyMem_Calloc((size_t)(n_rows ? n_rows : 1), sizeof(plan));
+    t->b.vectors = PyList_New(0);
+    t->b.keys = PyList_New(0);
+    if (t->plans == NULL || t->b.vectors == NULL || t->b.keys == NULL ||
+        table_init(&t->b.observations, n_rows * 3) < 0 || table_init(&t->b.runtime, n_rows * 5) < 0) {
+        if (!PyErr_Occurred()) PyErr_NoMemory();
+        goto failed;
+    }
+    for (Py_ssize_t r = 0; r < n_rows; r++) {
+        int planned = plan_row(&t->b, &t->plans[r], &t->keys, is_step[r], rows[r], name_of, &last_ecm, &last_name);
+        if (planned < 0) goto failed;
+        if (planned == 0) {
+            plan_clear(&t->plans[r]);
+            t->plans[r].kind = PLAN_RECORD_PATH;
+        }
+    }
+    Py_CLEAR(last_name);
+    /* orjson matches its keyword by the interned name's address: call it as Python would. */
+    PyObject *dumps_args[2] = {t->b.vectors, g_dumps_option};
+    t->text = PyObject_Vectorcall(g_dumps, dumps_args, 1, g_dumps_kwnames);
+    if (t->text == NULL) goto failed;
+    if (!PyBytes_CheckExact(t->text)) {
+        PyErr_SetString(PyExc_TypeError, "dumps must return bytes");
+        goto failed;
+    }
+    Py_ssize_t n_vectors = PyList_GET_SIZE(t->b.vectors), size = PyBytes_GET_SIZE(t->text);
+    t->ps.text = PyBytes_AS_STRING(t->text);
+    t->ps.start = PyMem_Malloc((size_t)(n_vectors ? n_vectors : 1) * sizeof(Py_ssize_t));
+    t->ps.length = PyMem_Malloc((size_t)(n_vectors ? n_vectors : 1) * sizeof(Py_ssize_t));
+    if (t->ps.start == NULL || t->ps.length == NULL) {
+        PyErr_NoMemory();
+        goto failed;
+    }
+    if (split_parts(t->ps.text, size, n_vectors, &t->ps) < 0) {
+        PyErr_SetString(PyExc_RuntimeError, "dumps printed the vectors in an unexpected shape");
+        goto failed;
+    }
+    if (memchr(t->ps.text, 'n', (size_t)size) != NULL) {
+        t->null_parts = PyMem_Malloc((size_t)(n_vectors ? n_vectors : 1));
+        if (t->null_parts == NULL) {
+            PyErr_NoMemory();
+            goto failed;
+        }
+        for (Py_ssize_t i = 0; i < n_vectors; i++) t->null_parts[i] = (char)part_has_null(&t->ps, i);
+    }
+    return t;
+failed:
+    Py_XDECREF(last_name);
+    cv_rows_free(t);
+    return NULL;
+}
+
+/* The text of a selection's values: the elements of vector v's text at the selection's positions,
+ * comma-separated, into out. 1 done; 0 the record path decides (a position that is not an int in
+ * the vector, or a null among the values); -1 error. */
+static int select_text(const cv_rows *t, const plan *p, cv_buffer *out) {
+    const char *text = t->ps.text + t->ps.start[p->v[0]];
+    Py_ssize_t length = t->ps.length[p->v[0]], n = length ? 1 : 0;
+    for (Py_ssize_t k = 0; k < length; k++) n += text[k] == ',';
+    Py_ssize_t *starts = PyMem_Malloc((size_t)(n + 1) * sizeof(Py_ssize_t));
+    if (starts == NULL) return PyErr_NoMemory(), -1;
+    for (Py_ssize_t k = 0, e = 0; k < length; k++)
+        if (k == 0 || text[k - 1] == ',') starts[e++] = k;
+    starts[n] = length + 1; /* element e spans starts[e] .. starts[e + 1] - 1, its comma excluded */
+    int result = 1;
+    for (Py_ssize_t k = 0, count = PyTuple_GET_SIZE(p->selection); k < count && result == 1; k++) {
+        PyObject *position = PyTuple_GET_ITEM(p->selection, k);
+        long long e;
+        if (!exact_int(position, &e) || e < 0 || e >= n) {
+            result = 0;
+            break;
+        }
+        if ((k && PUT_LITERAL(out, ",")) || put(out, text + starts[e], starts[e + 1] - 1 - starts[e])) result = -1;
+    }
+    PyMem_Free(starts);
+    if (result == 1 && out->size && memchr(out->data, 'n', (size_t)out->size) != NULL) result = 0;
+    return result;
+}
+
+int cv_rows_splice(const cv_rows *t, Py_ssize_t r, cv_buffer *out) {
+    const plan *p = &t->plans[r];
+    if (p->kind == PLAN_RECORD_PATH || plan_has_null(p, &t->ps, t->null_parts, t->keys.items)) return 0;
+    if (p->kind == PLAN_STEP) return splice_step(out, p, &t->ps, t->keys.items) ? -1 : 1;
+    if (p->selection == NULL) return splice_call(out, p, &t->ps, NULL) ? -1 : 1;
+    cv_buffer selected = {0};
+    int result = select_text(t, p, &selected);
+    if (result == 1 && splice_call(out, p, &t->ps, &selected)) result = -1;
+    PyMem_Free(selected.data);
+    return result;
+}
+
+PyObject *cv_rows_encode(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *rows, *name_of;
+    if (!PyArg_ParseTuple(args, "O!O:encode_rows", &PyList_Type, &rows, &name_of)) return NULL;
     Py_ssize_t n_rows = PyList_GET_SIZE(rows);
-    PyObject *result = NULL, *text = NULL, *last_ecm = NULL, *last_name = NULL;
-    plan *plans = PyMem_Calloc((size_t)(n_rows ? n_rows : 1), sizeof(plan));
-    index_list keys = {0};
-    buffer out = {0};
-    parts ps = {0};
-    char *null_parts = NULL;
-    batch b = {.vectors = PyList_New(0), .keys = PyList_New(0)};
-    if (plans == NULL || b.vectors == NULL || b.keys == NULL || table_init(&b.observations, n_rows * 3) < 0 ||
-        table_init(&b.runtime, n_rows * 5) < 0) {
+    PyObject *result = NULL, **row = PyMem_Malloc((size_t)(n_rows ? n_rows : 1) * sizeof(PyObject *));
+    char *is_step = PyMem_Malloc((size_t)(n_rows ? n_rows : 1));
+    cv_rows *t = NULL;
+    cv_buffer out = {0};
+    if (row == NULL || is_step == NULL) {
         PyErr_NoMemory();
         goto done;
     }
@@ -376,80 +524,30 @@ PyObject *cv_rows_encode(PyObject *self, PyObject *args) {
             PyErr_SetString(PyExc_TypeError, "encode takes a list of (is_step, row) pairs");
             goto done;
         }
-        int is_step = PyObject_IsTrue(PyTuple_GET_ITEM(item, 0));
-        if (is_step < 0) goto done;
-        int planned = plan_row(&b, &plans[r], &keys, is_step, PyTuple_GET_ITEM(item, 1), name_of, &last_ecm,
-                               &last_name);
-        if (planned < 0) goto done;
-        if (planned == 0) {
-            plan_clear(&plans[r]);
-            plans[r].kind = PLAN_RECORD_PATH;
-        }
+        int truth = PyObject_IsTrue(PyTuple_GET_ITEM(item, 0));
+        if (truth < 0) goto done;
+        is_step[r] = (char)truth;
+        row[r] = PyTuple_GET_ITEM(item, 1);
     }
-    /* orjson matches its keyword by the interned name's address: call it as Python would. */
-    PyObject *dumps_args[2] = {b.vectors, g_dumps_option};
-    text = PyObject_Vectorcall(g_dumps, dumps_args, 1, g_dumps_kwnames);
-    if (text == NULL) goto done;
-    if (!PyBytes_CheckExact(text)) {
-        PyErr_SetString(PyExc_TypeError, "dumps must return bytes");
-        goto done;
-    }
-    Py_ssize_t n_vectors = PyList_GET_SIZE(b.vectors);
-    ps.text = PyBytes_AS_STRING(text);
-    ps.start = PyMem_Malloc((size_t)(n_vectors ? n_vectors : 1) * sizeof(Py_ssize_t));
-    ps.length = PyMem_Malloc((size_t)(n_vectors ? n_vectors : 1) * sizeof(Py_ssize_t));
-    if (ps.start == NULL || ps.length == NULL) {
-        PyErr_NoMemory();
-        goto done;
-    }
-    if (split_parts(ps.text, PyBytes_GET_SIZE(text), n_vectors, &ps) < 0) {
-        PyErr_SetString(PyExc_RuntimeError, "dumps printed the vectors in an unexpected shape");
-        goto done;
-    }
-    if (memchr(ps.text, 'n', (size_t)PyBytes_GET_SIZE(text)) != NULL) {
-        null_parts = PyMem_Malloc((size_t)(n_vectors ? n_vectors : 1));
-        if (null_parts == NULL) {
-            PyErr_NoMemory();
-            goto done;
-        }
-        for (Py_ssize_t i = 0; i < n_vectors; i++) null_parts[i] = (char)part_has_null(&ps, i);
-    }
+    t = cv_rows_prepare(row, is_step, n_rows, name_of);
+    if (t == NULL) goto done;
     result = PyList_New(n_rows);
     if (result == NULL) goto done;
     for (Py_ssize_t r = 0; r < n_rows; r++) {
-        plan *p = &plans[r];
-        PyObject *payload;
-        if (p->kind == PLAN_RECORD_PATH || plan_has_null(p, &ps, null_parts, keys.items)) {
-            payload = Py_NewRef(Py_None);
-        } else {
-            out.size = 0;
-            if ((p->kind == PLAN_STEP ? splice_step(&out, p, &ps, keys.items) : splice_call(&out, p, &ps)) < 0) {
-                Py_CLEAR(result);
-                goto done;
-            }
-            payload = PyBytes_FromStringAndSize(out.data, out.size);
-            if (payload == NULL) {
-                Py_CLEAR(result);
-                goto done;
-            }
+        out.size = 0;
+        int spliced = cv_rows_splice(t, r, &out);
+        PyObject *payload = spliced < 0 ? NULL : spliced ? PyBytes_FromStringAndSize(out.data, out.size) : Py_NewRef(Py_None);
+        if (payload == NULL) {
+            Py_CLEAR(result);
+            goto done;
         }
         PyList_SET_ITEM(result, r, payload);
     }
 done:
-    if (plans != NULL)
-        for (Py_ssize_t r = 0; r < n_rows; r++) plan_clear(&plans[r]);
-    PyMem_Free(plans);
-    PyMem_Free(keys.items);
+    cv_rows_free(t);
     PyMem_Free(out.data);
-    PyMem_Free(ps.start);
-    PyMem_Free(ps.length);
-    PyMem_Free(null_parts);
-    PyMem_Free(b.observations.entries);
-    PyMem_Free(b.runtime.entries);
-    Py_XDECREF(b.vectors);
-    Py_XDECREF(b.keys);
-    Py_XDECREF(text);
-    Py_XDECREF(last_name);
+    PyMem_Free(row);
+    PyMem_Free(is_step);
     return result;
 }
 

@@ -5,13 +5,26 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
-/* rows.c: RecordEncoder.rows's splicer. */
+/* A growing byte buffer (PyMem); cv_put appends, -1 with MemoryError set when it cannot grow. */
+typedef struct {
+    char *data;
+    Py_ssize_t size, capacity;
+} cv_buffer;
+int cv_put(cv_buffer *out, const char *data, Py_ssize_t n);
+
+/* rows.c: RecordEncoder.rows's splicer. A batch's rows are planned and their vectors printed once
+ * (cv_rows_prepare, NULL with an exception set); cv_rows_splice appends row r's payload to out
+ * (1), or leaves it to the row's record path (0), or fails (-1, exception set). */
+typedef struct cv_rows cv_rows;
+cv_rows *cv_rows_prepare(PyObject *const *rows, const char *is_step, Py_ssize_t n_rows, PyObject *name_of);
+int cv_rows_splice(const cv_rows *t, Py_ssize_t r, cv_buffer *out);
+void cv_rows_free(cv_rows *t);
 PyObject *cv_rows_configure(PyObject *self, PyObject *args);
 PyObject *cv_rows_encode(PyObject *self, PyObject *args);
 int cv_rows_init(void);
 
-/* frame.c: McapFileWriter.add_message for a batch. */
-PyObject *cv_frame_messages(PyObject *self, PyObject *args);
+/* frame.c: a batch of the writer's queue encoded and framed into the open MCAP chunk. */
+PyObject *cv_frame_batch(PyObject *self, PyObject *args);
 
 /* pack.c: an ECM's input values as packed float32 bytes. */
 PyObject *cv_configure_pack(PyObject *self, PyObject *fallback);
