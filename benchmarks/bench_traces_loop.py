@@ -13,15 +13,18 @@ machine hits every variant alike:
   is a system call here (about 0.7 µs on the reference VM), so each seed also runs through a
   sink whose methods do nothing, behind the same clock: its figure is the harness's own floor,
   and ``net`` subtracts it.
-- **building**: what the loop does only for traces, outside the write calls: the ECM's input
-  vector (one C call, :func:`capevo.runtime.traces.rows.input_state_of`) and the records it
-  still builds (interventions, and invocations of ECMs that cannot run). The benchmark shadows
+- **building**: what the loop does only for traces, outside the write calls: the records it
+  still builds (interventions, and invocations of ECMs that cannot run) and, where an ECM's
+  inputs are not all in the flat observation, its packed input vector (one C call,
+  :func:`capevo.runtime.traces.rows.input_state_of`; a TaskEnv's ECMs name theirs by position in
+  the observation instead, ``input_index``, which costs the loop nothing). The benchmark shadows
   those names in :mod:`capevo.runtime.episode` with clocked wrappers (the wrapper's argument
   repacking is counted, so this errs high), floor subtracted per call. The row tuples
   themselves are built inline in the loop and are not clocked (1–3 µs each, cold, by a
   one-off: see BENCHMARKS.md).
 - **flush thread**: the CPU time of the writer's background flush thread over the episode
-  (its idle wake-ups included); in a busy loop the write calls find the flush due first.
+  (its wake-ups included, which wait in C without the GIL); in a busy loop the write calls find
+  the flush due first.
 
 Each variant keeps one sink for the whole run, as the runtime worker keeps one writer per
 capability set: the flush thread's start and the file's summary are paid once per file, not

@@ -31,7 +31,7 @@ from __future__ import annotations
 import struct
 import zlib
 from collections.abc import Callable, Mapping
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
@@ -68,9 +68,9 @@ _INDEX_HEAD = struct.Struct("<BQHI")
 _INDEX_PAIR = struct.Struct("<QQ")
 INDEX_PAIR_SIZE = _INDEX_PAIR.size
 
-Framer = Callable[[bytearray, dict[int, bytearray]], tuple[int, int, int]]
+Framer = Callable[[bytearray, dict[int, bytearray]], tuple[Any, ...]]
 """Appends whole Message records to an open chunk and each one's packed (log time, offset) pair
-to ``index[channel id]``; returns (messages, smallest log time, largest log time)."""
+to ``index[channel id]``; returns (messages, smallest log time, largest log time, anything else)."""
 
 
 def _message_index(channel_id: int, pairs: bytearray) -> bytes:
@@ -182,13 +182,16 @@ class McapFileWriter:
             self._frame(channel_id, log_time, log_time, sequence, data)
         self._finish_if_full()
 
-    def add_framed(self, frame: Framer) -> None:
+    def add_framed(self, frame: Framer) -> tuple[Any, ...]:
         """Let ``frame`` append messages to the open chunk and its index (see :data:`Framer`), as
-        :meth:`add_messages` would; then finish the chunk if it is full."""
-        count, first, last = frame(self._chunk, self._index)
+        :meth:`add_messages` would; then finish the chunk if it is full. Returns what ``frame``
+        returned."""
+        framed = frame(self._chunk, self._index)
+        count, first, last = framed[:3]
         if count:
             self._note_times(count, first, last)
         self._finish_if_full()
+        return framed
 
     def _frame(self, channel_id: int, log_time: int, publish_time: int, sequence: int, data: bytes) -> None:
         chunk = self._chunk

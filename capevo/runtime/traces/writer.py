@@ -286,18 +286,13 @@ class TraceWriter:
             raise failed
 
     def _frame_natively(self, pending: list[Entry]) -> Invalid | None:
-        framed: list[Any] = []
+        def frame(chunk: bytearray, index: dict[int, bytearray]) -> tuple[Any, ...]:
+            args = (pending, self._step_channel, self._sequences, self._encoder.name_json, self._payload)
+            return self._frame_batch(chunk, index, *args)  # type: ignore[no-any-return, misc]
 
-        def frame(chunk: bytearray, index: dict[int, bytearray]) -> tuple[int, int, int]:
-            count, first, last, failed = self._frame_batch(
-                chunk, index, pending, self._step_channel, self._sequences, self._encoder.name_json, self._payload
-            )
-            framed[:] = (count, failed)
-            return count, first, last
-
-        self._mcap.add_framed(frame)
-        self._messages += framed[0]
-        return framed[1]  # type: ignore[no-any-return]
+        count, _, _, failed = self._mcap.add_framed(frame)
+        self._messages += count
+        return failed  # type: ignore[no-any-return]
 
     def _payload(self, entry: Entry) -> bytes | Invalid:
         """An entry's payload where the C framer does not splice it: a record's, or a row's
