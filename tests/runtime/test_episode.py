@@ -8,6 +8,7 @@ only at episode boundaries (3), trace counts equal outcome counts (4), the no-pr
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from collections.abc import Iterator
@@ -128,6 +129,33 @@ def test_pick_episode_is_traced_to_mcap_and_read_back(
     assert dict(summary.capability_set) == dict(out.capability_set)
     assert steps[-1].is_success == out.success
     assert set(steps[0].key_state) == {"arm0_eef_pos", "arm0_eef_force"}
+
+
+def test_invocation_inputs_selected_from_the_observation_are_the_packed_inputs(
+    env: TaskEnv, registry: LocalRegistry, policy: DecompositionPolicy, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import capevo.runtime.episode as episode_module
+
+    publish_pick(registry)
+    chosen: list[object] = []
+    select = episode_module._input_index
+
+    def spied(*args: object) -> object:
+        chosen.append(select(*args))  # type: ignore[arg-type]
+        return chosen[-1]
+
+    def invocations() -> list[object]:
+        sink = MemoryTraceSink()
+        with load(registry, env) as caps:
+            run_episode(env, caps, policy, make_governor(env, PHI), sink, seed=3, episode=0)
+        return [dataclasses.replace(r, duration_s=0.0) for r in sink.invocations]  # durations are wall time
+
+    monkeypatch.setattr(episode_module, "_input_index", spied)
+    selected = invocations()
+    assert chosen and all(index is not None for index in chosen)  # a TaskEnv's ECMs select their input
+    monkeypatch.setattr(episode_module, "_input_index", lambda *args: None)  # the loop packs it
+    packed = invocations()
+    assert selected == packed and len(selected) > 10
 
 
 def test_adversarial_ecm_cannot_leave_the_box_with_governance(
