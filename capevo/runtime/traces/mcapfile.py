@@ -66,7 +66,6 @@ _U64 = struct.Struct("<Q")
 # A MessageIndex record up to its entries: opcode, length, channel id, entries' byte length.
 _INDEX_HEAD = struct.Struct("<BQHI")
 _INDEX_PAIR = struct.Struct("<QQ")
-INDEX_PAIR_SIZE = _INDEX_PAIR.size
 
 Framer = Callable[[bytearray, dict[int, bytearray]], tuple[Any, ...]]
 """Appends whole Message records to an open chunk and each one's packed (log time, offset) pair
@@ -243,7 +242,7 @@ class McapFileWriter:
         for channel_id, pairs in self._index.items():
             index_offsets[channel_id] = self.position
             self._emit(_message_index(channel_id, pairs))
-            self._channel_counts[channel_id] = self._channel_counts.get(channel_id, 0) + len(pairs) // INDEX_PAIR_SIZE
+            self._channel_counts[channel_id] = self._channel_counts.get(channel_id, 0) + len(pairs) // _INDEX_PAIR.size
         self._chunk_indexes.append(
             ChunkIndex(
                 message_start_time=self._chunk_start,
