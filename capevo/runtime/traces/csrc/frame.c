@@ -13,9 +13,9 @@
  * fallback's Invalid or None).
  *
  * An exception while encoding (a fallback that raised, no memory) leaves chunk, index and
- * sequences as they were. The Python version, its specification, is
- * TraceWriter._encode_pending_locked with native=False (RecordEncoder.rows_in_python, then
- * McapFileWriter.add_messages): the tests compare the files byte for byte.
+ * sequences as they were. The Python version, its specification, is TraceWriter._frame_in_python
+ * (RecordEncoder.rows_in_python, then McapFileWriter.add_messages): tests/runtime/traces/
+ * test_trace_frame.py compares chunk, index, sequences and dropped entries of both.
  */
 #include <stdint.h>
 #include <string.h>
