@@ -305,6 +305,27 @@ def test_an_input_index_encodes_the_values_it_selects(kernel: bool) -> None:
         assert isinstance(payload, Invalid) and payload.details["field"] == "input_index"
 
 
+@pytest.mark.skipif(not codec.rows_kernel_available(), reason="C splicer not built")
+@given(
+    values=st.lists(
+        st.floats(width=32, allow_nan=False, allow_infinity=False) | st.sampled_from([-0.0, -1e-7, -123456.0]),
+        max_size=600,
+    ),
+    picks=st.lists(st.integers(0, 10**6), max_size=40),
+)
+def test_a_selection_from_a_vector_of_any_length_is_cut_as_in_python(values: list[float], picks: list[int]) -> None:
+    # Vectors past the C splicer's 255-element stack buffer and every alignment of their commas
+    # (it scans eight bytes at a time); '-' after a comma is where a borrowing zero-byte test errs.
+    obs = np.asarray(values, dtype=np.float32)
+    obs.flags.writeable = False
+    index = tuple(p % len(values) for p in picks) if values else ()
+    row = (0, 2, "grasp", 3, obs, index, (0.25,), 0.001, Outcome.OK, None)
+    spliced = codec.RecordEncoder(kernel=True).rows([(False, row)])[0]
+    assert spliced == codec.RecordEncoder(kernel=False).rows([(False, row)])[0]
+    # the shortest text that names each float32 (read back as float32)
+    assert np.array_equal(np.asarray(json.loads(spliced)["input_state"], dtype=np.float32), obs[list(index)])
+
+
 class FreshVectorsArm:
     """An arm whose vectors are properties making a new tuple per read, of ints (so the codec
     converts each): what a batch keys by identity is freed at once unless the batch holds it."""
