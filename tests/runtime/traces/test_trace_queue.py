@@ -142,6 +142,74 @@ def test_appends_and_takes_from_two_threads_lose_and_duplicate_nothing(kind: str
     assert [item for _, _, item, _ in taken] == list(range(n))
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_entries_past_any_initial_capacity_keep_their_order_and_kinds(kind: str) -> None:
+    q = make(kind, Calls(), batch=10**9)
+    kinds = [i % 3 for i in range(1000)]
+    for i, k in enumerate(kinds):
+        if k == 0:
+            q.step(STEP)
+        elif k == 1:
+            q.call(CALL)
+        else:
+            q.record(1, encode, i, "write_plan_step")
+    assert len(q) == 1000
+    want = [(4, None, STEP), (2, None, CALL)]
+    assert [(c, e, item) for c, e, item, _ in q.take()] == [
+        want[k] if k < 2 else (1, encode, i) for i, k in enumerate(kinds)
+    ]
+
+
+class AppendsWhenCollected:
+    """A record in a reference cycle that appends to the queue from its finalizer."""
+
+    def __init__(self, q: Any, appended: list[str]) -> None:
+        self.q, self.appended, self.me = q, appended, self
+
+    def __del__(self) -> None:
+        self.q.record(1, encode, "from a finalizer", "write_plan_step")
+        self.appended.append("from a finalizer")
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_kept_cycle_is_collected_after_take_and_what_its_finalizer_appends_is_kept(kind: str) -> None:
+    import gc
+    import weakref
+
+    q = make(kind, Calls(), batch=10**9)
+    appended: list[str] = []
+    record = AppendsWhenCollected(q, appended)
+    alive = weakref.ref(record)
+    q.record(1, encode, record, "write_plan_step")
+    del record
+    gc.collect()
+    assert alive() is not None  # the queue holds it (and tells the collector so)
+    (entry,) = q.take()
+    del entry
+    gc.collect()
+    assert alive() is None and appended == ["from a finalizer"]
+    assert [item for _, _, item, _ in q.take()] == ["from a finalizer"]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_cycle_through_kept_entries_is_collected(kind: str) -> None:
+    import gc
+    import weakref
+
+    class Holder:
+        q: Any = None
+
+    holder = Holder()
+    q = make(kind, Calls(), batch=10**9)
+    holder.q = q
+    q.record(1, encode, holder, "write_plan_step")
+    q.step((*STEP[:-1], (holder,)))
+    alive = weakref.ref(holder)
+    del holder, q
+    gc.collect()
+    assert alive() is None
+
+
 def test_the_c_queue_needs_its_init() -> None:
     assert trace_queue.NativeQueue is not None
     bare = trace_queue.NativeQueue.__new__(trace_queue.NativeQueue)

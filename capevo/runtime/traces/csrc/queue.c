@@ -31,16 +31,29 @@
 #include <pthread.h>
 #include <time.h>
 
+/* A kept entry, without a Python object of its own: an append in the episode loop, cold, paid
+ * for a tuple and an int per entry (allocation, the GC's young count); take() builds them in
+ * the flush, warm. A row's channel is the queue's, its encode None, so neither is kept (two
+ * reference counts less to write per append); a record's are owned. */
+enum { KEPT_RECORD, KEPT_STEP, KEPT_CALL };
+
+typedef struct {
+    PyObject *item, *channel, *encode; /* channel, encode: a record's, NULL for a row */
+    long long time;
+    int kind;
+} kept_entry;
+
 typedef struct {
     PyObject_HEAD
-    PyObject *entries; /* list of (channel id, encode or None, record or row, wall-clock ns) */
+    kept_entry *entries; /* (channel id, encode or None, record or row, wall-clock ns), oldest first */
+    Py_ssize_t capacity; /* 0: __init__ was not called */
     PyObject *step_channel, *call_channel;
     PyObject *on_full, *refuse, *check_row;
     Py_ssize_t batch;
     long long deadline_ns;
     int closed;
     /* Read by wait_due without the GIL: atomics. */
-    Py_ssize_t kept; /* the size of entries */
+    Py_ssize_t kept; /* entries in use */
     long long flushed_ns;
     int dirty, stopping;
     pthread_mutex_t mutex; /* with cond: stop() wakes wait_due */
@@ -58,12 +71,12 @@ static long long clock_ns(clockid_t clock) {
 }
 
 static int initialised(Queue *q) {
-    if (q->entries != NULL) return 1;
+    if (q->capacity > 0) return 1;
     PyErr_SetString(PyExc_RuntimeError, "Queue.__init__ was not called");
     return 0;
 }
 
-static PyObject *keep(Queue *q, PyObject *channel, PyObject *encode, PyObject *item, const char *method) {
+static PyObject *keep(Queue *q, int kind, PyObject *channel, PyObject *encode, PyObject *item, const char *method) {
     if (!initialised(q)) return NULL;
     if (q->closed) {
         PyObject *r = PyObject_CallFunction(q->refuse, "s", method);
@@ -72,21 +85,26 @@ static PyObject *keep(Queue *q, PyObject *channel, PyObject *encode, PyObject *i
         PyErr_Format(PyExc_RuntimeError, "%s: the trace writer is closed", method);
         return NULL;
     }
-    PyObject *now = PyLong_FromLongLong(clock_ns(CLOCK_REALTIME));
-    if (now == NULL) return NULL;
-    PyObject *entry = PyTuple_Pack(4, channel, encode, item, now);
-    Py_DECREF(now);
-    if (entry == NULL) return NULL;
-    int failed = PyList_Append(q->entries, entry);
-    Py_DECREF(entry);
-    if (failed) return NULL;
-    STORE(q->kept, PyList_GET_SIZE(q->entries));
-    if (PyList_GET_SIZE(q->entries) >= q->batch || (q->deadline_ns && clock_ns(CLOCK_MONOTONIC) >= q->deadline_ns))
+    Py_ssize_t n = q->kept;
+    if (n == q->capacity) {
+        kept_entry *grown = PyMem_Realloc(q->entries, (size_t)q->capacity * 2 * sizeof(kept_entry));
+        if (grown == NULL) return PyErr_NoMemory();
+        q->entries = grown;
+        q->capacity *= 2;
+    }
+    kept_entry *e = &q->entries[n];
+    e->item = Py_NewRef(item);
+    e->channel = Py_XNewRef(channel);
+    e->encode = Py_XNewRef(encode);
+    e->time = clock_ns(CLOCK_REALTIME);
+    e->kind = kind;
+    STORE(q->kept, n + 1);
+    if (n + 1 >= q->batch || (q->deadline_ns && clock_ns(CLOCK_MONOTONIC) >= q->deadline_ns))
         return PyObject_CallNoArgs(q->on_full);
     Py_RETURN_NONE;
 }
 
-static PyObject *keep_row(Queue *q, PyObject *row, Py_ssize_t length, PyObject *channel, const char *method) {
+static PyObject *keep_row(Queue *q, PyObject *row, Py_ssize_t length, int kind, const char *method) {
     if (!PyTuple_CheckExact(row) || PyTuple_GET_SIZE(row) != length) {
         PyObject *r = PyObject_CallFunction(q->check_row, "Ons", row, length, method);
         if (r == NULL) return NULL;
@@ -94,15 +112,15 @@ static PyObject *keep_row(Queue *q, PyObject *row, Py_ssize_t length, PyObject *
         PyErr_Format(PyExc_TypeError, "%s takes a tuple of %zd fields", method, length);
         return NULL;
     }
-    return keep(q, channel, Py_None, row, method);
+    return keep(q, kind, NULL, NULL, row, method);
 }
 
 static PyObject *queue_step(Queue *q, PyObject *row) {
-    return keep_row(q, row, 12, q->step_channel, "write_env_step_row");
+    return keep_row(q, row, 12, KEPT_STEP, "write_env_step_row");
 }
 
 static PyObject *queue_call(Queue *q, PyObject *row) {
-    return keep_row(q, row, 10, q->call_channel, "write_invocation_row");
+    return keep_row(q, row, 10, KEPT_CALL, "write_invocation_row");
 }
 
 static PyObject *queue_record(Queue *q, PyObject *const *args, Py_ssize_t nargs) {
@@ -110,17 +128,50 @@ static PyObject *queue_record(Queue *q, PyObject *const *args, Py_ssize_t nargs)
         PyErr_SetString(PyExc_TypeError, "record(channel, encode, record, method) takes 4 arguments");
         return NULL;
     }
-    return keep(q, args[0], args[1], args[2], PyUnicode_AsUTF8(args[3]));
+    const char *method = PyUnicode_AsUTF8(args[3]);
+    if (method == NULL) return NULL;
+    return keep(q, KEPT_RECORD, args[0], args[1], args[2], method);
+}
+
+/* The kept entries, handed over: the queue goes on with a fresh array of the same capacity, so
+ * whatever a garbage collection or a finalizer appends while the caller works is kept for later. */
+static kept_entry *detach(Queue *q, Py_ssize_t *n) {
+    kept_entry *fresh = PyMem_Malloc((size_t)q->capacity * sizeof(kept_entry));
+    if (fresh == NULL) return (kept_entry *)PyErr_NoMemory();
+    kept_entry *taken = q->entries;
+    *n = q->kept;
+    q->entries = fresh;
+    STORE(q->kept, 0);
+    return taken;
+}
+
+static void release(kept_entry *entries, Py_ssize_t n) {
+    for (Py_ssize_t i = 0; i < n; i++) {
+        Py_DECREF(entries[i].item);
+        Py_XDECREF(entries[i].channel);
+        Py_XDECREF(entries[i].encode);
+    }
+    PyMem_Free(entries);
 }
 
 static PyObject *queue_take(Queue *q, PyObject *unused) {
     (void)unused;
     if (!initialised(q)) return NULL;
-    PyObject *fresh = PyList_New(0);
-    if (fresh == NULL) return NULL;
-    PyObject *taken = q->entries;
-    q->entries = fresh;
-    STORE(q->kept, 0);
+    Py_ssize_t n = 0;
+    kept_entry *kept = detach(q, &n);
+    if (kept == NULL) return NULL;
+    /* Out of memory here loses the batch: the writer fails with it either way. */
+    PyObject *taken = PyList_New(n);
+    for (Py_ssize_t i = 0; taken != NULL && i < n; i++) {
+        const kept_entry *e = &kept[i];
+        PyObject *channel = e->kind == KEPT_RECORD ? e->channel : e->kind == KEPT_STEP ? q->step_channel : q->call_channel;
+        PyObject *time = PyLong_FromLongLong(e->time);
+        PyObject *entry = time == NULL ? NULL : PyTuple_Pack(4, channel, e->encode ? e->encode : Py_None, e->item, time);
+        Py_XDECREF(time);
+        if (entry == NULL) Py_CLEAR(taken);
+        else PyList_SET_ITEM(taken, i, entry);
+    }
+    release(kept, n);
     return taken;
 }
 
@@ -166,7 +217,7 @@ static PyObject *queue_stop(Queue *q, PyObject *unused) {
     Py_RETURN_NONE;
 }
 
-static Py_ssize_t queue_len(Queue *q) { return initialised(q) ? PyList_GET_SIZE(q->entries) : -1; }
+static Py_ssize_t queue_len(Queue *q) { return initialised(q) ? q->kept : -1; }
 
 static int queue_init(Queue *q, PyObject *args, PyObject *kwargs) {
     static char *names[] = {"step_channel", "call_channel", "batch", "on_full", "refuse", "check_row", NULL};
@@ -189,10 +240,20 @@ static int queue_init(Queue *q, PyObject *args, PyObject *kwargs) {
         pthread_condattr_destroy(&attr);
         q->sync_ready = 1;
     }
-    PyObject *entries = PyList_New(0);
-    if (entries == NULL) return -1;
-    Py_XSETREF(q->entries, entries);
-    STORE(q->kept, 0);
+    if (q->capacity == 0) {
+        q->entries = PyMem_Malloc(64 * sizeof(kept_entry));
+        if (q->entries == NULL) {
+            PyErr_NoMemory();
+            return -1;
+        }
+        q->capacity = 64;
+        STORE(q->kept, 0);
+    } else {
+        Py_ssize_t n = 0;
+        kept_entry *kept = detach(q, &n);
+        if (kept == NULL) return -1;
+        release(kept, n);
+    }
     STORE(q->flushed_ns, 0);
     STORE(q->dirty, 0);
     q->stopping = 0;
@@ -209,7 +270,11 @@ static int queue_init(Queue *q, PyObject *args, PyObject *kwargs) {
 
 /* The writer holds the queue and the queue holds the writer's bound methods: a cycle for the GC. */
 static int queue_traverse(Queue *q, visitproc visit, void *arg) {
-    Py_VISIT(q->entries);
+    for (Py_ssize_t i = 0; i < q->kept; i++) {
+        Py_VISIT(q->entries[i].item);
+        Py_VISIT(q->entries[i].channel);
+        Py_VISIT(q->entries[i].encode);
+    }
     Py_VISIT(q->on_full);
     Py_VISIT(q->refuse);
     Py_VISIT(q->check_row);
@@ -217,7 +282,14 @@ static int queue_traverse(Queue *q, visitproc visit, void *arg) {
 }
 
 static int queue_clear(Queue *q) {
-    Py_CLEAR(q->entries);
+    if (q->capacity > 0) {
+        kept_entry *kept = q->entries;
+        Py_ssize_t n = q->kept;
+        q->entries = NULL;
+        q->capacity = 0;
+        STORE(q->kept, 0);
+        release(kept, n);
+    }
     Py_CLEAR(q->step_channel);
     Py_CLEAR(q->call_channel);
     Py_CLEAR(q->on_full);
