@@ -326,6 +326,28 @@ def test_a_selection_from_a_vector_of_any_length_is_cut_as_in_python(values: lis
     assert np.array_equal(np.asarray(json.loads(spliced)["input_state"], dtype=np.float32), obs[list(index)])
 
 
+@pytest.mark.skipif(not codec.rows_kernel_available(), reason="C splicer not built")
+def test_the_c_splicer_splices_the_rows_the_episode_loop_hands_it() -> None:
+    # The record path prints the same bytes, so only this tells a row the splicer gave up on
+    # (at tens of µs of Python, cold, per row) from one it spliced.
+    from capevo.runtime.traces import _native
+
+    obs = np.arange(46, dtype=np.float32) / 7
+    obs.flags.writeable = False
+    packed = np.asarray(obs[:5]).tobytes()
+    arm = ArmState(eef_pos=(0.1, 0.2, 0.9), eef_force=(0.0, -1.5, 3.25))
+    rows = [
+        (True, (0, 1, "pick.reach", 0, obs, (0.5, -1.0), 0.1, obs, False, False, False, (arm,))),
+        (False, (0, 1, "pick.reach", 0, obs, tuple(range(21, 30)), (0.5, -1.0), 0.001, Outcome.OK, None)),
+        (False, (0, 1, "pick.reach", 0, packed, None, None, 0.001, Outcome.TIMEOUT, "too slow")),
+        (False, (0, 1, "pick.reach", 0, obs, None, (0.5,), 0.001, Outcome.OK, None)),
+    ]
+    encoder = codec.RecordEncoder(kernel=True)
+    spliced = _native.encode_rows(rows, encoder.name_json)
+    assert all(type(payload) is bytes for payload in spliced)
+    assert spliced == codec.RecordEncoder(kernel=False).rows(rows)
+
+
 class FreshVectorsArm:
     """An arm whose vectors are properties making a new tuple per read, of ints (so the codec
     converts each): what a batch keys by identity is freed at once unless the batch holds it."""

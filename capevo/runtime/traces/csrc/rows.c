@@ -75,10 +75,21 @@ static int recoverable(void) {
            PyErr_ExceptionMatches(PyExc_OverflowError) || PyErr_ExceptionMatches(PyExc_AttributeError);
 }
 
+/* An input_index read once per batch (an ECM's activation hands the same tuple to each of its
+ * calls): its positions, or valid 0 where one is not an int the record path would take. */
+typedef struct {
+    PyObject *index; /* owned */
+    long long *at;
+    Py_ssize_t n;
+    int valid;
+} selection;
+
 typedef struct {
     PyObject *vectors; /* list handed to dumps */
     PyObject *keys;    /* every vector the tables key by address, alive until the batch is done */
     slot_table observations, runtime;
+    selection *selections;
+    Py_ssize_t n_selections, selections_capacity;
 } batch;
 
 /* Index of v's text in the batch, converting it on first sight; -1 with an exception set. */
@@ -125,7 +136,7 @@ typedef struct {
     long long episode, step, version;
     PyObject *name;       /* bytes, owned */
     PyObject *extra[2];   /* step: unused; call: outcome text (owned), error text (owned) */
-    PyObject *selection;  /* call: input_index, positions in the input vector v[0] (owned), or NULL */
+    Py_ssize_t selection; /* call: its input_index in the batch's selections, or -1 (the input is v[0]) */
     Py_ssize_t v[4];      /* step: obs, action, reward, next_obs; call: input, duration, output or -1 */
     char flags[3];        /* step: terminated, truncated, is_success */
     Py_ssize_t keys;      /* index of this row's first arm vector in the key list */
@@ -133,7 +144,7 @@ typedef struct {
 } plan;
 
 static void plan_clear(plan *p) {
-    Py_CLEAR(p->selection);
+    p->selection = -1;
     Py_CLEAR(p->name);
     Py_CLEAR(p->extra[0]);
     Py_CLEAR(p->extra[1]);
@@ -148,6 +159,26 @@ static int exact_int(PyObject *v, long long *out) {
         return 0;
     }
     return 1;
+}
+
+/* The batch's selection for the tuple index (read on first sight), or -1 with an exception set. */
+static Py_ssize_t selection_of(batch *b, PyObject *index) {
+    for (Py_ssize_t s = b->n_selections - 1; s >= 0; s--) /* the latest activation's, most often */
+        if (b->selections[s].index == index) return s;
+    if (b->n_selections == b->selections_capacity) {
+        Py_ssize_t capacity = b->selections_capacity ? b->selections_capacity * 2 : 8;
+        selection *grown = PyMem_Realloc(b->selections, (size_t)capacity * sizeof(selection));
+        if (grown == NULL) return PyErr_NoMemory(), -1;
+        b->selections = grown;
+        b->selections_capacity = capacity;
+    }
+    Py_ssize_t n = PyTuple_GET_SIZE(index);
+    long long *at = PyMem_Malloc((size_t)(n ? n : 1) * sizeof(long long));
+    if (at == NULL) return PyErr_NoMemory(), -1;
+    int valid = 1;
+    for (Py_ssize_t k = 0; k < n && valid; k++) valid = exact_int(PyTuple_GET_ITEM(index, k), &at[k]) && at[k] >= 0;
+    b->selections[b->n_selections] = (selection){Py_NewRef(index), at, n, valid};
+    return b->n_selections++;
 }
 
 typedef struct {
@@ -174,6 +205,7 @@ static int index_push(index_list *l, Py_ssize_t value) {
 static int plan_row(batch *b, plan *p, index_list *keys, int is_step, PyObject *row, PyObject *name_of,
                     PyObject **last_ecm, PyObject **last_name) {
     Py_ssize_t want = is_step ? 12 : 10;
+    p->selection = -1;
     if (!PyTuple_CheckExact(row) || PyTuple_GET_SIZE(row) != want) return 0;
     PyObject *const *f = &PyTuple_GET_ITEM(row, 0);
     /* Beyond int64 the record path decides (orjson takes up to uint64, then refuses). */
@@ -236,7 +268,8 @@ static int plan_row(batch *b, plan *p, index_list *keys, int is_step, PyObject *
         /* A selection from the observation: only from the loop's own arrays (printed as they are,
          * which the step's row found already: no second buffer request), by a tuple. */
         if (!PyTuple_CheckExact(f[5]) || PyList_GET_ITEM(b->vectors, i) != f[4]) return 0;
-        p->selection = Py_NewRef(f[5]);
+        p->selection = selection_of(b, f[5]);
+        if (p->selection < 0) return -1;
     }
     if (i >= 0 && f[6] != Py_None) out = vector_index(b, f[6], 0);
     if (i >= 0 && (f[6] == Py_None || out >= 0)) d = scalar_index(b, f[7]);
@@ -248,18 +281,16 @@ static int plan_row(batch *b, plan *p, index_list *keys, int is_step, PyObject *
 
 /* -- splicing ---------------------------------------------------------------------------------- */
 
-int cv_put(cv_buffer *out, const char *data, Py_ssize_t n) {
-    if (out->size + n > out->capacity) {
-        Py_ssize_t capacity = out->capacity ? out->capacity : 4096;
-        while (capacity < out->size + n) capacity *= 2;
-        char *grown = PyMem_Realloc(out->data, (size_t)capacity);
-        if (grown == NULL) {
-            PyErr_NoMemory();
-            return -1;
-        }
-        out->data = grown;
-        out->capacity = capacity;
+int cv_put_growing(cv_buffer *out, const char *data, Py_ssize_t n) {
+    Py_ssize_t capacity = out->capacity ? out->capacity : 4096;
+    while (capacity < out->size + n) capacity *= 2;
+    char *grown = PyMem_Realloc(out->data, (size_t)capacity);
+    if (grown == NULL) {
+        PyErr_NoMemory();
+        return -1;
     }
+    out->data = grown;
+    out->capacity = capacity;
     memcpy(out->data + out->size, data, (size_t)n);
     out->size += n;
     return 0;
@@ -315,13 +346,17 @@ static int splice_step(cv_buffer *out, const plan *p, const parts *ps, const Py_
     return PUT_LITERAL(out, "}}");
 }
 
-static int splice_call(cv_buffer *out, const plan *p, const parts *ps, const cv_buffer *selected) {
+static int select_text(const batch *b, const plan *p, const parts *ps, cv_buffer *out);
+
+/* 1 spliced, 0 the record path decides (a selection it cannot cut), -1 error. */
+static int splice_call(cv_buffer *out, const plan *p, const parts *ps, const batch *b) {
     if (PUT_LITERAL(out, "{\"episode\":") || put_int(out, p->episode) || PUT_LITERAL(out, ",\"step\":") ||
         put_int(out, p->step) || PUT_LITERAL(out, ",\"ecm\":") || put_bytes(out, p->name) ||
-        PUT_LITERAL(out, ",\"version\":") || put_int(out, p->version) || PUT_LITERAL(out, ",\"input_state\":[") ||
-        (selected ? put(out, selected->data, selected->size) : put_part(out, ps, p->v[0])) ||
-        PUT_LITERAL(out, "],\"output\":"))
+        PUT_LITERAL(out, ",\"version\":") || put_int(out, p->version) || PUT_LITERAL(out, ",\"input_state\":["))
         return -1;
+    int selected = p->selection < 0 ? (put_part(out, ps, p->v[0]) ? -1 : 1) : select_text(b, p, ps, out);
+    if (selected <= 0) return selected;
+    if (PUT_LITERAL(out, "],\"output\":")) return -1;
     if (p->v[2] < 0 ? PUT_LITERAL(out, "null")
                     : (PUT_LITERAL(out, "[") || put_part(out, ps, p->v[2]) || PUT_LITERAL(out, "]")))
         return -1;
@@ -329,7 +364,7 @@ static int splice_call(cv_buffer *out, const plan *p, const parts *ps, const cv_
         put_bytes(out, p->extra[0]) || PUT_LITERAL(out, ",\"error\":"))
         return -1;
     if (p->extra[1] == NULL ? PUT_LITERAL(out, "null") : put_bytes(out, p->extra[1])) return -1;
-    return PUT_LITERAL(out, "}");
+    return PUT_LITERAL(out, "}") ? -1 : 1;
 }
 
 /* Cut dumps' "[[..],1.5,[..],...]" into each element's text: inside a vector's brackets, or the
@@ -368,7 +403,7 @@ static int part_has_null(const parts *ps, Py_ssize_t i) {
 static int plan_has_null(const plan *p, const parts *ps, const char *null_parts, const Py_ssize_t *keys) {
     if (null_parts == NULL) return 0;
     int used = p->kind == PLAN_STEP ? 4 : (p->v[2] < 0 ? 2 : 3);
-    for (int k = p->selection != NULL; k < used; k++)
+    for (int k = p->selection >= 0; k < used; k++)
         if (null_parts[p->v[k]]) return 1;
     if (p->kind == PLAN_STEP)
         for (Py_ssize_t k = 0; k < p->n_keys; k++)
@@ -398,6 +433,11 @@ void cv_rows_free(cv_rows *t) {
     PyMem_Free(t->ps.start);
     PyMem_Free(t->ps.length);
     PyMem_Free(t->null_parts);
+    for (Py_ssize_t s = 0; s < t->b.n_selections; s++) {
+        Py_DECREF(t->b.selections[s].index);
+        PyMem_Free(t->b.selections[s].at);
+    }
+    PyMem_Free(t->b.selections);
     PyMem_Free(t->b.observations.entries);
     PyMem_Free(t->b.runtime.entries);
     Py_XDECREF(t->b.vectors);
@@ -499,12 +539,14 @@ static Py_ssize_t element_starts(const char *text, Py_ssize_t length, Py_ssize_t
     return n;
 }
 
-/* The text of a selection's values: the elements of vector v's text at the selection's positions,
- * comma-separated, into out. 1 done; 0 the record path decides (a position that is not an int in
- * the vector, or a null among the values); -1 error. */
-static int select_text(const cv_rows *t, const plan *p, cv_buffer *out) {
-    const char *text = t->ps.text + t->ps.start[p->v[0]];
-    Py_ssize_t length = t->ps.length[p->v[0]];
+/* The text of a selection's values: the elements of vector v[0]'s text at the selection's positions,
+ * comma-separated, appended to out. 1 done; 0 the record path decides (a position that is not an
+ * int in the vector, or a null among the values); -1 error. */
+static int select_text(const batch *b, const plan *p, const parts *ps, cv_buffer *out) {
+    const selection *s = &b->selections[p->selection];
+    if (!s->valid) return 0;
+    const char *text = ps->text + ps->start[p->v[0]];
+    Py_ssize_t length = ps->length[p->v[0]];
     Py_ssize_t local[256], *starts = local, cap = 255;
     Py_ssize_t n = element_starts(text, length, starts, cap);
     if (n < 0) { /* a long vector: count, then the exact size */
@@ -514,18 +556,15 @@ static int select_text(const cv_rows *t, const plan *p, cv_buffer *out) {
         if (starts == NULL) return PyErr_NoMemory(), -1;
         n = element_starts(text, length, starts, cap);
     }
+    Py_ssize_t mark = out->size;
     int result = 1;
-    for (Py_ssize_t k = 0, count = PyTuple_GET_SIZE(p->selection); k < count && result == 1; k++) {
-        PyObject *position = PyTuple_GET_ITEM(p->selection, k);
-        long long e;
-        if (!exact_int(position, &e) || e < 0 || e >= n) {
-            result = 0;
-            break;
-        }
-        if ((k && PUT_LITERAL(out, ",")) || put(out, text + starts[e], starts[e + 1] - 1 - starts[e])) result = -1;
+    for (Py_ssize_t k = 0; k < s->n && result == 1; k++) {
+        long long e = s->at[k];
+        if (e >= n) result = 0;
+        else if ((k && PUT_LITERAL(out, ",")) || put(out, text + starts[e], starts[e + 1] - 1 - starts[e])) result = -1;
     }
     if (starts != local) PyMem_Free(starts);
-    if (result == 1 && out->size && memchr(out->data, 'n', (size_t)out->size) != NULL) result = 0;
+    if (result == 1 && memchr(out->data + mark, 'n', (size_t)(out->size - mark)) != NULL) result = 0;
     return result;
 }
 
@@ -533,11 +572,9 @@ int cv_rows_splice(const cv_rows *t, Py_ssize_t r, cv_buffer *out) {
     const plan *p = &t->plans[r];
     if (p->kind == PLAN_RECORD_PATH || plan_has_null(p, &t->ps, t->null_parts, t->keys.items)) return 0;
     if (p->kind == PLAN_STEP) return splice_step(out, p, &t->ps, t->keys.items) ? -1 : 1;
-    if (p->selection == NULL) return splice_call(out, p, &t->ps, NULL) ? -1 : 1;
-    cv_buffer selected = {0};
-    int result = select_text(t, p, &selected);
-    if (result == 1 && splice_call(out, p, &t->ps, &selected)) result = -1;
-    PyMem_Free(selected.data);
+    Py_ssize_t mark = out->size;
+    int result = splice_call(out, p, &t->ps, &t->b);
+    if (result == 0) out->size = mark; /* nothing of a row the record path prints */
     return result;
 }
 

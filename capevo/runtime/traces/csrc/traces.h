@@ -5,12 +5,22 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
+#include <string.h>
+
 /* A growing byte buffer (PyMem); cv_put appends, -1 with MemoryError set when it cannot grow. */
 typedef struct {
     char *data;
     Py_ssize_t size, capacity;
 } cv_buffer;
-int cv_put(cv_buffer *out, const char *data, Py_ssize_t n);
+int cv_put_growing(cv_buffer *out, const char *data, Py_ssize_t n);
+
+/* Inline: a row's payload is some forty puts, most of a literal's few bytes. */
+static inline int cv_put(cv_buffer *out, const char *data, Py_ssize_t n) {
+    if (out->size + n > out->capacity) return cv_put_growing(out, data, n);
+    memcpy(out->data + out->size, data, (size_t)n);
+    out->size += n;
+    return 0;
+}
 
 /* rows.c: RecordEncoder.rows's splicer. A batch's rows are planned and their vectors printed once
  * (cv_rows_prepare, NULL with an exception set); cv_rows_splice appends row r's payload to out
