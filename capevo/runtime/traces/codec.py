@@ -186,8 +186,29 @@ def _error_json(error: object) -> bytes:
 
 
 _native = NATIVE  # None in a source tree nobody built: RecordEncoder.rows_in_python does the work
+
+def _array_probes() -> list[np.ndarray]:
+    """Arrays the C splicer reads numpy's array head on at configuration, checking its reading
+    against the buffer protocol's: each way float32 vectors are and are not what it prints as
+    they are (it asks the buffer protocol instead where the two disagree)."""
+    plain = np.arange(6, dtype=_FLOAT32)
+    return [plain, plain[::2], plain.reshape(2, 3), plain.astype(np.float64), plain.astype(">f4"), plain[1:4]]
+
+
+ARRAY_HEAD_READ = False
+"""Whether the C splicer tells float32 vectors by numpy's array head (else by a buffer request)."""
 if _native is not None:
-    _native.configure_rows(orjson.dumps, _NUMPY, float32_array, _exact_or_float32, _OUTCOMES, _error_json, np.ndarray)
+    ARRAY_HEAD_READ = _native.configure_rows(
+        orjson.dumps,
+        _NUMPY,
+        float32_array,
+        _exact_or_float32,
+        _OUTCOMES,
+        _error_json,
+        np.ndarray,
+        np.dtype(_FLOAT32),
+        _array_probes(),
+    )
 
 
 def rows_kernel_available() -> bool:

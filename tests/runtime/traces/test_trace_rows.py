@@ -43,6 +43,10 @@ def vectors(size: int = 40) -> st.SearchStrategy[Any]:
         floats.map(lambda v: float32_array(v).tobytes()),  # packed input (input_state_of)
         st.just(b"\x00" * 6),  # not whole float32 values
         floats.map(lambda v: np.asarray(v, dtype=np.float64)),
+        # float32 arrays the C splicer must not print as they are (it reads numpy's array head)
+        floats.map(lambda v: float32_array(v + v)[::2]),  # strided
+        floats.map(lambda v: float32_array(v).astype(">f4")),  # byte-swapped
+        floats.map(lambda v: float32_array([0.5, *v])[1:]),  # offset into its buffer
         st.lists(st.integers(-5, 5) | any_floats, max_size=8).map(tuple),  # not all floats
         st.just(("x", 1.0)),  # does not encode
     )
@@ -346,6 +350,13 @@ def test_the_c_splicer_splices_the_rows_the_episode_loop_hands_it() -> None:
     spliced = _native.encode_rows(rows, encoder.name_json)
     assert all(type(payload) is bytes for payload in spliced)
     assert spliced == codec.RecordEncoder(kernel=False).rows(rows)
+
+
+@pytest.mark.skipif(not codec.rows_kernel_available(), reason="C splicer not built")
+def test_the_c_splicer_reads_numpys_array_head_here() -> None:
+    # Its probes agreed with the buffer protocol at import; each layout above then splices as the
+    # Python path prints it (the batch property tests).
+    assert codec.ARRAY_HEAD_READ
 
 
 class FreshVectorsArm:

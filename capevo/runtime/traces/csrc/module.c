@@ -17,7 +17,8 @@
 
 static PyMethodDef methods[] = {
     {"configure_rows", cv_rows_configure, METH_VARARGS,
-     "configure_rows(dumps, option, float32_array, exact_or_float32, outcomes, error_json, ndarray_type)"},
+     "configure_rows(dumps, option, float32_array, exact_or_float32, outcomes, error_json, ndarray_type, float32, "
+     "probes) -> whether numpy's array head reads as expected"},
     {"encode_rows", cv_rows_encode, METH_VARARGS,
      "encode_rows(rows, name_of) -> list of bytes or None (see codec.RecordEncoder.rows)"},
     {"frame_batch", cv_frame_batch, METH_VARARGS,

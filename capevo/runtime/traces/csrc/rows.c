@@ -1,7 +1,7 @@
 /* RecordEncoder.rows (codec.py) in one C call.
  *
- * configure_rows(dumps, option, float32_array, exact_or_float32, outcomes, error_json, ndarray)
- * is called once at import with the codec's own helpers. encode_rows(rows, name_of) takes the same batch as
+ * configure_rows(dumps, option, float32_array, exact_or_float32, outcomes, error_json, ndarray, float32,
+ * probes) is called once at import with the codec's own helpers. encode_rows(rows, name_of) takes the same batch as
  * RecordEncoder.rows, a list of (is_step, row), and returns a list with, per row, its payload
  * (bytes) or None where the Python path must decide (a field of another type, a vector the
  * helpers reject, a value printed as null). Float text comes from one call of the codec's
@@ -20,7 +20,22 @@
 #include "traces.h"
 
 static PyObject *g_dumps, *g_dumps_kwnames, *g_dumps_option, *g_float32_array, *g_exact_or_float32, *g_outcomes, *g_error_json;
-static PyObject *s_eef_pos, *s_eef_force, *s_ndarray_type;
+static PyObject *s_eef_pos, *s_eef_force, *s_ndarray_type, *s_float32;
+
+/* The head of numpy's array struct (PyArrayObject_fields, numpy/ndarraytypes.h; the same in numpy
+ * 1.x and 2.x), read without building against numpy's headers. configure_rows checks it on probe
+ * arrays and falls back to the buffer protocol if they disagree: a buffer request was a fifth of
+ * a T6 batch's classifying, cold (numpy builds and caches a format per fresh array). */
+typedef struct {
+    PyObject_HEAD
+    char *data;
+    int nd;
+    Py_ssize_t *dimensions, *strides;
+    PyObject *base, *descr;
+    int flags;
+} array_head;
+#define ARRAY_C_CONTIGUOUS 0x0001 /* NPY_ARRAY_C_CONTIGUOUS */
+static int g_array_head_ok;
 
 /* -- pointer -> vector index, one table per conversion rule ------------------------------------ */
 
@@ -52,6 +67,11 @@ static slot_entry *table_find(slot_table *t, PyObject *key) {
 
 static int is_float32_vector(PyObject *v) {
     if ((PyObject *)Py_TYPE(v) != s_ndarray_type) return 0;
+    if (g_array_head_ok) {
+        const array_head *a = (const array_head *)v;
+        /* numpy's float32 descriptor is a singleton; another (byte-swapped, say) asks the buffer */
+        if (a->descr == s_float32) return a->nd == 1 && (a->flags & ARRAY_C_CONTIGUOUS);
+    }
     Py_buffer view;
     if (PyObject_GetBuffer(v, &view, PyBUF_FORMAT | PyBUF_C_CONTIGUOUS) < 0) {
         PyErr_Clear();
@@ -626,9 +646,10 @@ done:
 
 PyObject *cv_rows_configure(PyObject *self, PyObject *args) {
     (void)self;
-    PyObject *dumps, *option, *float32_array, *exact_or_float32, *outcomes, *error_json, *ndarray_type;
-    if (!PyArg_ParseTuple(args, "OOOOO!OO:configure_rows", &dumps, &option, &float32_array, &exact_or_float32,
-                          &PyDict_Type, &outcomes, &error_json, &ndarray_type))
+    PyObject *dumps, *option, *float32_array, *exact_or_float32, *outcomes, *error_json, *ndarray_type, *float32,
+        *probes;
+    if (!PyArg_ParseTuple(args, "OOOOO!OOOO!:configure_rows", &dumps, &option, &float32_array, &exact_or_float32,
+                          &PyDict_Type, &outcomes, &error_json, &ndarray_type, &float32, &PyList_Type, &probes))
         return NULL;
     PyObject *option_name = PyUnicode_InternFromString("option");
     PyObject *kwnames = option_name == NULL ? NULL : PyTuple_Pack(1, option_name);
@@ -642,7 +663,28 @@ PyObject *cv_rows_configure(PyObject *self, PyObject *args) {
     Py_XSETREF(g_outcomes, Py_NewRef(outcomes));
     Py_XSETREF(g_error_json, Py_NewRef(error_json));
     Py_XSETREF(s_ndarray_type, Py_NewRef(ndarray_type));
-    Py_RETURN_NONE;
+    Py_XSETREF(s_float32, Py_NewRef(float32));
+    /* Each probe classified by the buffer protocol, then by the array head: they must agree, and
+     * the head must name the data and length the buffer does. */
+    Py_ssize_t n_probes = PyList_GET_SIZE(probes);
+    int agree = n_probes > 0;
+    for (Py_ssize_t i = 0; i < n_probes && agree; i++) {
+        PyObject *probe = PyList_GET_ITEM(probes, i);
+        if ((PyObject *)Py_TYPE(probe) != s_ndarray_type) return PyErr_Format(PyExc_TypeError, "probes are arrays");
+        g_array_head_ok = 0;
+        int by_buffer = is_float32_vector(probe);
+        g_array_head_ok = 1;
+        agree = is_float32_vector(probe) == by_buffer;
+        const array_head *a = (const array_head *)probe;
+        if (agree && a->nd == 1) {
+            Py_buffer view;
+            if (PyObject_GetBuffer(probe, &view, PyBUF_STRIDES) < 0) return (g_array_head_ok = 0), NULL;
+            agree = view.buf == a->data && view.shape[0] == a->dimensions[0] && view.strides[0] == a->strides[0];
+            PyBuffer_Release(&view);
+        }
+    }
+    g_array_head_ok = agree;
+    return PyBool_FromLong(agree);
 }
 
 int cv_rows_init(void) {
