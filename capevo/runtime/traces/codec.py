@@ -187,6 +187,7 @@ def _error_json(error: object) -> bytes:
 
 _native = NATIVE  # None in a source tree nobody built: RecordEncoder.rows_in_python does the work
 
+
 def _array_probes() -> list[np.ndarray]:
     """Arrays the C splicer reads numpy's array head on at configuration, checking its reading
     against the buffer protocol's: each way float32 vectors are and are not what it prints as
