@@ -280,18 +280,21 @@ class TraceWriter:
             self._raise_undelivered()
 
     def _encode_pending_locked(self) -> None:
-        pending = self._queue.take()
-        if not pending:
+        if len(self._queue) == 0:
             return
         native = self._frame_batch is not None
-        failed = self._frame_natively(pending) if native else self._frame_in_python(pending)
+        failed = self._frame_natively() if native else self._frame_in_python(self._queue.take())
         self._queue.dirty = True
         if failed is not None:
             raise failed
 
-    def _frame_natively(self, pending: list[Entry]) -> Invalid | None:
+    def _frame_natively(self, pending: list[Entry] | None = None) -> Invalid | None:
+        """Frame ``pending`` (entries as ``take()`` gives them), or the queue's own entries, which
+        the C framer takes itself (``take()`` would build a tuple per entry)."""
+        source = self._queue if pending is None else pending
+
         def frame(chunk: bytearray, index: dict[int, bytearray]) -> tuple[Any, ...]:
-            args = (pending, self._step_channel, self._sequences, self._encoder.name_json, self._payload)
+            args = (source, self._step_channel, self._sequences, self._encoder.name_json, self._payload)
             return self._frame_batch(chunk, index, *args)  # type: ignore[no-any-return, misc]
 
         count, _, _, failed = self._mcap.add_framed(frame)

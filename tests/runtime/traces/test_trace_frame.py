@@ -135,3 +135,46 @@ def test_dropped_entries_take_no_sequence_and_the_first_invalid_is_returned() ->
     assert (count, first, last, failure.message) == (3, 10, 14, "first")
     assert sequences == [0, 8]
     assert len(index[1]) == 3 * 16 and len(chunk) == 3 * (31 + 7)
+
+
+def test_the_c_framer_takes_the_c_queues_entries_as_take_gives_them() -> None:
+    # The writer hands frame_batch its C queue (no tuple per entry): the same chunk, index and
+    # sequences as the list take() gives, at the times the queue stamped, and the queue is empty.
+    import struct
+
+    import numpy as np
+
+    from capevo.runtime.state import ArmState
+    from capevo.runtime.traces import Outcome
+
+    obs = np.arange(46, dtype=np.float32) / 7
+    obs.flags.writeable = False
+    arm = ArmState(eef_pos=(0.1, 0.2, 0.9), eef_force=(0.0, -1.5, 3.25))
+    step = (0, 1, "pick.reach", 0, obs, (0.5, -1.0), 0.1, obs, False, False, False, (arm,))
+    call = (0, 1, "pick.reach", 0, obs, tuple(range(21, 30)), (0.5, -1.0), 0.001, Outcome.OK, None)
+    with open_writer(True) as queued, open_writer(True) as listed:
+        q, channels = queued._queue, queued._channels
+        specs: list[tuple[int, Any, Any]] = []
+        for i in range(40):
+            q.call(call)
+            q.step(step)
+            specs += [(channels[EcmInvocation.TOPIC], None, call), (channels[EnvStep.TOPIC], None, step)]
+            if i % 9 == 0:
+                q.record(channels[PlanStep.TOPIC], queued._encoder.encode, PLAN, "write_plan_step")
+                specs.append((channels[PlanStep.TOPIC], listed._encoder.encode, PLAN))
+        assert queued._frame_natively() is None and len(q) == 0
+        chunk = bytes(queued._mcap._chunk)
+        times, at = [], 0
+        while at < len(chunk):  # each Message record's log time, in order
+            length, log_time = struct.unpack_from("<Q", chunk, at + 1)[0], struct.unpack_from("<Q", chunk, at + 15)[0]
+            times.append(log_time)
+            at += 9 + length
+        assert len(times) == len(specs)
+        assert listed._frame_natively([(*spec, t) for spec, t in zip(specs, times, strict=True)]) is None
+        assert chunk == bytes(listed._mcap._chunk)
+        assert {k: bytes(v) for k, v in queued._mcap._index.items()} == {
+            k: bytes(v) for k, v in listed._mcap._index.items()
+        }
+        assert queued._sequences == listed._sequences
+        for w in (queued, listed):
+            w._mcap._new_chunk()

@@ -1,19 +1,21 @@
 /* frame_batch: TraceWriter's batch, from the queue's entries to MCAP Message records, in one C call.
  *
- * frame_batch(chunk, index, pending, step_channel, sequences, name_of, fallback) takes what
- * Queue.take() returned, a list of (channel id, encode or None, record or row, wall-clock ns), and
+ * frame_batch(chunk, index, pending, step_channel, sequences, name_of, fallback) takes the writer's
+ * C Queue, whose entries it takes (as take() would, without a tuple per entry), or what take()
+ * returned, a list of (channel id, encode or None, record or row, wall-clock ns); it
  * appends to the bytearray ``chunk`` one Message record per entry that encodes, in order, with log
  * and publish time the entry's time and the sequence ``sequences[channel id]`` (then incremented
  * modulo 2**32). Rows (encode None; an env step row when the channel is ``step_channel``) are
  * spliced by rows.c; every other entry, and every row rows.c leaves to the record path, is
- * ``fallback(entry)``, which returns the payload bytes or the Invalid that drops the entry (no
+ * ``fallback(entry)`` (the entry as a tuple), which returns the payload bytes or the Invalid that drops the entry (no
  * message, no sequence number). For each message it appends the packed little-endian u64 pair
  * (log time, offset of the record in the chunk) to the bytearray ``index[channel id]`` (created
  * for a new channel). Returns (messages framed, smallest log time, largest log time, the first
  * fallback's Invalid or None).
  *
  * An exception while encoding (a fallback that raised, no memory) leaves chunk, index and
- * sequences as they were. The Python version, its specification, is TraceWriter._frame_in_python
+ * sequences as they were (a Queue's entries are taken either way, as take() and a failed
+ * _frame_in_python would leave them). The Python version, its specification, is TraceWriter._frame_in_python
  * (RecordEncoder.rows_in_python, then McapFileWriter.add_messages): tests/runtime/traces/
  * test_trace_frame.py compares chunk, index, sequences and dropped entries of both.
  */
@@ -31,21 +33,33 @@ static void put_le(unsigned char *at, uint64_t value, int bytes) {
     for (int i = 0; i < bytes; i++) at[i] = (unsigned char)(value >> (8 * i));
 }
 
+/* An entry, wherever it is kept (borrowed references; encode NULL for a row). */
+typedef struct {
+    PyObject *channel, *encode, *item;
+    unsigned long long time;
+} entry_view;
+
 typedef struct {
     Py_ssize_t channel; /* index into sequences; -1: the entry was dropped */
     unsigned long long time;
     Py_ssize_t at; /* offset of its record in the batch's framed bytes */
 } framed;
 
-static int read_entry(PyObject *entry, Py_ssize_t channels, Py_ssize_t *channel, unsigned long long *time) {
+static int read_entry(PyObject *entry, entry_view *v) {
     if (!PyTuple_CheckExact(entry) || PyTuple_GET_SIZE(entry) != 4) {
         PyErr_SetString(PyExc_TypeError, "an entry is (channel id, encode or None, record or row, time ns)");
         return -1;
     }
-    *channel = PyLong_AsSsize_t(PyTuple_GET_ITEM(entry, 0));
+    v->channel = PyTuple_GET_ITEM(entry, 0);
+    v->encode = PyTuple_GET_ITEM(entry, 1) == Py_None ? NULL : PyTuple_GET_ITEM(entry, 1);
+    v->item = PyTuple_GET_ITEM(entry, 2);
+    v->time = PyLong_AsUnsignedLongLong(PyTuple_GET_ITEM(entry, 3));
+    return PyErr_Occurred() ? -1 : 0;
+}
+
+static int channel_index(const entry_view *v, Py_ssize_t channels, Py_ssize_t *channel) {
+    *channel = PyLong_AsSsize_t(v->channel);
     if (*channel == -1 && PyErr_Occurred()) return -1;
-    *time = PyLong_AsUnsignedLongLong(PyTuple_GET_ITEM(entry, 3));
-    if (PyErr_Occurred()) return -1;
     if (*channel < 0 || *channel > 0xFFFF || *channel >= channels) {
         PyErr_Format(PyExc_ValueError, "channel id %zd has no sequence", *channel);
         return -1;
@@ -53,11 +67,21 @@ static int read_entry(PyObject *entry, Py_ssize_t channels, Py_ssize_t *channel,
     return 0;
 }
 
+/* The entry as take() gives it, for the fallback: the list's own tuple, or one built for it. */
+static PyObject *entry_tuple(PyObject *pending, Py_ssize_t i, const entry_view *v) {
+    if (PyList_Check(pending)) return Py_NewRef(PyList_GET_ITEM(pending, i));
+    PyObject *time = PyLong_FromUnsignedLongLong(v->time);
+    if (time == NULL) return NULL;
+    PyObject *entry = PyTuple_Pack(4, v->channel, v->encode ? v->encode : Py_None, v->item, time);
+    Py_DECREF(time);
+    return entry;
+}
+
 /* Append every framed message's index pair to index[channel]: what add_message does per message. */
-static int add_index(PyObject *index, PyObject *pending, const framed *ms, Py_ssize_t n, Py_ssize_t base) {
+static int add_index(PyObject *index, const entry_view *views, const framed *ms, Py_ssize_t n, Py_ssize_t base) {
     for (Py_ssize_t i = 0; i < n; i++) {
         if (ms[i].channel < 0) continue;
-        PyObject *key = PyTuple_GET_ITEM(PyList_GET_ITEM(pending, i), 0);
+        PyObject *key = views[i].channel;
         PyObject *pairs = PyDict_GetItemWithError(index, key);
         if (pairs == NULL) {
             if (PyErr_Occurred()) return -1;
@@ -84,10 +108,19 @@ PyObject *cv_frame_batch(PyObject *self, PyObject *args) {
     (void)self;
     PyObject *chunk, *index, *pending, *sequences, *name_of, *fallback;
     Py_ssize_t step_channel;
-    if (!PyArg_ParseTuple(args, "O!O!O!nO!OO:frame_batch", &PyByteArray_Type, &chunk, &PyDict_Type, &index,
-                          &PyList_Type, &pending, &step_channel, &PyList_Type, &sequences, &name_of, &fallback))
+    if (!PyArg_ParseTuple(args, "O!O!OnO!OO:frame_batch", &PyByteArray_Type, &chunk, &PyDict_Type, &index,
+                          &pending, &step_channel, &PyList_Type, &sequences, &name_of, &fallback))
         return NULL;
-    Py_ssize_t n = PyList_GET_SIZE(pending), channels = PyList_GET_SIZE(sequences), n_rows = 0, count = 0;
+    /* The entries: a Queue's, taken here (released at the end), or a list's. */
+    cv_kept *kept = NULL;
+    Py_ssize_t n = 0;
+    if (PyList_Check(pending)) {
+        n = PyList_GET_SIZE(pending);
+    } else if ((kept = cv_queue_detach(pending, &n)) == NULL) {
+        return NULL;
+    }
+    Py_ssize_t channels = PyList_GET_SIZE(sequences), n_rows = 0, count = 0;
+    entry_view *views = NULL;
     PyObject *result = NULL, *failure = NULL, **rows = NULL;
     char *is_step = NULL;
     Py_ssize_t *row_of = NULL;
@@ -101,8 +134,9 @@ PyObject *cv_frame_batch(PyObject *self, PyObject *args) {
     is_step = PyMem_Malloc(slots);
     row_of = PyMem_Malloc(slots * sizeof(Py_ssize_t));
     ms = PyMem_Malloc(slots * sizeof(framed));
+    views = PyMem_Malloc(slots * sizeof(entry_view));
     seq = PyMem_Malloc((size_t)(channels ? channels : 1) * sizeof(unsigned long));
-    if (rows == NULL || is_step == NULL || row_of == NULL || ms == NULL || seq == NULL) {
+    if (rows == NULL || is_step == NULL || row_of == NULL || ms == NULL || seq == NULL || views == NULL) {
         PyErr_NoMemory();
         goto done;
     }
@@ -111,12 +145,21 @@ PyObject *cv_frame_batch(PyObject *self, PyObject *args) {
         if (PyErr_Occurred()) goto done;
     }
     for (Py_ssize_t i = 0; i < n; i++) {
-        PyObject *entry = PyList_GET_ITEM(pending, i);
-        if (read_entry(entry, channels, &ms[i].channel, &ms[i].time) < 0) goto done;
+        entry_view *v = &views[i];
+        if (kept == NULL) {
+            if (read_entry(PyList_GET_ITEM(pending, i), v) < 0) goto done;
+        } else {
+            v->channel = cv_queue_channel(pending, &kept[i]);
+            v->encode = kept[i].encode == Py_None ? NULL : kept[i].encode;
+            v->item = kept[i].item;
+            v->time = (unsigned long long)kept[i].time;
+        }
+        if (channel_index(v, channels, &ms[i].channel) < 0) goto done;
+        ms[i].time = v->time;
         row_of[i] = -1;
-        if (PyTuple_GET_ITEM(entry, 1) == Py_None) {
+        if (v->encode == NULL) {
             is_step[n_rows] = ms[i].channel == step_channel;
-            rows[n_rows] = PyTuple_GET_ITEM(entry, 2);
+            rows[n_rows] = v->item;
             row_of[i] = n_rows++;
         }
     }
@@ -129,7 +172,9 @@ PyObject *cv_frame_batch(PyObject *self, PyObject *args) {
         int spliced = row_of[i] < 0 ? 0 : cv_rows_splice(t, row_of[i], &out);
         if (spliced < 0) goto done;
         if (spliced == 0) {
-            PyObject *payload = PyObject_CallOneArg(fallback, PyList_GET_ITEM(pending, i));
+            PyObject *entry = entry_tuple(pending, i, &views[i]);
+            PyObject *payload = entry == NULL ? NULL : PyObject_CallOneArg(fallback, entry);
+            Py_XDECREF(entry);
             if (payload == NULL) goto done;
             int kept = PyBytes_CheckExact(payload) && cv_put(&out, PyBytes_AS_STRING(payload), PyBytes_GET_SIZE(payload)) == 0;
             if (!kept && PyErr_Occurred()) {
@@ -168,7 +213,7 @@ PyObject *cv_frame_batch(PyObject *self, PyObject *args) {
         PyObject *value = PyLong_FromUnsignedLong(seq[c]);
         if (value == NULL || PyList_SetItem(sequences, c, value) < 0) goto done; /* SetItem steals */
     }
-    if (add_index(index, pending, ms, n, base) < 0) goto done;
+    if (add_index(index, views, ms, n, base) < 0) goto done;
     result = Py_BuildValue("(nKKO)", count, first, last, failure == NULL ? Py_None : failure);
 done:
     Py_XDECREF(failure);
@@ -179,5 +224,7 @@ done:
     PyMem_Free(row_of);
     PyMem_Free(ms);
     PyMem_Free(seq);
+    PyMem_Free(views);
+    if (kept != NULL) cv_queue_release(kept, n);
     return result;
 }

@@ -40,7 +40,20 @@ PyObject *cv_frame_batch(PyObject *self, PyObject *args);
 PyObject *cv_configure_pack(PyObject *self, PyObject *fallback);
 PyObject *cv_pack_float32(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 
-/* queue.c: the writer's queue of records and rows, appended to without the writer's lock. */
+/* queue.c: the writer's queue of records and rows, appended to without the writer's lock. A kept
+ * entry: the record or row, a record's channel id and encode function (owned; NULL for a row, whose
+ * channel is the queue's and encode None), wall-clock ns. cv_queue_detach hands over every kept
+ * entry, oldest first (NULL with an exception set: not a Queue, or no memory), the queue going on
+ * empty; cv_queue_release drops them; cv_queue_channel is an entry's channel id (borrowed). */
+enum { CV_KEPT_RECORD, CV_KEPT_STEP, CV_KEPT_CALL };
+typedef struct {
+    PyObject *item, *channel, *encode;
+    long long time;
+    int kind;
+} cv_kept;
 extern PyTypeObject cv_queue_type;
+cv_kept *cv_queue_detach(PyObject *queue, Py_ssize_t *n);
+void cv_queue_release(cv_kept *entries, Py_ssize_t n);
+PyObject *cv_queue_channel(PyObject *queue, const cv_kept *e);
 
 #endif
