@@ -2,22 +2,23 @@
  *
  * frame_batch(chunk, index, pending, step_channel, sequences, name_of, fallback) takes the writer's
  * C Queue, whose entries it takes (as take() would, without a tuple per entry), or what take()
- * returned, a list of (channel id, encode or None, record or row, wall-clock ns); it
- * appends to the bytearray ``chunk`` one Message record per entry that encodes, in order, with log
- * and publish time the entry's time and the sequence ``sequences[channel id]`` (then incremented
- * modulo 2**32). Rows (encode None; an env step row when the channel is ``step_channel``) are
- * spliced by rows.c; every other entry, and every row rows.c leaves to the record path, is
- * ``fallback(entry)`` (the entry as a tuple), which returns the payload bytes or the Invalid that drops the entry (no
- * message, no sequence number). For each message it appends the packed little-endian u64 pair
+ * returned, a list of (channel id, encode or None, record or row, wall-clock ns); it appends to the
+ * bytearray ``chunk`` one Message record per entry that encodes, in order, with log and publish
+ * time the entry's time and the sequence ``sequences[channel id]`` (then incremented modulo
+ * 2**32). Rows (encode None; an env step row when the channel is ``step_channel``) are spliced by
+ * rows.c; every other entry, and every row rows.c leaves to the record path, is
+ * ``fallback(entry)`` (the entry as a tuple), which returns the payload bytes or the Invalid that
+ * drops the entry (no message, no sequence number). For each message it appends the packed little-endian u64 pair
  * (log time, offset of the record in the chunk) to the bytearray ``index[channel id]`` (created
  * for a new channel). Returns (messages framed, smallest log time, largest log time, the first
  * fallback's Invalid or None).
  *
  * An exception while encoding (a fallback that raised, no memory) leaves chunk, index and
  * sequences as they were (a Queue's entries are taken either way, as take() and a failed
- * _frame_in_python would leave them). The Python version, its specification, is TraceWriter._frame_in_python
- * (RecordEncoder.rows_in_python, then McapFileWriter.add_messages): tests/runtime/traces/
- * test_trace_frame.py compares chunk, index, sequences and dropped entries of both.
+ * _frame_in_python would leave them). The Python version, its specification, is
+ * TraceWriter._frame_in_python (RecordEncoder.rows_in_python, then McapFileWriter.add_messages):
+ * tests/runtime/traces/test_trace_frame.py compares chunk, index, sequences and dropped entries of
+ * both, and the Queue's entries with the list take() gives.
  */
 #include <stdint.h>
 #include <string.h>
@@ -112,11 +113,11 @@ PyObject *cv_frame_batch(PyObject *self, PyObject *args) {
                           &pending, &step_channel, &PyList_Type, &sequences, &name_of, &fallback))
         return NULL;
     /* The entries: a Queue's, taken here (released at the end), or a list's. */
-    cv_kept *kept = NULL;
+    cv_kept *queued = NULL;
     Py_ssize_t n = 0;
     if (PyList_Check(pending)) {
         n = PyList_GET_SIZE(pending);
-    } else if ((kept = cv_queue_detach(pending, &n)) == NULL) {
+    } else if ((queued = cv_queue_detach(pending, &n)) == NULL) {
         return NULL;
     }
     Py_ssize_t channels = PyList_GET_SIZE(sequences), n_rows = 0, count = 0;
@@ -146,13 +147,13 @@ PyObject *cv_frame_batch(PyObject *self, PyObject *args) {
     }
     for (Py_ssize_t i = 0; i < n; i++) {
         entry_view *v = &views[i];
-        if (kept == NULL) {
+        if (queued == NULL) {
             if (read_entry(PyList_GET_ITEM(pending, i), v) < 0) goto done;
         } else {
-            v->channel = cv_queue_channel(pending, &kept[i]);
-            v->encode = kept[i].encode == Py_None ? NULL : kept[i].encode;
-            v->item = kept[i].item;
-            v->time = (unsigned long long)kept[i].time;
+            v->channel = cv_queue_channel(pending, &queued[i]);
+            v->encode = queued[i].encode == Py_None ? NULL : queued[i].encode;
+            v->item = queued[i].item;
+            v->time = (unsigned long long)queued[i].time;
         }
         if (channel_index(v, channels, &ms[i].channel) < 0) goto done;
         ms[i].time = v->time;
@@ -225,6 +226,6 @@ done:
     PyMem_Free(ms);
     PyMem_Free(seq);
     PyMem_Free(views);
-    if (kept != NULL) cv_queue_release(kept, n);
+    if (queued != NULL) cv_queue_release(queued, n);
     return result;
 }

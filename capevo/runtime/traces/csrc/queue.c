@@ -36,11 +36,10 @@
  * in the flush, about 1.5 µs per T6 step; frame_batch reads the entries where they are
  * (cv_queue_detach). A row's channel is the queue's and its encode None, so neither is kept (two
  * reference counts less to write per append); a record's are owned. */
-typedef cv_kept kept_entry;
 
 typedef struct {
     PyObject_HEAD
-    kept_entry *entries; /* (channel id, encode or None, record or row, wall-clock ns), oldest first */
+    cv_kept *entries; /* (channel id, encode or None, record or row, wall-clock ns), oldest first */
     Py_ssize_t capacity; /* 0: __init__ was not called */
     PyObject *step_channel, *call_channel;
     PyObject *on_full, *refuse, *check_row;
@@ -82,12 +81,12 @@ static PyObject *keep(Queue *q, int kind, PyObject *channel, PyObject *encode, P
     }
     Py_ssize_t n = q->kept;
     if (n == q->capacity) {
-        kept_entry *grown = PyMem_Realloc(q->entries, (size_t)q->capacity * 2 * sizeof(kept_entry));
+        cv_kept *grown = PyMem_Realloc(q->entries, (size_t)q->capacity * 2 * sizeof(cv_kept));
         if (grown == NULL) return PyErr_NoMemory();
         q->entries = grown;
         q->capacity *= 2;
     }
-    kept_entry *e = &q->entries[n];
+    cv_kept *e = &q->entries[n];
     e->item = Py_NewRef(item);
     e->channel = Py_XNewRef(channel);
     e->encode = Py_XNewRef(encode);
@@ -130,11 +129,11 @@ static PyObject *queue_record(Queue *q, PyObject *const *args, Py_ssize_t nargs)
 
 /* The kept entries, handed over: the queue goes on with a fresh array of the same capacity, so
  * whatever a garbage collection or a finalizer appends while the caller works is kept for later. */
-static kept_entry *detach(Queue *q, Py_ssize_t *n) {
+static cv_kept *detach(Queue *q, Py_ssize_t *n) {
     if (!initialised(q)) return NULL;
-    kept_entry *fresh = PyMem_Malloc((size_t)q->capacity * sizeof(kept_entry));
-    if (fresh == NULL) return (kept_entry *)PyErr_NoMemory();
-    kept_entry *taken = q->entries;
+    cv_kept *fresh = PyMem_Malloc((size_t)q->capacity * sizeof(cv_kept));
+    if (fresh == NULL) return (cv_kept *)PyErr_NoMemory();
+    cv_kept *taken = q->entries;
     *n = q->kept;
     q->entries = fresh;
     STORE(q->kept, 0);
@@ -167,12 +166,12 @@ static PyObject *queue_take(Queue *q, PyObject *unused) {
     (void)unused;
     if (!initialised(q)) return NULL;
     Py_ssize_t n = 0;
-    kept_entry *kept = detach(q, &n);
+    cv_kept *kept = detach(q, &n);
     if (kept == NULL) return NULL;
     /* Out of memory here loses the batch: the writer fails with it either way. */
     PyObject *taken = PyList_New(n);
     for (Py_ssize_t i = 0; taken != NULL && i < n; i++) {
-        const kept_entry *e = &kept[i];
+        const cv_kept *e = &kept[i];
         PyObject *channel = cv_queue_channel((PyObject *)q, e);
         PyObject *time = PyLong_FromLongLong(e->time);
         PyObject *entry = time == NULL ? NULL : PyTuple_Pack(4, channel, e->encode ? e->encode : Py_None, e->item, time);
@@ -250,7 +249,7 @@ static int queue_init(Queue *q, PyObject *args, PyObject *kwargs) {
         q->sync_ready = 1;
     }
     if (q->capacity == 0) {
-        q->entries = PyMem_Malloc(64 * sizeof(kept_entry));
+        q->entries = PyMem_Malloc(64 * sizeof(cv_kept));
         if (q->entries == NULL) {
             PyErr_NoMemory();
             return -1;
@@ -259,7 +258,7 @@ static int queue_init(Queue *q, PyObject *args, PyObject *kwargs) {
         STORE(q->kept, 0);
     } else {
         Py_ssize_t n = 0;
-        kept_entry *kept = detach(q, &n);
+        cv_kept *kept = detach(q, &n);
         if (kept == NULL) return -1;
         cv_queue_release(kept, n);
     }
@@ -292,7 +291,7 @@ static int queue_traverse(Queue *q, visitproc visit, void *arg) {
 
 static int queue_clear(Queue *q) {
     if (q->capacity > 0) {
-        kept_entry *kept = q->entries;
+        cv_kept *kept = q->entries;
         Py_ssize_t n = q->kept;
         q->entries = NULL;
         q->capacity = 0;

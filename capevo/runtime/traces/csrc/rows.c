@@ -1,7 +1,8 @@
 /* RecordEncoder.rows (codec.py) in one C call.
  *
- * configure_rows(dumps, option, float32_array, exact_or_float32, outcomes, error_json, ndarray, float32,
- * probes) is called once at import with the codec's own helpers. encode_rows(rows, name_of) takes the same batch as
+ * configure_rows(dumps, option, float32_array, exact_or_float32, outcomes, error_json, ndarray,
+ * float32, probes) is called once at import with the codec's own helpers (and returns whether
+ * numpy's array head reads as expected). encode_rows(rows, name_of) takes the same batch as
  * RecordEncoder.rows, a list of (is_step, row), and returns a list with, per row, its payload
  * (bytes) or None where the Python path must decide (a field of another type, a vector the
  * helpers reject, a value printed as null). Float text comes from one call of the codec's
