@@ -164,7 +164,6 @@ cv_kept *cv_queue_detach(PyObject *queue, Py_ssize_t *n) {
 
 static PyObject *queue_take(Queue *q, PyObject *unused) {
     (void)unused;
-    if (!initialised(q)) return NULL;
     Py_ssize_t n = 0;
     cv_kept *kept = detach(q, &n);
     if (kept == NULL) return NULL;

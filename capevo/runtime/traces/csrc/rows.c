@@ -669,6 +669,7 @@ PyObject *cv_rows_configure(PyObject *self, PyObject *args) {
      * the head must name the data and length the buffer does. */
     Py_ssize_t n_probes = PyList_GET_SIZE(probes);
     int agree = n_probes > 0;
+    g_array_head_ok = 0; /* on every way out that does not reach the end */
     for (Py_ssize_t i = 0; i < n_probes && agree; i++) {
         PyObject *probe = PyList_GET_ITEM(probes, i);
         if ((PyObject *)Py_TYPE(probe) != s_ndarray_type) return PyErr_Format(PyExc_TypeError, "probes are arrays");
@@ -676,10 +677,11 @@ PyObject *cv_rows_configure(PyObject *self, PyObject *args) {
         int by_buffer = is_float32_vector(probe);
         g_array_head_ok = 1;
         agree = is_float32_vector(probe) == by_buffer;
+        g_array_head_ok = 0;
         const array_head *a = (const array_head *)probe;
         if (agree && a->nd == 1) {
             Py_buffer view;
-            if (PyObject_GetBuffer(probe, &view, PyBUF_STRIDES) < 0) return (g_array_head_ok = 0), NULL;
+            if (PyObject_GetBuffer(probe, &view, PyBUF_STRIDES) < 0) return NULL;
             agree = view.buf == a->data && view.shape[0] == a->dimensions[0] && view.strides[0] == a->strides[0];
             PyBuffer_Release(&view);
         }
