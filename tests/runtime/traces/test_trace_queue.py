@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import gc
 import threading
 import time
+import weakref
 from typing import Any
 
 import pytest
@@ -173,9 +175,6 @@ class AppendsWhenCollected:
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_a_kept_cycle_is_collected_after_take_and_what_its_finalizer_appends_is_kept(kind: str) -> None:
-    import gc
-    import weakref
-
     q = make(kind, Calls(), batch=10**9)
     appended: list[str] = []
     record = AppendsWhenCollected(q, appended)
@@ -193,9 +192,6 @@ def test_a_kept_cycle_is_collected_after_take_and_what_its_finalizer_appends_is_
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_a_cycle_through_kept_entries_is_collected(kind: str) -> None:
-    import gc
-    import weakref
-
     class Holder:
         q: Any = None
 
