@@ -33,7 +33,11 @@ in the figures.
 ``whole`` is the three together. ``% of env step`` divides by the CPU time of the same
 episodes' ``TaskEnv.step`` calls.
 
+``--compressions lz4 none`` runs each batch size once per chunk compression (the worker's
+``--trace-compression``), alternating with the rest, so the two are compared on the same episodes.
+
     .venv/bin/python benchmarks/bench_traces_loop.py [--task T1] [--seeds 8] [--batches 1 64]
+        [--compressions lz4 none]
 """
 
 from __future__ import annotations
@@ -65,6 +69,7 @@ from capevo.runtime.governance import Phi
 from capevo.runtime.tasks import make_task
 from capevo.runtime.traces import RUNTIME_BATCH, TraceMetadata, TraceWriter
 from capevo.runtime.traces.sink import WRITE_METHODS
+from capevo.runtime.traces.writer import COMPRESSIONS
 
 TARGET_US = 20.0
 WRITES = WRITE_METHODS
@@ -143,17 +148,17 @@ class NoOpSink:
         pass
 
 
-NOOP = 0
-"""The batch value that stands for :class:`NoOpSink` in a run's variants."""
+NOOP = (0, "")
+"""The (batch, compression) variant that stands for :class:`NoOpSink` in a run."""
 
 
-def measure(task: str, seeds: int, batches: list[int]) -> dict[str, Any]:
+def measure(task: str, seeds: int, batches: list[int], compressions: list[str]) -> dict[str, Any]:
     tmp = Path(tempfile.mkdtemp(prefix="bench-traces-loop-"))
     registry = LocalRegistry(tmp / "registry", actor="bench")
     env = make_task(task)
     caps = None
-    variants = [*batches, NOOP]
-    runs: dict[int, list[dict[str, int]]] = {v: [] for v in variants}
+    variants = [*((b, c) for b in batches for c in compressions), NOOP]
+    runs: dict[tuple[int, str], list[dict[str, int]]] = {v: [] for v in variants}
     try:
         seed_registry(registry, task)
         env.reset(seed=0)
@@ -183,11 +188,15 @@ def measure(task: str, seeds: int, batches: list[int]) -> dict[str, Any]:
         )
         # One sink per variant for the whole run, as a worker keeps one writer per capability set
         # (its flush thread started once, its file finished once, outside the figures).
-        sinks: dict[int, Any] = {}
-        spent: dict[int, list[int]] = {}
+        sinks: dict[tuple[int, str], Any] = {}
+        spent: dict[tuple[int, str], list[int]] = {}
         for variant in variants:
-            path = tmp / f"b{variant}.mcap"
-            sinks[variant] = (NoOpSink if variant == NOOP else TraceWriter)(path, metadata, batch=variant)
+            batch, compression = variant
+            path = tmp / f"b{batch}-{compression}.mcap"
+            if variant == NOOP:
+                sinks[variant] = NoOpSink(path, metadata, batch=batch)
+            else:
+                sinks[variant] = TraceWriter(path, metadata, batch=batch, compression=compression)
             spent[variant] = [0, 0]
             clock_writes(sinks[variant], spent[variant])
         try:
@@ -213,7 +222,7 @@ def measure(task: str, seeds: int, batches: list[int]) -> dict[str, Any]:
         finally:
             for sink in sinks.values():
                 sink.close()
-        file_bytes = {v: (tmp / f"b{v}.mcap").stat().st_size if v != NOOP else 0 for v in variants}
+        file_bytes = {v: (tmp / f"b{v[0]}-{v[1]}.mcap").stat().st_size if v != NOOP else 0 for v in variants}
         del env.step
     finally:
         if caps is not None:
@@ -229,8 +238,9 @@ def measure(task: str, seeds: int, batches: list[int]) -> dict[str, Any]:
         return (r[f"{kind}_ns"] - floor_ns * r[f"{kind}_calls"]) / r["steps"] / 1000
 
     rows = []
-    for batch in batches:
-        rs = runs[batch]
+    for variant in variants[:-1]:
+        batch, compression = variant
+        rs = runs[variant]
         steps = sum(r["steps"] for r in rs)
         step_us = sum(r["step_ns"] for r in rs) / steps / 1000
         writes = [net(r, "write") for r in rs]
@@ -240,6 +250,7 @@ def measure(task: str, seeds: int, batches: list[int]) -> dict[str, Any]:
         rows.append(
             {
                 "batch": batch,
+                "compression": compression,
                 "episodes": seeds,
                 "steps": steps,
                 "gross_write_us_per_step_median": statistics.median(r["write_ns"] / r["steps"] / 1000 for r in rs),
@@ -250,7 +261,7 @@ def measure(task: str, seeds: int, batches: list[int]) -> dict[str, Any]:
                 "whole_us_per_step_per_episode": [round(x, 1) for x in whole],
                 "env_step_cpu_ms": step_us / 1000,
                 "whole_pct_of_env_step": 100 * statistics.median(whole) / step_us,
-                "bytes_per_step": file_bytes[batch] / steps,
+                "bytes_per_step": file_bytes[variant] / steps,
             }
         )
     return {"task": task, "clock_floor_us_per_call": floor_ns / 1000, "rows": rows}
@@ -261,12 +272,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--task", default="T1")
     parser.add_argument("--seeds", type=int, default=8, help="episodes per variant")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, RUNTIME_BATCH])
+    parser.add_argument("--compressions", nargs="+", default=["lz4"], choices=sorted(COMPRESSIONS))
     args = parser.parse_args(argv)
     logging.getLogger("robosuite").setLevel(logging.ERROR)
-    result = measure(args.task, args.seeds, args.batches)
+    result = measure(args.task, args.seeds, args.batches, args.compressions)
     table = markdown_table(
         [
             "batch",
+            "compression",
             "episodes",
             "steps",
             "write calls, gross",
@@ -281,6 +294,7 @@ def main(argv: list[str] | None = None) -> int:
         [
             [
                 r["batch"],
+                r["compression"],
                 r["episodes"],
                 r["steps"],
                 f"{r['gross_write_us_per_step_median']:.1f}",

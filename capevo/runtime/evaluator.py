@@ -39,7 +39,13 @@ from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.governance import Phi
 from capevo.runtime.policy import DecisionPolicy
 from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
-from capevo.runtime.traces import RUNTIME_BATCH, TraceMetadata, TraceWriter
+from capevo.runtime.traces import (
+    DEFAULT_COMPRESSION,
+    RUNTIME_BATCH,
+    TraceMetadata,
+    TraceWriter,
+    check_compression,
+)
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +118,8 @@ class LocalEvaluator:
         phi: The safety envelope; default :meth:`Phi.default`.
         trace_dir: Directory for the trace files (one per ``evaluate`` call); None writes
             no trace (``trace_path`` is then None).
+        trace_compression: The traces' chunk compression: ``"lz4"``, ``"zstd"`` or ``"none"``
+            (see :data:`capevo.runtime.traces.writer.COMPRESSIONS`).
         perturbations: Task perturbations; default all on (the benchmark setting).
         horizon: Episode length; default each task's own.
         step_budget_per_ecm: Steps one ECM activation may take.
@@ -130,7 +138,7 @@ class LocalEvaluator:
             (a worker shutting down).
 
     Raises:
-        Invalid: bad ``trace_dir`` or settings.
+        Invalid: bad ``trace_dir``, ``trace_compression`` or settings.
     """
 
     def __init__(
@@ -140,6 +148,7 @@ class LocalEvaluator:
         policy: DecisionPolicy,
         phi: Phi | None = None,
         trace_dir: str | os.PathLike[str] | None,
+        trace_compression: str = DEFAULT_COMPRESSION,
         perturbations: Perturbations | None = None,
         horizon: int | None = None,
         step_budget_per_ecm: int | None = DEFAULT_STEP_BUDGET,
@@ -160,6 +169,7 @@ class LocalEvaluator:
         self.policy = policy
         self.phi = phi if phi is not None else Phi.default()
         self.trace_dir = Path(trace_dir) if trace_dir is not None else None
+        self.trace_compression = check_compression(trace_compression)
         self.perturbations = perturbations if perturbations is not None else Perturbations()
         self.horizon = horizon
         self.step_budget_per_ecm = step_budget_per_ecm
@@ -231,7 +241,9 @@ class LocalEvaluator:
             outcomes: list[EpisodeOutcome] = []
             path = self.trace_dir / f"{spec.name}-{run_id}.mcap" if self.trace_dir is not None else None
             sink_cm = (
-                TraceWriter(path, metadata, batch=RUNTIME_BATCH) if path is not None else contextlib.nullcontext(None)
+                TraceWriter(path, metadata, batch=RUNTIME_BATCH, compression=self.trace_compression)
+                if path is not None
+                else contextlib.nullcontext(None)
             )
             with sink_cm as sink:
                 for i, seed in enumerate(seed_list):

@@ -82,7 +82,13 @@ from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.evaluator import LocalEvaluator, agent_identity_of, check_seeds, check_versions
 from capevo.runtime.governance import Phi
 from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
-from capevo.runtime.traces import RUNTIME_BATCH, TraceMetadata, TraceWriter
+from capevo.runtime.traces import (
+    DEFAULT_COMPRESSION,
+    RUNTIME_BATCH,
+    TraceMetadata,
+    TraceWriter,
+    check_compression,
+)
 from capevo.shutdown import stop_on_signals
 
 log = logging.getLogger("capevo.runtime.worker")
@@ -296,6 +302,7 @@ class WorkerConfig:
         user, password: Zenoh credentials (both or neither).
         worker_id: Key chunk naming this worker; default ``<host>-<pid>``.
         trace_dir: Where episode traces go (one file per capability set); None writes none.
+        trace_compression: Their chunk compression: ``"lz4"`` (default), ``"zstd"`` or ``"none"``.
         cache_dir: On-disk artifact cache; None keeps artifacts in memory only.
         episodes: Episodes to run before exiting; None runs until stopped.
         idle: Run no episodes of its own; only serve evaluation requests.
@@ -318,6 +325,7 @@ class WorkerConfig:
     password: str | None = field(default=None, repr=False)
     worker_id: str | None = None
     trace_dir: Path | None = None
+    trace_compression: str = DEFAULT_COMPRESSION
     cache_dir: Path | None = None
     episodes: int | None = None
     idle: bool = False
@@ -338,6 +346,7 @@ class WorkerConfig:
             raise Invalid("a runtime worker needs the registry's endpoint (--connect)", details={"field": "connect"})
         validate_namespace(self.namespace)
         task_spec(self.task)
+        check_compression(self.trace_compression)
         if self.worker_id is not None:
             validate_worker_id(self.worker_id)
         if self.episodes is not None and (isinstance(self.episodes, bool) or self.episodes < 1):
@@ -525,6 +534,7 @@ class RuntimeWorker:
                 policy=policy,
                 phi=self.phi,
                 trace_dir=self.config.trace_dir / "evaluations" if self.config.trace_dir is not None else None,
+                trace_compression=self.config.trace_compression,
                 perturbations=self.config.perturbations,
                 horizon=self.config.horizon,
                 step_budget_per_ecm=self.config.step_budget_per_ecm,
@@ -725,7 +735,12 @@ class RuntimeWorker:
             seeds=(self.config.seed + self._episodes,),
             worker_id=self.worker_id,
         )
-        return TraceWriter(self.config.trace_dir / f"{run_id}.mcap", metadata, batch=RUNTIME_BATCH)
+        return TraceWriter(
+            self.config.trace_dir / f"{run_id}.mcap",
+            metadata,
+            batch=RUNTIME_BATCH,
+            compression=self.config.trace_compression,
+        )
 
     def _serve_requests(self, evaluator: LocalEvaluator, stop: threading.Event) -> None:
         while not stop.is_set():

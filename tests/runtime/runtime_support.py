@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mcap.reader import make_reader
 from procs import kill, terminate
 
 from capevo.registry.api import Registry
@@ -156,6 +157,14 @@ def publish_pick(registry: Registry, *, origin: Origin = Origin.MANUAL, **overri
 
 
 # --- processes -------------------------------------------------------------------------
+
+
+def chunk_compressions(path: str | os.PathLike[str]) -> set[str]:
+    """The compression strings of an MCAP file's chunks, from its summary ("" is none)."""
+    with Path(path).open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None, f"{path} has no summary"
+    return {c.compression for c in summary.chunk_indexes}
 
 
 def free_tcp_port() -> int:

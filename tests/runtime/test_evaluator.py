@@ -13,7 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from runtime_support import LIFT, publish, publish_pick
+from runtime_support import LIFT, chunk_compressions, publish, publish_pick
 
 from capevo.agent.fingerprint import identity_hash
 from capevo.agent.identity import IdentityMemory
@@ -25,6 +25,7 @@ from capevo.runtime.evaluation import EpisodeOutcome, Evaluator
 from capevo.runtime.evaluator import LocalEvaluator
 from capevo.runtime.governance import Phi
 from capevo.runtime.traces import TraceReader, package_versions
+from capevo.runtime.traces.writer import COMPRESSIONS
 
 HORIZON = 30
 
@@ -91,6 +92,32 @@ def test_same_seeds_and_versions_give_the_same_outcomes_and_pins_apply(setup: tu
     assert a[0].trace_path != b[0].trace_path
     assert without_duration(a) == without_duration(b)
     assert a[0].capability_set["pick.lift"] == 0 != slow_lift.version
+
+
+@pytest.mark.slow
+def test_trace_compression_changes_the_chunks_not_the_records(setup: tuple, policy: DecompositionPolicy) -> None:
+    registry, evaluator, _, root = setup
+    plain = LocalEvaluator(registry, policy=policy, trace_dir=root / "plain", trace_compression="none", horizon=HORIZON)
+    try:
+        (uncompressed,) = plain.evaluate("T1", {"pick.lift": 0}, [6])
+    finally:
+        plain.close()
+    (compressed,) = evaluator.evaluate("T1", {"pick.lift": 0}, [6])
+    assert compressed.trace_path is not None and uncompressed.trace_path is not None
+    assert chunk_compressions(Path(compressed.trace_path)) == {"lz4"}
+    assert chunk_compressions(Path(uncompressed.trace_path)) == {COMPRESSIONS["none"]}
+    with TraceReader(compressed.trace_path) as a, TraceReader(uncompressed.trace_path) as b:
+        assert list(a.env_steps()) == list(b.env_steps())
+        assert list(a.plan_steps()) == list(b.plan_steps())
+    assert without_duration([compressed]) == without_duration([uncompressed])
+
+
+def test_an_unknown_trace_compression_is_refused(setup: tuple, policy: DecompositionPolicy) -> None:
+    registry, _, _, root = setup
+    with pytest.raises(Invalid) as err:
+        LocalEvaluator(registry, policy=policy, trace_dir=root / "never", trace_compression="brotli")
+    assert err.value.message == "unknown trace compression 'brotli'; valid: lz4, zstd, none"
+    assert err.value.details == {"field": "compression"}
 
 
 @pytest.mark.slow

@@ -19,7 +19,16 @@ import pytest
 import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from runtime_support import LIFT, Proc, free_tcp_port, publish, publish_pick, start_registry, start_worker
+from runtime_support import (
+    LIFT,
+    Proc,
+    chunk_compressions,
+    free_tcp_port,
+    publish,
+    publish_pick,
+    start_registry,
+    start_worker,
+)
 
 from capevo.errors import Invalid, Unavailable, error_from_payload
 from capevo.registry.client import Client
@@ -68,6 +77,8 @@ def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
             "30",
             "--trace-dir",
             str(root / "traces"),
+            "--trace-compression",
+            "none",
             "--cache-dir",
             str(root / "cache"),
         ],
@@ -126,6 +137,7 @@ def test_worker_runs_adopts_swaps_and_evaluates(running: Running) -> None:
     assert trace is not None and Path(trace).parent == running.root / "traces" / "evaluations"
     with TraceReader(trace) as reader:
         assert [s.seed for s in reader.episode_summaries()] == [4, 2]
+    assert chunk_compressions(Path(trace)) == {""}  # --trace-compression none
     evaluated = worker.read_until(lambda x: x.get("event") == "evaluated", 10)
     assert evaluated["seeds"] == 2
 
@@ -148,6 +160,7 @@ def test_worker_runs_adopts_swaps_and_evaluates(running: Running) -> None:
             sets = {tuple(sorted(s.capability_set.items())) for s in reader.episode_summaries()}
             assert len(sets) == 1
             assert dict(next(iter(sets))) == dict(reader.metadata().capability_set.active)
+        assert chunk_compressions(path) == {""}
 
 
 def cli(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:

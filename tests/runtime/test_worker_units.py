@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 
 from capevo.errors import CapevoError, Invalid, TooLarge
 from capevo.runtime.evaluation import EpisodeOutcome
+from capevo.runtime.traces import COMPRESSIONS, DEFAULT_COMPRESSION
 from capevo.runtime.worker import (
     MAX_EVAL_SEEDS,
     Adoption,
@@ -140,6 +141,14 @@ def test_runtime_keys() -> None:
     assert err.value.details["field"] == "namespace"
 
 
+def test_the_cli_offers_every_trace_compression_the_writer_has() -> None:
+    from capevo.cli.runtime import serve_cmd
+
+    (option,) = [p for p in serve_cmd.params if p.name == "trace_compression"]
+    assert list(option.type.choices) == list(COMPRESSIONS)  # type: ignore[attr-defined]
+    assert option.default == DEFAULT_COMPRESSION
+
+
 def test_worker_config_refuses_bad_settings() -> None:
     base = {"connect": ("tcp/127.0.0.1:7447",), "task": "T1"}
     for extra, message in (
@@ -149,6 +158,7 @@ def test_worker_config_refuses_bad_settings() -> None:
         ({"worker_id": "a/b"}, "worker id 'a/b' must be 1-64 letters"),
         ({"recovery": "hope"}, "unknown recovery mode 'hope'"),
         ({"task": "T7"}, "unknown task 'T7'"),
+        ({"trace_compression": "gzip"}, "unknown trace compression 'gzip'; valid: lz4, zstd, none"),
     ):
         with pytest.raises(Invalid) as err:
             WorkerConfig(**{**base, **extra})  # type: ignore[arg-type]

@@ -44,9 +44,17 @@ from capevo.runtime.traces.records import (
 from capevo.runtime.traces.recover import RecoverReport, default_output, recover
 from capevo.runtime.traces.sink import MemoryTraceSink, TraceSink
 from capevo.runtime.traces.summary import EpisodeRow, TraceSummary, summarize
-from capevo.runtime.traces.writer import RUNTIME_BATCH, TraceWriter
+from capevo.runtime.traces.writer import (
+    COMPRESSIONS,
+    DEFAULT_COMPRESSION,
+    RUNTIME_BATCH,
+    TraceWriter,
+    check_compression,
+)
 
 __all__ = [
+    "COMPRESSIONS",
+    "DEFAULT_COMPRESSION",
     "EXPORT_FORMATS",
     "NOT_ENFORCED_PREFIX",
     "PACKAGES",
@@ -70,6 +78,7 @@ __all__ = [
     "TraceSummary",
     "TraceWriter",
     "Transitions",
+    "check_compression",
     "default_output",
     "export_transitions",
     "iter_env_steps",

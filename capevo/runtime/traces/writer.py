@@ -86,7 +86,25 @@ from capevo.runtime.traces.sink import check_record
 
 COMPRESSIONS: Mapping[str, str] = {"lz4": "lz4", "zstd": "zstd", "none": ""}
 """Chunk compression by name -> MCAP compression string. lz4 is the default: zstd costs
-several µs more per env step, amortised (see benchmarks/bench_traces.py)."""
+several µs more per env step, amortised (see benchmarks/bench_traces.py); ``none`` saves lz4's
+share of the per-step cost (about a quarter of it for T6) for files about three times larger
+(benchmarks/bench_traces_loop.py ``--compressions lz4 none``)."""
+DEFAULT_COMPRESSION = "lz4"
+
+
+def check_compression(name: object) -> str:
+    """``name`` if it is one of :data:`COMPRESSIONS`.
+
+    Raises:
+        Invalid: anything else (field ``compression``).
+    """
+    if not isinstance(name, str) or name not in COMPRESSIONS:
+        raise Invalid(
+            f"unknown trace compression {name!r}; valid: {', '.join(COMPRESSIONS)}",
+            details={"field": "compression"},
+        )
+    return name
+
 
 DEFAULT_CHUNK_SIZE = 256 * 1024
 DEFAULT_FLUSH_INTERVAL_S = 1.0
@@ -143,7 +161,7 @@ class TraceWriter:
         *,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
-        compression: str = "lz4",
+        compression: str = DEFAULT_COMPRESSION,
         fsync_on_flush: bool = False,
         background_flush: bool = True,
         overwrite: bool = False,
@@ -159,11 +177,7 @@ class TraceWriter:
             )
         if isinstance(batch, bool) or not isinstance(batch, int) or batch <= 0:
             raise Invalid(f"batch must be a positive integer, got {batch!r}", details={"field": "batch"})
-        if compression not in COMPRESSIONS:
-            raise Invalid(
-                f"unknown compression {compression!r}; valid: {', '.join(COMPRESSIONS)}",
-                details={"field": "compression"},
-            )
+        check_compression(compression)
         if not isinstance(metadata, TraceMetadata):
             raise Invalid("metadata must be a TraceMetadata", details={"field": "metadata"})
         self.path = Path(path)

@@ -218,7 +218,7 @@ def test_wrong_record_type_is_invalid(tmp_path: Path) -> None:
         ({"chunk_size": 0}, "chunk_size must be a positive integer"),
         ({"chunk_size": 1.5}, "chunk_size must be a positive integer"),
         ({"flush_interval_s": 0}, "flush_interval_s must be a positive number"),
-        ({"compression": "brotli"}, "unknown compression 'brotli'; valid: lz4, zstd, none"),
+        ({"compression": "brotli"}, "unknown trace compression 'brotli'; valid: lz4, zstd, none"),
         ({"batch": 0}, "batch must be a positive integer"),
         ({"batch": True}, "batch must be a positive integer"),
     ],
