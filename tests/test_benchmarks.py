@@ -32,12 +32,16 @@ def results_in(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 
 def test_trace_loop_benchmark_measures_every_part_of_a_real_episode(results_in: Path) -> None:
-    result = bench_traces_loop.measure("T1", 1, [1, 64])
-    assert [row["batch"] for row in result["rows"]] == [1, 64]
-    for row in result["rows"]:
+    result = bench_traces_loop.measure("T1", 1, [1, 64], ["lz4", "none"])
+    rows = result["rows"]
+    assert [(row["batch"], row["compression"]) for row in rows] == [(1, "lz4"), (1, "none"), (64, "lz4"), (64, "none")]
+    for row in rows:
         assert row["steps"] > 0 and row["bytes_per_step"] > 100  # a file with every step in it
         assert row["gross_write_us_per_step_median"] > 0 and row["env_step_cpu_ms"] > 0
         assert row["background_us_per_step_median"] >= 0
+    # the same episodes, so the same records: lz4's files are the smaller
+    assert len({row["steps"] for row in rows}) == 1
+    assert all(rows[i]["bytes_per_step"] < rows[i + 1]["bytes_per_step"] for i in (0, 2))
     assert result["clock_floor_us_per_call"] > 0
 
 
