@@ -190,13 +190,13 @@ def measure(task: str, seeds: int, batches: list[int], compressions: list[str]) 
         # (its flush thread started once, its file finished once, outside the figures).
         sinks: dict[tuple[int, str], Any] = {}
         spent: dict[tuple[int, str], list[int]] = {}
+        paths = {(batch, compression): tmp / f"b{batch}-{compression}.mcap" for batch, compression in variants}
         for variant in variants:
             batch, compression = variant
-            path = tmp / f"b{batch}-{compression}.mcap"
             if variant == NOOP:
-                sinks[variant] = NoOpSink(path, metadata, batch=batch)
+                sinks[variant] = NoOpSink(paths[variant], metadata, batch=batch)
             else:
-                sinks[variant] = TraceWriter(path, metadata, batch=batch, compression=compression)
+                sinks[variant] = TraceWriter(paths[variant], metadata, batch=batch, compression=compression)
             spent[variant] = [0, 0]
             clock_writes(sinks[variant], spent[variant])
         try:
@@ -222,7 +222,7 @@ def measure(task: str, seeds: int, batches: list[int], compressions: list[str]) 
         finally:
             for sink in sinks.values():
                 sink.close()
-        file_bytes = {v: (tmp / f"b{v[0]}-{v[1]}.mcap").stat().st_size if v != NOOP else 0 for v in variants}
+        file_bytes = {v: paths[v].stat().st_size if v != NOOP else 0 for v in variants}
         del env.step
     finally:
         if caps is not None:

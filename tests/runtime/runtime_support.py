@@ -156,15 +156,15 @@ def publish_pick(registry: Registry, *, origin: Origin = Origin.MANUAL, **overri
     return out
 
 
-# --- processes -------------------------------------------------------------------------
-
-
 def chunk_compressions(path: str | os.PathLike[str]) -> set[str]:
     """The compression strings of an MCAP file's chunks, from its summary ("" is none)."""
     with Path(path).open("rb") as f:
         summary = make_reader(f).get_summary()
     assert summary is not None, f"{path} has no summary"
     return {c.compression for c in summary.chunk_indexes}
+
+
+# --- processes -------------------------------------------------------------------------
 
 
 def free_tcp_port() -> int:

@@ -87,7 +87,7 @@ from capevo.runtime.traces.sink import check_record
 COMPRESSIONS: Mapping[str, str] = {"lz4": "lz4", "zstd": "zstd", "none": ""}
 """Chunk compression by name -> MCAP compression string. lz4 is the default: zstd costs
 several µs more per env step, amortised (see benchmarks/bench_traces.py); ``none`` saves lz4's
-share of the per-step cost (about a quarter of it for T6) for files about three times larger
+share of the per-step cost (a fifth to a quarter of it for T6) for files about three times larger
 (benchmarks/bench_traces_loop.py ``--compressions lz4 none``)."""
 DEFAULT_COMPRESSION = "lz4"
 
