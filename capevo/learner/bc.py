@@ -719,8 +719,7 @@ class BcLearner:
             return self._learn(request, parent_artifact=parent_artifact, demos=demos)
 
     def _learn(self, request: LearnRequest, *, parent_artifact: bytes | None, demos: Demos | None) -> Candidate:
-        from capevo.learner.neural_seed import model_bytes, offline_sac
-        from capevo.learner.rl import sac_policy_kwargs, warm_start
+        from capevo.learner.neural_seed import model_bytes, offline_sac, sac_policy_kwargs, warm_start
 
         target = target_for(request.task, request.ecm, request.parent)
         act_dim = task_spec(request.task).action_layout.dim

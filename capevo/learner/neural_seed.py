@@ -1,4 +1,5 @@
-"""Neural ECM artifacts: building SAC models for an ECM's interface, saving them, and v0 seeds.
+"""Neural ECM artifacts: building SAC models for an ECM's interface, saving them, warm-starting
+them from a parent's, and v0 seeds.
 
 A neural ECM's artifact is the zip ``model.save()`` of a stable-baselines3 SAC model writes;
 its observation is the ECM's interface inputs concatenated in interface order (float32), its
@@ -13,11 +14,18 @@ Invariants:
    action dim is the task's action dim.
 2. Equal ``seed`` and ``net_arch`` give policies with equal weights.
 3. Building a model needs no simulator: :class:`SpacesEnv` only carries the spaces.
+4. After :func:`warm_start` the model's policy ``state_dict`` equals the parent's exactly.
+
+Warm start reads the parent zip through SB3's ``set_parameters``-style loading, which takes only
+``*.pth`` entries with ``torch.load(weights_only=True)``: nothing from the artifact is unpickled
+(the architecture comes from the safe neural loader,
+:func:`capevo.runtime.ecm.neural.load_sb3_policy`).
 """
 
 from __future__ import annotations
 
 import io
+import logging
 from collections.abc import Sequence
 from typing import Any
 
@@ -39,9 +47,25 @@ from capevo.registry.records import (
 from capevo.runtime.ecm.marshal import spec_size
 from capevo.runtime.tasks import task_spec
 
+log = logging.getLogger(__name__)
+
 NEURAL_MEDIA_TYPE = DEFAULT_MEDIA_TYPES[Kind.NEURAL]
 SEED_LEARNER_ID = "capevo.neural-seed"
 DEFAULT_NET_ARCH: tuple[int, ...] = (256, 256)
+SAC_POLICY_CLASS = "stable_baselines3.sac.policies.SACPolicy"
+_POLICY_KWARG_KEYS = (
+    "net_arch",
+    "activation_fn",
+    "log_std_init",
+    "use_expln",
+    "clip_mean",
+    "n_critics",
+    "optimizer_class",
+    "optimizer_kwargs",
+    "features_extractor_class",
+    "features_extractor_kwargs",
+    "normalize_images",
+)
 
 
 class SpacesEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -117,6 +141,67 @@ def model_bytes(model: Any) -> bytes:
     buf = io.BytesIO()
     model.save(buf)
     return buf.getvalue()
+
+
+# --- warm start ----------------------------------------------------------------------------
+
+
+def sac_policy_kwargs(artifact: bytes) -> dict[str, Any]:
+    """The policy arguments of a SAC model zip, read by the safe neural loader (no unpickling).
+
+    Raises:
+        Invalid: not a loadable SB3 zip, or not a SAC policy.
+    """
+    from capevo.runtime.ecm.neural import load_sb3_policy
+
+    loaded = load_sb3_policy(artifact)
+    if loaded.policy_class != SAC_POLICY_CLASS:
+        raise Invalid(
+            f"warm start needs a SAC parent; the parent is a {loaded.policy_class}", details={"field": "parent"}
+        )
+    ctor = loaded.policy._get_constructor_parameters()
+    return {k: ctor[k] for k in _POLICY_KWARG_KEYS if k in ctor}
+
+
+def warm_start(model: Any, artifact: bytes) -> None:
+    """Load every parameter of the SAC zip ``artifact`` into ``model`` (built with its architecture).
+
+    The policy (actor, critics, target critics) must match exactly; the optimizers' states and
+    the entropy coefficient are loaded when the model has the same ones (else they start fresh).
+
+    Raises:
+        Invalid: the zip is unreadable or its policy does not match ``model``'s.
+    """
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    try:
+        _, params, variables = load_from_zip_file(io.BytesIO(artifact), device="cpu", load_data=False)
+    except Exception as exc:  # SB3 and torch raise many types on corrupt input
+        raise Invalid(f"warm start: parent weights unreadable: {type(exc).__name__}: {exc}") from None
+    if "policy" not in params:
+        raise Invalid("warm start: the parent zip holds no policy weights")
+    try:
+        model.policy.load_state_dict(params["policy"], strict=True)
+    except RuntimeError as exc:
+        raise Invalid(f"warm start: the parent's policy does not match the model: {exc}") from None
+    wanted, _ = model._get_torch_save_params()
+    for name in wanted:
+        if name == "policy" or name not in params:
+            continue
+        try:
+            model.set_parameters({name: params[name]}, exact_match=False, device="cpu")
+        except (ValueError, RuntimeError, KeyError) as exc:
+            log.warning("warm start: %s not restored (%s); it starts fresh", name, exc)
+    log_ent = getattr(model, "log_ent_coef", None)
+    saved = (variables or {}).get("log_ent_coef")
+    if log_ent is not None and saved is not None and tuple(saved.shape) == tuple(log_ent.shape):
+        log_ent.data.copy_(saved.data)
+
+
+def policy_state(model_or_policy: Any) -> dict[str, np.ndarray]:
+    """The policy's parameters as numpy arrays (copies), for comparisons."""
+    policy = getattr(model_or_policy, "policy", model_or_policy)
+    return {k: v.detach().cpu().numpy().copy() for k, v in policy.state_dict().items()}
 
 
 def offline_sac(

@@ -3,10 +3,8 @@ active version.
 
 Warm start: when the parent (active) version is a SAC policy, the new model is built with the
 parent's policy architecture and gets *all* its parameters (actor, critics, target critics, the
-optimizers' states and the entropy coefficient) through SB3's ``set_parameters``-style loading,
-which reads only ``*.pth`` entries with ``torch.load(weights_only=True)``: nothing from the
-artifact is unpickled (the architecture comes from the safe neural loader,
-:func:`capevo.runtime.ecm.neural.load_sb3_policy`). When the parent is a code ECM there are no
+optimizers' states and the entropy coefficient) by :func:`capevo.learner.neural_seed.warm_start`,
+which unpickles nothing from the artifact. When the parent is a code ECM there are no
 weights; the actor is then first distilled from the parent's behaviour (behaviour cloning on
 ``distill_episodes`` rollouts of the parent in the training environment) so RL starts from what
 the robot already does, not from a random policy.
@@ -20,7 +18,8 @@ Defaults follow the paper: γ = 0.99, τ = 0.005, learning rate 3·10⁻⁴, aut
 tuning; buffer and batch come from the preset (:mod:`capevo.learner.presets`).
 
 Invariants:
-1. After :func:`warm_start` the model's policy ``state_dict`` equals the parent's exactly.
+1. After :func:`build_sac` with a SAC parent the model's policy ``state_dict`` equals the
+   parent's exactly.
 2. Every candidate artifact loads with the runtime's neural loader against the ECM's interface.
 3. ``SacConfig.to_dict()`` is JSON-able and is what the provenance's ``config_hash`` covers
    (with the environment, shaping and request fields).
@@ -28,7 +27,6 @@ Invariants:
 
 from __future__ import annotations
 
-import io
 import logging
 import math
 import time
@@ -55,27 +53,13 @@ from capevo.learner.bc import (
     torch_threads,
 )
 from capevo.learner.ecm_env import EcmEnv, EcmEnvConfig, EcmTarget, make_ecm_env, target_for
+from capevo.learner.neural_seed import model_bytes, new_sac, sac_policy_kwargs, warm_start
 from capevo.learner.reward import RewardShaping, ShapedReward
 from capevo.registry.api import Registry
 from capevo.registry.records import Kind, Origin, Provenance
 from capevo.runtime.tasks import task_spec
 
 log = logging.getLogger(__name__)
-
-SAC_POLICY_CLASS = "stable_baselines3.sac.policies.SACPolicy"
-_POLICY_KWARG_KEYS = (
-    "net_arch",
-    "activation_fn",
-    "log_std_init",
-    "use_expln",
-    "clip_mean",
-    "n_critics",
-    "optimizer_class",
-    "optimizer_kwargs",
-    "features_extractor_class",
-    "features_extractor_kwargs",
-    "normalize_images",
-)
 
 
 def _check_int(name: str, value: object, low: int) -> None:
@@ -181,72 +165,12 @@ class SacConfig:
 # --- warm start ----------------------------------------------------------------------------
 
 
-def sac_policy_kwargs(artifact: bytes) -> dict[str, Any]:
-    """The policy arguments of a SAC model zip, read by the safe neural loader (no unpickling).
-
-    Raises:
-        Invalid: not a loadable SB3 zip, or not a SAC policy.
-    """
-    from capevo.runtime.ecm.neural import load_sb3_policy
-
-    loaded = load_sb3_policy(artifact)
-    if loaded.policy_class != SAC_POLICY_CLASS:
-        raise Invalid(
-            f"warm start needs a SAC parent; the parent is a {loaded.policy_class}", details={"field": "parent"}
-        )
-    ctor = loaded.policy._get_constructor_parameters()
-    return {k: ctor[k] for k in _POLICY_KWARG_KEYS if k in ctor}
-
-
-def warm_start(model: Any, artifact: bytes) -> None:
-    """Load every parameter of the SAC zip ``artifact`` into ``model`` (built with its architecture).
-
-    The policy (actor, critics, target critics) must match exactly; the optimizers' states and
-    the entropy coefficient are loaded when the model has the same ones (else they start fresh).
-
-    Raises:
-        Invalid: the zip is unreadable or its policy does not match ``model``'s.
-    """
-    from stable_baselines3.common.save_util import load_from_zip_file
-
-    try:
-        _, params, variables = load_from_zip_file(io.BytesIO(artifact), device="cpu", load_data=False)
-    except Exception as exc:  # SB3 and torch raise many types on corrupt input
-        raise Invalid(f"warm start: parent weights unreadable: {type(exc).__name__}: {exc}") from None
-    if "policy" not in params:
-        raise Invalid("warm start: the parent zip holds no policy weights")
-    try:
-        model.policy.load_state_dict(params["policy"], strict=True)
-    except RuntimeError as exc:
-        raise Invalid(f"warm start: the parent's policy does not match the model: {exc}") from None
-    wanted, _ = model._get_torch_save_params()
-    for name in wanted:
-        if name == "policy" or name not in params:
-            continue
-        try:
-            model.set_parameters({name: params[name]}, exact_match=False, device="cpu")
-        except (ValueError, RuntimeError, KeyError) as exc:
-            log.warning("warm start: %s not restored (%s); it starts fresh", name, exc)
-    log_ent = getattr(model, "log_ent_coef", None)
-    saved = (variables or {}).get("log_ent_coef")
-    if log_ent is not None and saved is not None and tuple(saved.shape) == tuple(log_ent.shape):
-        log_ent.data.copy_(saved.data)
-
-
-def policy_state(model_or_policy: Any) -> dict[str, np.ndarray]:
-    """The policy's parameters as numpy arrays (copies), for comparisons."""
-    policy = getattr(model_or_policy, "policy", model_or_policy)
-    return {k: v.detach().cpu().numpy().copy() for k, v in policy.state_dict().items()}
-
-
 def build_sac(env: Any, config: SacConfig, *, parent_artifact: bytes | None = None) -> Any:
     """A SAC model for ``env``; warm-started from ``parent_artifact`` (a SAC zip) when given.
 
     Raises:
         Invalid: the parent is not a SAC policy of the environment's spaces.
     """
-    from capevo.learner.neural_seed import new_sac
-
     kwargs = sac_policy_kwargs(parent_artifact) if parent_artifact is not None else None
     model = new_sac(env, net_arch=config.net_arch, seed=config.seed, policy_kwargs=kwargs, **config.sac_kwargs())
     if parent_artifact is not None:
@@ -562,7 +486,6 @@ class SacLearner:
 
     def _learn(self, request: LearnRequest, parent_artifact: bytes | None) -> Candidate:
         from capevo.learner.experience import trace_paths
-        from capevo.learner.neural_seed import model_bytes
 
         target = target_for(request.task, request.ecm, request.parent)
         artifact = parent_artifact_of(request, self.registry, parent_artifact)

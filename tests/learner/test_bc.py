@@ -29,8 +29,7 @@ from capevo.learner.bc import (
     torch_threads,
 )
 from capevo.learner.ecm_env import EcmEnv, EcmEnvConfig, make_ecm_env, target_for
-from capevo.learner.neural_seed import model_bytes, offline_sac
-from capevo.learner.rl import policy_state
+from capevo.learner.neural_seed import model_bytes, offline_sac, policy_state
 from capevo.learner.skills import seed_registry
 from capevo.registry.local import LocalRegistry
 from capevo.registry.records import Kind, Origin

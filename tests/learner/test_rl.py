@@ -31,10 +31,17 @@ from capevo.learner.ecm_env import (
     step_of,
     target_for,
 )
-from capevo.learner.neural_seed import SpacesEnv, ecm_spaces, model_bytes, seed_policy
+from capevo.learner.neural_seed import (
+    SpacesEnv,
+    ecm_spaces,
+    model_bytes,
+    policy_state,
+    seed_policy,
+    warm_start,
+)
 from capevo.learner.presets import make_preset, preset_names
 from capevo.learner.reward import RewardShaping, ShapedReward
-from capevo.learner.rl import SacConfig, SacLearner, build_sac, policy_state, train_sac, warm_start
+from capevo.learner.rl import SacConfig, SacLearner, build_sac, train_sac
 from capevo.registry.local import LocalRegistry
 from capevo.registry.predicates import predicate_holds
 from capevo.registry.records import Kind, Origin, State
