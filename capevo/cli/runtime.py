@@ -164,6 +164,7 @@ def serve_cmd(
     running on its last versions while the registry is away, and serves evaluation requests
     on <ns>/runtime/<worker_id>/evaluate and <ns>/runtime/evaluate/<task>.
     """
+    from capevo.agent import DecompositionPolicy, IdentityMemory, identity_hash, load_identity
     from capevo.registry.zconfig import split_endpoints
     from capevo.runtime.tasks import Perturbations
     from capevo.runtime.worker import RuntimeWorker, WorkerConfig
@@ -190,7 +191,6 @@ def serve_cmd(
         perturbations=Perturbations.none() if no_perturbations else Perturbations(),
         governance=governance,
         phi=_phi(phi_path, task),
-        identity_path=identity_path,
         seed=seed,
         step_budget_per_ecm=step_budget,
         timeout_s=ecm_timeout,
@@ -205,7 +205,10 @@ def serve_cmd(
             click.echo(_human(event))
         sys.stdout.flush()
 
-    RuntimeWorker(config, emit=show).run(handle_signals=True)
+    identity = load_identity(identity_path) if identity_path is not None else IdentityMemory.default()
+    policy = DecompositionPolicy(identity=identity)
+    worker = RuntimeWorker(config, policy=policy, agent_identity_hash=identity_hash(policy, identity), emit=show)
+    worker.run(handle_signals=True)
 
 
 def _phi(phi_path: Path | None, task: str) -> Phi:

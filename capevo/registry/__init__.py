@@ -11,12 +11,7 @@ from typing import TYPE_CHECKING
 from capevo._lazy import lazy_getattr
 
 if TYPE_CHECKING:
-    from capevo.registry.api import Registry
-    from capevo.registry.client import Client
-    from capevo.registry.descriptor import dump_publish_spec, parse_publish_spec
-    from capevo.registry.local import LocalRegistry
-    from capevo.registry.open import open_registry
-    from capevo.registry.records import (
+    from capevo.records import (
         Action,
         ArtifactRef,
         AuditEvent,
@@ -35,6 +30,11 @@ if TYPE_CHECKING:
         State,
         VerifyReport,
     )
+    from capevo.registry.api import Registry
+    from capevo.registry.client import Client
+    from capevo.registry.descriptor import dump_publish_spec, parse_publish_spec
+    from capevo.registry.local import LocalRegistry
+    from capevo.registry.open import open_registry
     from capevo.registry.service import serve
 
 _HOMES = {
@@ -46,7 +46,7 @@ _HOMES = {
     "parse_publish_spec": "capevo.registry.descriptor",
     "dump_publish_spec": "capevo.registry.descriptor",
     **{
-        name: "capevo.registry.records"
+        name: "capevo.records"
         for name in (
             "Action",
             "ArtifactRef",

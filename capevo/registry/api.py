@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, Protocol, runtime_checkable
 
-from capevo.registry.records import (
+from capevo.records import (
     AuditEvent,
     CapabilitySet,
     EcmDetail,

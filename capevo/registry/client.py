@@ -41,10 +41,7 @@ from capevo.errors import (
     Unavailable,
     error_from_payload,
 )
-from capevo.registry.keys import DEFAULT_NAMESPACE, Keys
-from capevo.registry.local import default_actor, validate_spec
-from capevo.registry.names import validate_name, validate_version
-from capevo.registry.records import (
+from capevo.records import (
     AuditEvent,
     CapabilitySet,
     EcmDetail,
@@ -53,6 +50,9 @@ from capevo.registry.records import (
     PublishSpec,
     VerifyReport,
 )
+from capevo.records.names import validate_name, validate_version
+from capevo.registry.keys import DEFAULT_NAMESPACE, Keys
+from capevo.registry.local import default_actor, validate_spec
 from capevo.registry.wire import (
     ArtifactMeta,
     decode_event,

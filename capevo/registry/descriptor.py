@@ -31,7 +31,7 @@ import jsonschema
 import yaml
 
 from capevo.errors import Invalid
-from capevo.registry.records import (
+from capevo.records import (
     COMPARISON_OPS,
     Descriptor,
     Interface,

@@ -33,7 +33,7 @@ import re
 from dataclasses import dataclass
 
 from capevo.errors import Invalid
-from capevo.registry.names import validate_name, validate_version
+from capevo.records.names import validate_name, validate_version
 
 DEFAULT_NAMESPACE = "capevo"
 NAMESPACE_PATTERN = re.compile(r"[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*")

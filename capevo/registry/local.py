@@ -31,10 +31,7 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from capevo.errors import Corrupt, Invalid, NotFound, TooLarge, Unavailable
-from capevo.registry.audit import chain_problems
-from capevo.registry.descriptor import spec_to_document, validate_document
-from capevo.registry.names import validate_name, validate_version
-from capevo.registry.records import (
+from capevo.records import (
     Action,
     ArtifactRef,
     AuditEvent,
@@ -47,6 +44,9 @@ from capevo.registry.records import (
     State,
     VerifyReport,
 )
+from capevo.records.audit import chain_problems
+from capevo.records.names import validate_name, validate_version
+from capevo.registry.descriptor import spec_to_document, validate_document
 
 # Submodule imports (not names) keep this module importable while capevo.storage is
 # itself still initialising, whichever side of the registry/storage pair loads first.

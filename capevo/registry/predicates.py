@@ -13,7 +13,7 @@ import operator
 from collections.abc import Callable, Mapping
 
 from capevo.errors import Invalid
-from capevo.registry.records import Condition, Predicate
+from capevo.records import Condition, Predicate
 
 _OPS: Mapping[str, Callable[[float, float], bool]] = {
     "<": operator.lt,

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from capevo.errors import Unavailable
+from capevo.records import AuditEvent, Descriptor, Interface, IOSpec, Kind, PublishSpec
 from capevo.registry.client import Client
-from capevo.registry.records import AuditEvent, Descriptor, Interface, IOSpec, Kind, PublishSpec
 from capevo.registry.service import serve
 
 DEMO_ECM = "demo.reach"

@@ -40,9 +40,9 @@ from typing import Any
 import zenoh
 
 from capevo.errors import CapevoError, Invalid, TooLarge, Unavailable
+from capevo.records import AuditEvent, EcmVersion
 from capevo.registry.keys import COMMANDS, Keys, Route
 from capevo.registry.local import DEFAULT_MAX_ARTIFACT_BYTES, LocalRegistry
-from capevo.registry.records import AuditEvent, EcmVersion
 from capevo.registry.server_config import ServerConfig, access_control_for, load_server_config, write_dictionary
 from capevo.registry.wire import (
     JSON_ENCODING,

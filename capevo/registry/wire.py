@@ -32,9 +32,9 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from capevo.errors import CapevoError, Invalid, TooLarge
+from capevo.records import AuditEvent, EcmVersion, PublishSpec
+from capevo.records.names import validate_name, validate_version
 from capevo.registry.descriptor import spec_from_document
-from capevo.registry.names import validate_name, validate_version
-from capevo.registry.records import AuditEvent, EcmVersion, PublishSpec
 from capevo.storage.sqlite import MAX_ACTOR_CHARS, MAX_REASON_CHARS, normalize_evidence, validate_text
 
 MAX_VERSION = 2**63 - 1

@@ -55,20 +55,6 @@ MAX_SEEDS_PER_CALL = 10_000
 UNKNOWN_IDENTITY = "unspecified"
 
 
-def agent_identity_of(policy: object) -> str | None:
-    """The identity hash of ``policy`` when it is an agent policy with an identity memory, else None."""
-    identity = getattr(policy, "identity", None)
-    parameters = getattr(policy, "parameters", None)
-    if identity is None or parameters is None:
-        return None
-    try:
-        from capevo.agent.fingerprint import identity_hash
-
-        return identity_hash(policy, identity)  # type: ignore[arg-type]
-    except Exception:  # an unusual policy object; the trace then says "unspecified"
-        return None
-
-
 def check_seeds(seeds: Sequence[int]) -> list[int]:
     """``seeds`` as a list of non-negative ints.
 
@@ -125,8 +111,9 @@ class LocalEvaluator:
         step_budget_per_ecm: Steps one ECM activation may take.
         timeout_s: Per-call ECM compute limit.
         governance: False runs the evaluation-only counting mode (actions pass unchanged).
-        agent_identity_hash: Recorded in traces; default derived from ``policy`` when it is
-            an agent policy, else ``"unspecified"``.
+        agent_identity_hash: The persistent agent's identity hash, recorded in traces; the caller
+            computes it (the runtime lies below the agent and does not know how); default
+            ``"unspecified"``.
         cache: Artifact cache shared across calls; default in memory.
         load_options: Trust policy and sandbox settings.
         recovery: ECM recovery mode (see :data:`capevo.runtime.capabilities.RECOVERY_MODES`).
@@ -175,7 +162,7 @@ class LocalEvaluator:
         self.step_budget_per_ecm = step_budget_per_ecm
         self.timeout_s = timeout_s
         self.governance = governance
-        self.agent_identity_hash = agent_identity_hash or agent_identity_of(policy) or UNKNOWN_IDENTITY
+        self.agent_identity_hash = agent_identity_hash or UNKNOWN_IDENTITY
         self.cache: ArtifactStore = cache if cache is not None else MemoryArtifactCache()
         self.load_options = load_options
         self.recovery = recovery

@@ -79,8 +79,9 @@ from capevo.runtime.episode import (
     run_episode_detailed,
 )
 from capevo.runtime.evaluation import EpisodeOutcome
-from capevo.runtime.evaluator import LocalEvaluator, agent_identity_of, check_seeds, check_versions
+from capevo.runtime.evaluator import LocalEvaluator, check_seeds, check_versions
 from capevo.runtime.governance import Phi
+from capevo.runtime.policy import DecisionPolicy
 from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
 from capevo.runtime.traces import (
     DEFAULT_COMPRESSION,
@@ -310,7 +311,6 @@ class WorkerConfig:
         perturbations: Task perturbations; default all on.
         governance: False runs the evaluation-only counting mode.
         phi: Safety envelope; default :meth:`Phi.default`.
-        identity_path: M_id YAML for the decision policy; default the packaged identity.
         seed: Seed of the first episode; episode i uses ``seed + i``.
         step_budget_per_ecm, timeout_s: Per-ECM step budget and per-call compute limit.
         recovery: ECM recovery mode.
@@ -333,7 +333,6 @@ class WorkerConfig:
     perturbations: Perturbations = field(default_factory=Perturbations)
     governance: bool = True
     phi: Phi | None = None
-    identity_path: Path | None = None
     seed: int = 0
     step_budget_per_ecm: int | None = DEFAULT_STEP_BUDGET
     timeout_s: float = DEFAULT_TIMEOUT_S
@@ -386,13 +385,25 @@ class RuntimeWorker:
 
     Args:
         config: Its settings.
+        policy: π_A, the persistent agent's decision policy (built by the caller, which lies
+            above the runtime: ``capevo runtime serve`` builds it from ``--identity``).
+        agent_identity_hash: The agent's identity hash, recorded in every trace.
         emit: Called (on the main thread or a Zenoh thread) with each event as a JSON-able
             dict: ``ready``, ``waiting``, ``registry``, ``swap_queued``, ``swap``, ``episode``,
             ``evaluated``, ``stopped``.
     """
 
-    def __init__(self, config: WorkerConfig, *, emit: EventSink | None = None) -> None:
+    def __init__(
+        self,
+        config: WorkerConfig,
+        *,
+        policy: DecisionPolicy,
+        agent_identity_hash: str,
+        emit: EventSink | None = None,
+    ) -> None:
         self.config = config
+        self.policy = policy
+        self.agent_identity_hash = agent_identity_hash
         self.worker_id = config.worker_id or default_worker_id()
         self.spec = task_spec(config.task)
         self.keys = RuntimeKeys(config.namespace)
@@ -528,10 +539,9 @@ class RuntimeWorker:
                 return 0
             stack.callback(caps.close)
             self._caps = caps
-            policy, identity_hash = self._policy()
             evaluator = LocalEvaluator(
                 client,
-                policy=policy,
+                policy=self.policy,
                 phi=self.phi,
                 trace_dir=self.config.trace_dir / "evaluations" if self.config.trace_dir is not None else None,
                 trace_compression=self.config.trace_compression,
@@ -540,7 +550,7 @@ class RuntimeWorker:
                 step_budget_per_ecm=self.config.step_budget_per_ecm,
                 timeout_s=self.config.timeout_s,
                 governance=self.config.governance,
-                agent_identity_hash=identity_hash,
+                agent_identity_hash=self.agent_identity_hash,
                 cache=self._cache,
                 recovery=self.config.recovery,
                 worker_id=self.worker_id,
@@ -570,7 +580,7 @@ class RuntimeWorker:
                     "evaluate_task": self.keys.evaluate_task(self.spec.name),
                 },
             )
-            self._loop(env, caps, policy, identity_hash, evaluator, stop)
+            self._loop(env, caps, self.policy, self.agent_identity_hash, evaluator, stop)
         self._emit("stopped", episodes=self._episodes)
         return self._episodes
 
@@ -613,18 +623,6 @@ class RuntimeWorker:
                 log.warning("cannot load the capability set yet: %s", exc)
                 stop.wait(self.config.retry_interval_s)
         return None
-
-    def _policy(self) -> tuple[Any, str]:
-        from capevo.agent.identity import IdentityMemory, load_identity
-        from capevo.agent.policy import DecompositionPolicy
-
-        identity = (
-            load_identity(self.config.identity_path)
-            if self.config.identity_path is not None
-            else IdentityMemory.default()
-        )
-        policy = DecompositionPolicy(identity=identity)
-        return policy, agent_identity_of(policy) or "unspecified"
 
     def _open_session(self, stack: contextlib.ExitStack) -> zenoh.Session:
         try:

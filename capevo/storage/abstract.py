@@ -2,7 +2,7 @@
 
 Methods are grouped by entity and return records, never rows. Each mutating method is
 one atomic transaction: it reads the current state, checks the lifecycle rule
-(:func:`capevo.registry.lifecycle.check_transition`), writes, and appends the hash-chained
+(:func:`capevo.records.lifecycle.check_transition`), writes, and appends the hash-chained
 audit event, all or nothing. That is what keeps version numbers gap-free under concurrent
 publishers and makes ``expected_active`` a real compare-and-swap.
 
@@ -16,7 +16,7 @@ import abc
 from collections.abc import Mapping
 from typing import Any
 
-from capevo.registry.records import (
+from capevo.records import (
     ArtifactRef,
     AuditEvent,
     CapabilitySet,

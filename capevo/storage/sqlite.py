@@ -54,10 +54,7 @@ from capevo.errors import (
     TooLarge,
     Unavailable,
 )
-from capevo.registry.audit import GENESIS, canonical_json, event_hash
-from capevo.registry.lifecycle import GATEABLE, check_transition
-from capevo.registry.names import validate_name, validate_version
-from capevo.registry.records import (
+from capevo.records import (
     Action,
     ArtifactRef,
     AuditEvent,
@@ -74,6 +71,9 @@ from capevo.registry.records import (
     PublishSpec,
     State,
 )
+from capevo.records.audit import GENESIS, canonical_json, event_hash
+from capevo.records.lifecycle import GATEABLE, check_transition
+from capevo.records.names import validate_name, validate_version
 from capevo.storage.abstract import AbstractStore
 
 SCHEMA_VERSION = 1

@@ -17,11 +17,11 @@ import pytest
 from zenoh_fixtures import make_zenoh_registry  # tests/registry is on sys.path (rootdir-relative)
 
 from capevo.errors import CapevoError, Conflict, ErrorCode, IllegalTransition, Invalid, NotFound
+from capevo.records import Action, PublishSpec, State
+from capevo.records.audit import GENESIS, chain_problems, event_hash
 from capevo.registry.api import Registry
-from capevo.registry.audit import GENESIS, chain_problems, event_hash
 from capevo.registry.descriptor import parse_publish_spec
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Action, PublishSpec, State
 
 SPEC_YAML = """
 kind: code

@@ -24,17 +24,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from capevo.errors import CapevoError, Corrupt, ErrorCode, Invalid, NotFound, TooLarge, Unavailable
-from capevo.registry.descriptor import dump_publish_spec, parse_publish_spec
-from capevo.registry.local import (
-    BLOB_DIRNAME,
-    DB_FILENAME,
-    EventListener,
-    LocalRegistry,
-    RecordingListener,
-    default_actor,
-)
-from capevo.registry.names import MAX_NAME_LENGTH, RESERVED, validate_name
-from capevo.registry.records import (
+from capevo.records import (
     COMPARISON_OPS,
     Action,
     Condition,
@@ -47,6 +37,16 @@ from capevo.registry.records import (
     Provenance,
     PublishSpec,
     State,
+)
+from capevo.records.names import MAX_NAME_LENGTH, RESERVED, validate_name
+from capevo.registry.descriptor import dump_publish_spec, parse_publish_spec
+from capevo.registry.local import (
+    BLOB_DIRNAME,
+    DB_FILENAME,
+    EventListener,
+    LocalRegistry,
+    RecordingListener,
+    default_actor,
 )
 
 SPEC = parse_publish_spec("kind: code\ndescription: test skill\n")

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import pytest
 
+from capevo.records import Action, State
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Action, State
 from capevo.registry.roundtrip import DEMO_ECM, run_round_trip
 
 

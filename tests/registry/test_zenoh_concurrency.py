@@ -10,8 +10,8 @@ from typing import Any
 import pytest
 from zenoh_fixtures import ServerProcess, learner_publish_worker, promote_worker, start_server, unique_name
 
+from capevo.records import State
 from capevo.registry.descriptor import parse_publish_spec
-from capevo.registry.records import State
 
 pytestmark = pytest.mark.zenoh
 

@@ -13,9 +13,9 @@ import pytest
 from zenoh_fixtures import ServerProcess, start_server
 
 from capevo.errors import CapevoError, Conflict
+from capevo.records import Action
 from capevo.registry.descriptor import parse_publish_spec
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Action
 
 pytestmark = pytest.mark.zenoh
 

@@ -123,7 +123,7 @@ def test_any_key_under_ecm_gets_one_clear_reply(session: zenoh.Session, known: s
 @FUZZ
 @given(suffix=st.sampled_from(["", "/active", "/0", "/history", "/active/artifact", "/0/artifact"]), name=KEY_CHUNK)
 def test_bad_names_at_every_read_key_are_invalid(session: zenoh.Session, known: str, suffix: str, name: str) -> None:
-    from capevo.registry.names import NAME_PATTERN, RESERVED
+    from capevo.records.names import NAME_PATTERN, RESERVED
 
     assume(not NAME_PATTERN.fullmatch(name) or ".." in name or name in RESERVED)
     key = f"{NS}/ecm/{name}{suffix}"

@@ -14,9 +14,9 @@ import pytest
 from zenoh_fixtures import ServerProcess, hub_router, raw_query, raw_session, start_server, unique_name
 
 from capevo.errors import CapevoError, ErrorCode, Forbidden, Unavailable
+from capevo.records import Action, State
 from capevo.registry.client import Client
 from capevo.registry.descriptor import parse_publish_spec
-from capevo.registry.records import Action, State
 
 pytestmark = pytest.mark.zenoh
 

@@ -14,12 +14,12 @@ import pytest
 from zenoh_fixtures import ServerProcess, free_tcp_port, start_server, unique_name
 
 from capevo.errors import CapevoError, Corrupt, ErrorCode, Invalid, TooLarge, Unavailable
+from capevo.records import Action, AuditEvent, EcmVersion, State
 from capevo.registry.api import Registry
 from capevo.registry.client import Client
 from capevo.registry.descriptor import parse_publish_spec
 from capevo.registry.local import LocalRegistry
 from capevo.registry.open import open_registry
-from capevo.registry.records import Action, AuditEvent, EcmVersion, State
 
 pytestmark = pytest.mark.zenoh
 

@@ -17,9 +17,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from capevo.errors import CapevoError, Invalid, TooLarge
+from capevo.records import AuditEvent, EcmVersion
 from capevo.registry.descriptor import parse_publish_spec
 from capevo.registry.keys import COMMANDS, READ_ENDPOINTS, Keys, Route, validate_namespace
-from capevo.registry.records import AuditEvent, EcmVersion
 from capevo.registry.server_config import (
     ROLES,
     ServerConfig,

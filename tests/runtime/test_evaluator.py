@@ -41,7 +41,13 @@ def setup(tmp_path_factory: pytest.TempPathFactory, policy: DecompositionPolicy)
     registry = LocalRegistry(root / "registry", actor="tester")
     publish_pick(registry)
     slow_lift = publish(registry, "pick.lift", LIFT.replace('"speed": 1.0', '"speed": 0.5'))
-    evaluator = LocalEvaluator(registry, policy=policy, trace_dir=root / "traces", horizon=HORIZON)
+    evaluator = LocalEvaluator(
+        registry,
+        policy=policy,
+        trace_dir=root / "traces",
+        horizon=HORIZON,
+        agent_identity_hash=identity_hash(policy, policy.identity),
+    )
     yield registry, evaluator, slow_lift, root
     evaluator.close()
     registry.close()

@@ -15,9 +15,9 @@ import signal
 import time
 from pathlib import Path
 
+from capevo.records import State
 from capevo.registry.descriptor import parse_publish_spec
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import State
 
 ROUNDS = 4
 ACKS_PER_ROUND = 24

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from capevo.errors import CapevoError
-from capevo.registry.audit import chain_problems
+from capevo.records.audit import chain_problems
 from capevo.registry.descriptor import parse_publish_spec
 from capevo.registry.local import LocalRegistry
 

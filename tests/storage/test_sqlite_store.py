@@ -26,9 +26,9 @@ from capevo.errors import (
     TooLarge,
     Unavailable,
 )
-from capevo.registry.audit import GENESIS, chain_problems
+from capevo.records import Action, ArtifactRef, Mutation, PublishSpec, State
+from capevo.records.audit import GENESIS, chain_problems
 from capevo.registry.descriptor import parse_publish_spec
-from capevo.registry.records import Action, ArtifactRef, Mutation, PublishSpec, State
 from capevo.storage.sqlite import MAX_EVIDENCE_BYTES, SqliteStore
 
 SPEC = parse_publish_spec("kind: prompt\ndescription: say hello\n")
