@@ -49,6 +49,7 @@ import numpy as np
 from capevo.errors import Invalid
 from capevo.learner.base import Candidate, LearnRequest, config_hash
 from capevo.learner.ecm_env import EcmEnv, EcmEnvConfig, EcmTarget, make_ecm_env, target_for
+from capevo.learner.neural_seed import NEURAL_MEDIA_TYPE, model_bytes, offline_sac, sac_policy_kwargs, warm_start
 from capevo.registry.api import Registry
 from capevo.registry.records import IOSpec, Kind, Origin, Provenance, PublishSpec
 from capevo.runtime.ecm.marshal import spec_size
@@ -544,21 +545,33 @@ def behaviour_clone(
 # --- the learner ---------------------------------------------------------------------------
 
 
-def neural_candidate_spec(
-    target: EcmTarget, *, parent: int | None, origin: Origin, provenance: Provenance
-) -> PublishSpec:
-    """The publish spec of a neural candidate for ``target``."""
-    from capevo.learner.neural_seed import NEURAL_MEDIA_TYPE
+def neural_candidate(
+    model: Any,
+    target: EcmTarget,
+    *,
+    request: LearnRequest,
+    origin: Origin,
+    provenance: Provenance,
+    notes: Mapping[str, Any],
+) -> Candidate:
+    """The candidate of a trained SAC ``model`` for ``target``: its zip, checked to load as the
+    runtime will, with a neural publish spec whose parent is the request's.
 
-    return PublishSpec(
+    Raises:
+        Invalid: the zip does not load or does not match the interface.
+    """
+    artifact = model_bytes(model)
+    check_loadable(artifact, target)
+    spec = PublishSpec(
         kind=Kind.NEURAL,
         descriptor=target.descriptor,
         interface=target.interface,
         media_type=NEURAL_MEDIA_TYPE,
-        parent=parent,
+        parent=request.parent.version,
         origin=origin,
         provenance=provenance,
     )
+    return Candidate(ecm=request.ecm, artifact=artifact, spec=spec, notes=notes)
 
 
 def check_loadable(artifact: bytes, target: EcmTarget) -> None:
@@ -719,7 +732,6 @@ class BcLearner:
             return self._learn(request, parent_artifact=parent_artifact, demos=demos)
 
     def _learn(self, request: LearnRequest, *, parent_artifact: bytes | None, demos: Demos | None) -> Candidate:
-        from capevo.learner.neural_seed import model_bytes, offline_sac, sac_policy_kwargs, warm_start
 
         target = target_for(request.task, request.ecm, request.parent)
         act_dim = task_spec(request.task).action_layout.dim
@@ -735,15 +747,12 @@ class BcLearner:
             demos = self.gather(request, target)
         report = behaviour_clone(model, demos, self.config, progress=self.progress)
         self.last_report = report
-        out = model_bytes(model)
-        check_loadable(out, target)
-        spec = neural_candidate_spec(
-            target, parent=request.parent.version, origin=Origin.IL, provenance=self.provenance(request, demos)
-        )
-        return Candidate(
-            ecm=request.ecm,
-            artifact=out,
-            spec=spec,
+        return neural_candidate(
+            model,
+            target,
+            request=request,
+            origin=Origin.IL,
+            provenance=self.provenance(request, demos),
             notes={
                 "learner": self.learner_id,
                 "modality": self.modality,

@@ -42,18 +42,17 @@ from capevo.learner.bc import (
     BcConfig,
     BcReport,
     behaviour_clone,
-    check_loadable,
     collect_demos,
     default_learner_id,
     ecm_controller,
     input_columns,
-    neural_candidate_spec,
+    neural_candidate,
     parent_artifact_of,
     task_trace_files,
     torch_threads,
 )
 from capevo.learner.ecm_env import EcmEnv, EcmEnvConfig, EcmTarget, make_ecm_env, target_for
-from capevo.learner.neural_seed import model_bytes, new_sac, sac_policy_kwargs, warm_start
+from capevo.learner.neural_seed import new_sac, sac_policy_kwargs, warm_start
 from capevo.learner.reward import RewardShaping, ShapedReward
 from capevo.registry.api import Registry
 from capevo.registry.records import Kind, Origin, Provenance
@@ -134,15 +133,7 @@ class SacConfig:
     def to_dict(self) -> dict[str, Any]:
         return {
             "total_steps": self.total_steps,
-            "buffer_size": self.buffer_size,
-            "batch_size": self.batch_size,
-            "learning_starts": self.learning_starts,
-            "learning_rate": self.learning_rate,
-            "gamma": self.gamma,
-            "tau": self.tau,
-            "train_freq": self.train_freq,
-            "gradient_steps": self.gradient_steps,
-            "ent_coef": self.ent_coef,
+            **self.sac_kwargs(),
             "net_arch": list(self.net_arch),
             "seed": self.seed,
         }
@@ -534,19 +525,13 @@ class SacLearner:
             report.episodes,
             report.successes,
         )
-        out = model_bytes(model)
-        check_loadable(out, target)
         used = task_trace_files(paths, request.task) if paths else []
-        spec = neural_candidate_spec(
+        return neural_candidate(
+            model,
             target,
-            parent=request.parent.version,
+            request=request,
             origin=Origin.RL,
             provenance=self.provenance(request, [str(p) for p in used]),
-        )
-        return Candidate(
-            ecm=request.ecm,
-            artifact=out,
-            spec=spec,
             notes={
                 "learner": self.learner_id,
                 "modality": self.modality,
