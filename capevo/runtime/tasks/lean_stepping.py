@@ -19,8 +19,9 @@ wrapped environment changes, and :func:`remove` puts robosuite back exactly as s
 
 Invariants:
 1. With the overrides installed, every simulator state, observation, reward and info that
-   ``TaskEnv`` produces is bit for bit what it produces without them (golden digests in
-   ``tests/runtime/tasks/test_task_golden.py``; ``tests/runtime/tasks/test_lean_stepping.py``).
+   ``TaskEnv`` produces is bit for bit what it produces without them (a differential test,
+   ``tests/runtime/tasks/test_lean_stepping.py``: stock and lean environments side by side, same
+   seeds and actions, every task).
 2. An override is installed only when the method it replaces is robosuite's own
    (``RobotEnv._pre_action``, not a subclass's): an environment that customises it keeps it.
 3. Forced observable refreshes (reset, ``_get_observations(force_update=True)``) still run.
