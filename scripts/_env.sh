@@ -17,15 +17,5 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
   "$VENV/bin/python" -m pip install --quiet -e "$ROOT[${CAPEVO_EXTRAS:-test}]" >&2
   echo "$WANT" > "$STAMP"
 fi
-# The C parts (the governance kernel in capevo/runtime/governance/csrc, the trace writer's hot path
-# in capevo/runtime/traces/csrc): rebuild them in place whenever a source changed since the last
-# build, so a pull or an edit never runs a stale one.
-KSTAMP="$VENV/.capevo-kernel-stamp"
-KWANT="$(cat "$ROOT/setup.py" "$ROOT"/capevo/runtime/governance/csrc/* "$ROOT"/capevo/runtime/traces/csrc/* | sha256sum | cut -d' ' -f1)"
-if [ ! -f "$KSTAMP" ] || [ "$(cat "$KSTAMP")" != "$KWANT" ]; then
-  echo "capevo: building the C parts (governance kernel, trace rows)" >&2
-  (cd "$ROOT" && flock /tmp/capevo-kernel-build.lock "$VENV/bin/python" setup.py -q build_ext --inplace >&2)
-  echo "$KWANT" > "$KSTAMP"
-fi
 export PATH="$VENV/bin:$PATH"
 cd "$ROOT"
