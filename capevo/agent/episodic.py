@@ -39,6 +39,7 @@ from typing import Any
 from capevo.errors import CapevoError, Conflict, Corrupt, Invalid, NotFound
 from capevo.registry.audit import canonical_json
 from capevo.runtime.evaluation import EpisodeOutcome
+from capevo.storage.blobs import fsync_dir
 
 log = logging.getLogger(__name__)
 
@@ -188,6 +189,20 @@ def _parse_line(raw: bytes, path: Path, lineno: int) -> EpisodeRecord:
         ) from None
 
 
+def _numbered_lines(path: Path) -> Iterator[tuple[int, bytes]]:
+    """``(line number, raw line)`` of ``path`` from 1; only the last one may lack its newline.
+
+    Raises:
+        NotFound: no file at ``path``.
+    """
+    try:
+        f = path.open("rb")
+    except FileNotFoundError:
+        raise NotFound(f"no episodic memory at {path}", details={"path": str(path)}) from None
+    with f:
+        yield from enumerate(f, start=1)
+
+
 def iter_episodes(path: str | os.PathLike[str]) -> Iterator[EpisodeRecord]:
     """Stream the complete records of ``path`` in order, skipping a torn last line silently.
 
@@ -196,15 +211,10 @@ def iter_episodes(path: str | os.PathLike[str]) -> Iterator[EpisodeRecord]:
         Corrupt: a malformed complete line.
     """
     p = Path(path)
-    try:
-        f = p.open("rb")
-    except FileNotFoundError:
-        raise NotFound(f"no episodic memory at {p}", details={"path": str(p)}) from None
-    with f:
-        for lineno, raw in enumerate(f, start=1):
-            if not raw.endswith(b"\n"):
-                return
-            yield _parse_line(raw, p, lineno)
+    for lineno, raw in _numbered_lines(p):
+        if not raw.endswith(b"\n"):
+            return
+        yield _parse_line(raw, p, lineno)
 
 
 def read_episodes(path: str | os.PathLike[str]) -> EpisodicLog:
@@ -220,19 +230,12 @@ def read_episodes(path: str | os.PathLike[str]) -> EpisodicLog:
     p = Path(path)
     records: list[EpisodeRecord] = []
     torn = 0
-    try:
-        f = p.open("rb")
-    except FileNotFoundError:
-        raise NotFound(f"no episodic memory at {p}", details={"path": str(p)}) from None
-    with f:
-        for lineno, raw in enumerate(f, start=1):
-            if not raw.endswith(b"\n"):
-                torn = len(raw)
-                log.warning(
-                    "%s:%d: ignoring a torn last line of %d bytes (a write that never completed)", p, lineno, torn
-                )
-                break
-            records.append(_parse_line(raw, p, lineno))
+    for lineno, raw in _numbered_lines(p):
+        if not raw.endswith(b"\n"):
+            torn = len(raw)
+            log.warning("%s:%d: ignoring a torn last line of %d bytes (a write that never completed)", p, lineno, torn)
+            break
+        records.append(_parse_line(raw, p, lineno))
     return EpisodicLog(path=str(p), records=tuple(records), torn_tail_bytes=torn)
 
 
@@ -272,7 +275,8 @@ class EpisodicMemory:
         self._fd: int | None = fd
         try:
             if not existed:
-                _fsync_dir(self._path.parent)
+                # The new file's directory entry must be durable too, or the whole log can vanish.
+                fsync_dir(self._path.parent)
             self.repaired_bytes, self._last_iteration = self._recover_tail()
         except BaseException:
             self.close()
@@ -371,12 +375,3 @@ class EpisodicMemory:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def _fsync_dir(directory: Path) -> None:
-    # The new file's directory entry must be durable too, or the whole log can vanish.
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)

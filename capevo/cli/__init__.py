@@ -46,6 +46,7 @@ import datetime as _dt
 import functools
 import importlib
 import json
+import logging
 import os
 import sys
 from collections.abc import Callable, Iterator, Mapping
@@ -99,6 +100,12 @@ def error_line(err: CapevoError) -> str:
     return f"error [{err.code.value}]: {message}"
 
 
+def report_error(err: CapevoError) -> int:
+    """Print ``err``'s :func:`error_line` on stderr (passwords masked) and return its exit code."""
+    click.echo(_redact(error_line(err)), err=True)
+    return exit_code_for(err)
+
+
 class CapevoGroup(click.Group):
     """A click group that turns errors into one stderr line and a mapped exit code.
 
@@ -128,8 +135,7 @@ class CapevoGroup(click.Group):
         try:
             return super().invoke(ctx)
         except CapevoError as err:
-            click.echo(_redact(error_line(err)), err=True)
-            ctx.exit(exit_code_for(err))
+            ctx.exit(report_error(err))
         except (click.exceptions.ClickException, click.exceptions.Exit, click.exceptions.Abort):
             raise
         except KeyboardInterrupt:
@@ -139,8 +145,7 @@ class CapevoGroup(click.Group):
             if os.environ.get("CAPEVO_DEBUG"):
                 raise
             message = f"unexpected {type(exc).__name__}: {exc} (set CAPEVO_DEBUG=1 for the traceback)"
-            click.echo(_redact(error_line(CapevoError(message))), err=True)
-            ctx.exit(EXIT_INTERNAL)
+            ctx.exit(report_error(CapevoError(message)))
 
 
 # Passwords seen on this process's command lines; a message quoting its input must not leak one.
@@ -379,6 +384,25 @@ def registry_options(func: F) -> F:
 
 
 json_option = click.option("--json", "as_json", is_flag=True, help="Print JSON instead of tables.")
+
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+"""How every command's log lines look on stderr."""
+
+
+def log_level_option(*, default: str = "WARNING", help: str = "Log level (logs go to stderr).") -> Callable[[F], F]:
+    """``--log-level DEBUG|INFO|WARNING|ERROR`` (any case), ``default`` shown in the help."""
+    return click.option(
+        "--log-level",
+        type=click.Choice(["DEBUG", "INFO", "WARNING", "ERROR"], case_sensitive=False),
+        default=default,
+        show_default=True,
+        help=help,
+    )
+
+
+def log_to_stderr(level: str) -> None:
+    """Send log records of ``level`` and above to stderr in :data:`LOG_FORMAT`."""
+    logging.basicConfig(level=level.upper(), stream=sys.stderr, format=LOG_FORMAT)
 
 
 # ---------------------------------------------------------------------------------------

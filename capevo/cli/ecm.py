@@ -37,6 +37,7 @@ from capevo.errors import CapevoError, Corrupt, Invalid
 from capevo.registry.descriptor import parse_publish_spec
 from capevo.registry.names import validate_name
 from capevo.registry.records import AuditEvent, CapabilitySet, EcmDetail, EcmSummary, EcmVersion, IOSpec, State
+from capevo.storage.blobs import fsync_dir
 
 # Above this size publish/pull show a spinner on a terminal.
 _PROGRESS_BYTES = 4 * 1024 * 1024
@@ -431,11 +432,7 @@ def write_atomic(path: Path, data: bytes) -> None:
         raise CapevoError(f"cannot write {str(path)!r}: {exc.strerror or exc}", details={"path": str(path)}) from None
     with contextlib.suppress(OSError):
         # The rename is durable only once the directory entry is.
-        fd = os.open(directory, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        fsync_dir(directory)
 
 
 def _v(version: int | None, missing: str = "-") -> str:

@@ -28,11 +28,12 @@ import click
 from capevo.cli import (
     DEFAULT_ROOT,
     EXIT_INTERRUPTED,
-    error_line,
-    exit_code_for,
+    LOG_FORMAT,
+    log_level_option,
     login_options,
     make_table,
     remember_password,
+    report_error,
     resolve_target,
     stdout_console,
 )
@@ -145,13 +146,7 @@ def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
 )
 @click.option("--report-only", is_flag=True, help="Only rewrite the report of the run in --report-dir.")
 @click.option("--json", "as_json", is_flag=True, help="Print the run's summary as JSON on stdout.")
-@click.option(
-    "--log-level",
-    type=click.Choice(["DEBUG", "INFO", "WARNING", "ERROR"], case_sensitive=False),
-    default="WARNING",
-    show_default=True,
-    help="Log level (logs go to stderr).",
-)
+@log_level_option()
 def evolve(
     task: str,
     iterations: int | None,
@@ -196,7 +191,7 @@ def evolve(
     remember_password(password)
     # Our own loggers only: robosuite has its own console handler (a root handler doubles its lines).
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    handler.setFormatter(logging.Formatter(LOG_FORMAT))
     capevo_log = logging.getLogger("capevo")
     capevo_log.addHandler(handler)
     capevo_log.setLevel(log_level.upper())
@@ -279,10 +274,7 @@ def _run(ctx: click.Context, **kw: Any) -> int:
             _quiet_robosuite()
         result = run_evolution(options, progress=RichProgress())
     except CapevoError as err:
-        from capevo.cli import _redact
-
-        click.echo(_redact(error_line(err)), err=True)
-        return exit_code_for(err)
+        return report_error(err)
     except KeyboardInterrupt:
         click.echo(
             "error [interrupted]: interrupted; finished iterations are saved, run the same command again to resume",

@@ -18,14 +18,13 @@ Invariants:
 from __future__ import annotations
 
 import json
-import logging
 import sys
 from pathlib import Path
 from typing import Any
 
 import click
 
-from capevo.cli import CapevoGroup, login_options, remember_password
+from capevo.cli import CapevoGroup, log_level_option, log_to_stderr, login_options, remember_password
 from capevo.errors import Invalid
 
 
@@ -124,13 +123,7 @@ def learner() -> None:
     show_default=True,
     help="Seconds to wait for each registry reply.",
 )
-@click.option(
-    "--log-level",
-    type=click.Choice(["DEBUG", "INFO", "WARNING", "ERROR"], case_sensitive=False),
-    default="WARNING",
-    show_default=True,
-    help="Log level (logs go to stderr).",
-)
+@log_level_option()
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON event per line.")
 def serve_cmd(
     connect: tuple[str, ...],
@@ -173,9 +166,7 @@ def serve_cmd(
     from capevo.registry.zconfig import split_endpoints
     from capevo.runtime.tasks import Perturbations
 
-    logging.basicConfig(
-        level=log_level.upper(), stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
+    log_to_stderr(log_level)
     endpoints = split_endpoints(connect)
     if (root is None) == (not endpoints):
         raise Invalid("give exactly one of --connect ENDPOINT or --root DIR", details={"field": "connect"})

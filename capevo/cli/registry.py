@@ -9,7 +9,6 @@ Invariants:
 from __future__ import annotations
 
 import json
-import logging
 import sys
 from pathlib import Path
 
@@ -23,6 +22,8 @@ from capevo.cli import (
     RegistryOptions,
     emit,
     json_option,
+    log_level_option,
+    log_to_stderr,
     make_table,
     registry_options,
     registry_session,
@@ -78,13 +79,7 @@ def registry() -> None:
     default=None,
     help="Largest artifact accepted. [default: from --config, else 256 MiB]",
 )
-@click.option(
-    "--log-level",
-    type=click.Choice(["DEBUG", "INFO", "WARNING", "ERROR"], case_sensitive=False),
-    default="INFO",
-    show_default=True,
-    help="Server log level (logs go to stderr).",
-)
+@log_level_option(default="INFO", help="Server log level (logs go to stderr).")
 @json_option
 def serve_cmd(
     root: Path,
@@ -105,9 +100,7 @@ def serve_cmd(
     from capevo.registry.server_config import load_server_config
     from capevo.registry.service import ServeInfo, serve
 
-    logging.basicConfig(
-        level=log_level.upper(), stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
+    log_to_stderr(log_level)
 
     def announce(info: ServeInfo) -> None:
         if as_json:

@@ -30,6 +30,7 @@ from typing import Any
 
 from capevo.errors import Corrupt, Invalid
 from capevo.runtime.evaluation import EpisodeOutcome
+from capevo.storage.blobs import fsync_dir
 
 CI_ALPHA = 0.025
 """Each end of the reported intervals is a one-sided 97.5% bound: two-sided 95%."""
@@ -494,14 +495,6 @@ def write_atomically(path: Path, data: bytes) -> None:
         os.fsync(f.fileno())
     os.replace(tmp, path)
     fsync_dir(path.parent)
-
-
-def fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def read_jsonl(path: Path) -> tuple[list[dict[str, Any]], int]:
