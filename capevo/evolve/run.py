@@ -137,20 +137,19 @@ class EvolveOptions:
 
 def open_registry_for(options: EvolveOptions, *, actor: str = "evolve") -> Any:
     """The run's registry: a LocalRegistry at ``root`` or a Zenoh client of ``connect``."""
-    if options.connect:
-        from capevo.registry.client import Client
+    from capevo.registry.open import open_registry
 
-        return Client(
-            list(options.connect),
+    if options.connect:
+        return open_registry(
+            connect=options.connect,
             namespace=options.namespace,
             user=options.user,
             password=options.password,
             timeout=options.timeout,
             actor=actor,
         )
-    from capevo.registry.local import LocalRegistry
-
-    return LocalRegistry(options.root, actor=actor)
+    # Login settings (say CAPEVO_USER from the environment) mean nothing to a local registry.
+    return open_registry(root=options.root, actor=actor)
 
 
 def run_evolution(

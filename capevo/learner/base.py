@@ -26,7 +26,7 @@ import hashlib
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol, runtime_checkable
 
 from capevo.errors import Invalid
@@ -198,6 +198,10 @@ class Candidate:
     @property
     def source(self) -> str:
         return self.artifact.decode("utf-8")
+
+    def with_notes(self, **notes: Any) -> Candidate:
+        """This candidate with ``notes`` added to its notes (a key given again is replaced)."""
+        return replace(self, notes={**self.notes, **notes})
 
     @property
     def improved(self) -> bool:

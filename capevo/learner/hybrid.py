@@ -47,16 +47,7 @@ class HybridLearner:
 
     def _fallback(self, request: LearnRequest, why: str) -> Candidate:
         log.warning("hybrid learner for %s: %s; falling back to %s", request.ecm, why, self.search.learner_id)
-        cand = self.search.learn(request)
-        return Candidate(
-            ecm=cand.ecm,
-            artifact=cand.artifact,
-            spec=cand.spec,
-            score=cand.score,
-            baseline=cand.baseline,
-            notes={**cand.notes, "fallback": why},
-            experience=cand.experience,
-        )
+        return self.search.learn(request).with_notes(fallback=why)
 
     def learn(self, request: LearnRequest) -> Candidate:
         """Edit with the LLM, tune with CEM; fall back to CEM alone (see the module docstring).

@@ -365,14 +365,8 @@ class LlmSynthesis:
                 self.fallback.learner_id,
                 request.ecm,
             )
-            cand = self.fallback.learn(request)
-            return Candidate(
-                ecm=cand.ecm,
-                artifact=cand.artifact,
-                spec=cand.spec,
-                score=cand.score,
-                baseline=cand.baseline,
-                notes={**cand.notes, "fallback": f"no chat endpoint; used {self.fallback.learner_id}"},
+            return self.fallback.learn(request).with_notes(
+                fallback=f"no chat endpoint; used {self.fallback.learner_id}"
             )
         source, attempts = self.propose_source(request)
         provenance = Provenance(

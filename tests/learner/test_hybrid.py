@@ -2,26 +2,16 @@
 
 from __future__ import annotations
 
-import pytest
 from learner_support import TARGET, ChatServer, SyntheticEvaluator
 
 from capevo.learner.base import request_for
 from capevo.learner.chat import Chat, ChatConfig
 from capevo.learner.hybrid import HybridLearner
 from capevo.learner.search import CemSearch
-from capevo.learner.skills import seed_registry, seed_source
+from capevo.learner.skills import seed_source
 from capevo.learner.synthesis import LlmSynthesis
-from capevo.registry.local import LocalRegistry
 from capevo.registry.records import Origin
 from capevo.runtime.ecm.code import read_params
-
-
-@pytest.fixture
-def registry(tmp_path):
-    reg = LocalRegistry(tmp_path / "reg", actor="test")
-    seed_registry(reg, "pick")
-    yield reg
-    reg.close()
 
 
 def _structural_edit() -> str:

@@ -29,8 +29,7 @@ from capevo.learner.experience import (
 )
 from capevo.learner.scratch import ScratchRegistryEvaluator
 from capevo.learner.search import RANGE_UNITS, CemConfig, CemSearch, ParamRange, cem_preset, param_space, read_ranges
-from capevo.learner.skills import seed_registry, seed_source
-from capevo.registry.local import LocalRegistry
+from capevo.learner.skills import seed_source
 from capevo.registry.records import CapabilitySet, Origin
 from capevo.runtime.ecm.code import read_params
 from capevo.runtime.evaluation import EpisodeOutcome
@@ -41,14 +40,6 @@ from capevo.runtime.traces import Outcome as CallOutcome
 
 PICK = task_spec("pick").ecm_names
 STACK = task_spec("stack").ecm_names
-
-
-@pytest.fixture
-def registry(tmp_path):
-    reg = LocalRegistry(tmp_path / "reg", actor="test")
-    seed_registry(reg, "pick")
-    yield reg
-    reg.close()
 
 
 def _request(registry, ecm: str = "pick.reach", seeds: int = 30):
@@ -261,15 +252,34 @@ def test_progress_measures_how_far_episodes_got() -> None:
     assert progress(_end(["stack.reach", "stack.grasp", "stack.reach", "stack.grasp", "stack.lift"]), STACK) == 2 / 6
 
 
-def _write_trace(path: Path, episodes: Sequence[tuple[int, bool, Sequence[str], str]]) -> None:
-    meta = TraceMetadata.collect(
-        run_id="r1",
+def _stack_metadata(run_id: str) -> TraceMetadata:
+    return TraceMetadata.collect(
+        run_id=run_id,
         task="stack",
         capability_set=CapabilitySet(revision=1, active=dict.fromkeys(STACK, 0)),
         phi_hash="phi",
         agent_identity_hash="agent",
     )
-    with TraceWriter(path, meta) as w:
+
+
+def _traced_outcome(seed: int, success: bool, trace: Path) -> EpisodeOutcome:
+    """An evaluated episode of 100 steps whose trace is ``trace``."""
+    return EpisodeOutcome(
+        seed=seed,
+        success=success,
+        reward=1.0,
+        steps=100,
+        duration_s=1.0,
+        interventions=0,
+        unsafe_steps=0,
+        ecm_failures=0,
+        capability_set={},
+        trace_path=str(trace),
+    )
+
+
+def _write_trace(path: Path, episodes: Sequence[tuple[int, bool, Sequence[str], str]]) -> None:
+    with TraceWriter(path, _stack_metadata("r1")) as w:
         for i, (seed, success, plan, reason) in enumerate(episodes):
             for j, ecm in enumerate(plan):
                 w.write_plan_step(PlanStep(episode=i, step=j, ecm=ecm, version=0, reason="next"))
@@ -321,21 +331,7 @@ def test_experience_is_read_from_real_trace_files(tmp_path) -> None:
     assert ends[0].last_ecm == "stack.lower" and ends[0].budget_exhausted == ("stack.lower",)
     assert ends[0].end_reason.startswith("policy: stack.lower") and ends[1].end_reason == "success"
     assert ends[0].last_inputs["stack.reach"] == (pytest.approx(0.1), pytest.approx(0.2))
-    outcomes = [
-        EpisodeOutcome(
-            seed=s,
-            success=ok,
-            reward=1.0,
-            steps=100,
-            duration_s=1.0,
-            interventions=0,
-            unsafe_steps=0,
-            ecm_failures=0,
-            capability_set={},
-            trace_path=str(path),
-        )
-        for s, ok in [(7, False), (5, False), (6, True), (8, False)]
-    ]
+    outcomes = [_traced_outcome(s, ok, path) for s, ok in [(7, False), (5, False), (6, True), (8, False)]]
     assert [e.seed for e in episode_ends(outcomes)] == [7, 5, 6, 8]
     assert pick_ecm_to_update(outcomes, STACK) == "stack.lower"
     score = score_outcomes(outcomes, STACK)
@@ -549,21 +545,7 @@ def test_handover_rate_and_steps_per_ecm_come_from_traces(tmp_path) -> None:
     _write_trace(path, [(1, False, lower, "x"), (2, True, list(STACK), ""), (3, False, ["stack.reach"] * 3, "x")])
     ends = read_episode_ends(path)
     assert ends[2].ecm_steps == {"stack.reach": 3} and ends[0].ecm_steps["stack.lower"] == 1
-    outcomes = [
-        EpisodeOutcome(
-            seed=e.seed or 0,
-            success=e.success,
-            reward=1.0,
-            steps=100,
-            duration_s=1.0,
-            interventions=0,
-            unsafe_steps=0,
-            ecm_failures=0,
-            capability_set={},
-            trace_path=str(path),
-        )
-        for e in ends
-    ]
+    outcomes = [_traced_outcome(e.seed or 0, e.success, path) for e in ends]
     assert handover_rate(outcomes, STACK, "stack.reach") == pytest.approx(2 / 3)
     assert handover_rate(outcomes, STACK, "stack.lower") == pytest.approx(1 / 3)  # only the success
     assert handover_rate(outcomes, STACK, "stack.release") == pytest.approx(1 / 3)
@@ -575,15 +557,8 @@ def test_unsafe_steps_are_attributed_to_the_ecm_that_ran_them(tmp_path) -> None:
     from capevo.runtime.traces.records import Intervention
 
     path = tmp_path / "u.mcap"
-    meta = TraceMetadata.collect(
-        run_id="u",
-        task="stack",
-        capability_set=CapabilitySet(revision=1, active=dict.fromkeys(STACK, 0)),
-        phi_hash="phi",
-        agent_identity_hash="agent",
-    )
     plan = ["stack.reach", "stack.align", "stack.align", "stack.lower"]
-    with TraceWriter(path, meta) as w:
+    with TraceWriter(path, _stack_metadata("u")) as w:
         for ep in range(2):
             for step, ecm in enumerate(plan):
                 w.write_invocation(

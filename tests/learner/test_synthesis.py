@@ -15,19 +15,10 @@ from capevo.errors import ErrorCode, Invalid, SandboxViolation, Unavailable
 from capevo.learner.base import request_for
 from capevo.learner.chat import Chat, ChatConfig
 from capevo.learner.search import CemSearch
-from capevo.learner.skills import seed_registry, seed_source
+from capevo.learner.skills import seed_source
 from capevo.learner.synthesis import LlmSynthesis, build_messages, check_source, extract_code
-from capevo.registry.local import LocalRegistry
 from capevo.registry.records import Origin
 from capevo.runtime.ecm.code import read_params, with_params
-
-
-@pytest.fixture
-def registry(tmp_path):
-    reg = LocalRegistry(tmp_path / "reg", actor="test")
-    seed_registry(reg, "pick")
-    yield reg
-    reg.close()
 
 
 def _request(registry):
