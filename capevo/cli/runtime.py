@@ -27,6 +27,8 @@ from capevo.cli import (
     emit,
     fmt_time,
     json_option,
+    log_level_option,
+    log_to_stderr,
     make_table,
     remember_password,
 )
@@ -125,13 +127,7 @@ def _connection_options(func: Any) -> Any:
     show_default=True,
     help="Seconds to wait for each registry reply.",
 )
-@click.option(
-    "--log-level",
-    type=click.Choice(["DEBUG", "INFO", "WARNING", "ERROR"], case_sensitive=False),
-    default="WARNING",
-    show_default=True,
-    help="Log level (logs go to stderr).",
-)
+@log_level_option()
 @json_option
 def serve_cmd(
     connect: tuple[str, ...],
@@ -169,9 +165,7 @@ def serve_cmd(
     from capevo.runtime.tasks import Perturbations
     from capevo.runtime.worker import RuntimeWorker, WorkerConfig
 
-    logging.basicConfig(
-        level=log_level.upper(), stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
+    log_to_stderr(log_level)
     if log_level.upper() != "DEBUG":
         # robosuite repeats its controller-config warnings on every reset.
         logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
