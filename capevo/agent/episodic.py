@@ -23,7 +23,6 @@ Invariants:
 
 from __future__ import annotations
 
-import contextlib
 import fcntl
 import json
 import logging
@@ -39,7 +38,7 @@ from typing import Any
 from capevo.errors import CapevoError, Conflict, Corrupt, Invalid, NotFound
 from capevo.registry.audit import canonical_json
 from capevo.runtime.evaluation import EpisodeOutcome
-from capevo.storage.blobs import fsync_dir
+from capevo.storage.blobs import append_synced, fsync_dir
 
 log = logging.getLogger(__name__)
 
@@ -344,16 +343,9 @@ class EpisodicMemory:
                 raise _bad(
                     "iteration", f"{record.iteration} is before the last recorded iteration {self._last_iteration}"
                 )
-            before = os.fstat(fd).st_size
             try:
-                view = memoryview(line)
-                while view:
-                    view = view[os.write(fd, view) :]
-                os.fsync(fd)
+                append_synced(fd, line)
             except OSError as exc:
-                # Leave no half line behind for the next record to glue onto.
-                with contextlib.suppress(OSError):
-                    os.ftruncate(fd, before)
                 raise CapevoError(
                     f"cannot append to {self._path}: {exc.strerror}", details={"path": str(self._path)}
                 ) from None

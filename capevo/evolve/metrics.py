@@ -17,7 +17,6 @@ Invariants:
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
@@ -30,7 +29,7 @@ from typing import Any
 
 from capevo.errors import Corrupt, Invalid
 from capevo.runtime.evaluation import EpisodeOutcome
-from capevo.storage.blobs import fsync_dir
+from capevo.storage.blobs import append_synced, fsync_dir
 
 CI_ALPHA = 0.025
 """Each end of the reported intervals is a one-sided 97.5% bound: two-sided 95%."""
@@ -470,15 +469,9 @@ def append_durably(path: Path, data: bytes) -> None:
     except OSError as exc:
         raise Invalid(f"cannot open {path}: {exc.strerror}", details={"path": str(path)}) from None
     try:
-        before = os.fstat(fd).st_size
         try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(fd, view) :]
-            os.fsync(fd)
+            append_synced(fd, data)
         except OSError as exc:
-            with contextlib.suppress(OSError):
-                os.ftruncate(fd, before)
             raise Invalid(f"cannot append to {path}: {exc.strerror}", details={"path": str(path)}) from None
     finally:
         os.close(fd)

@@ -15,6 +15,8 @@ Invariants:
 4. ``put`` is idempotent: storing the same bytes twice yields the same address and one
    file; a present but corrupt copy is replaced by the good bytes.
 5. Temporary files (``.tmp-*``) are never reported as blobs.
+6. :meth:`BlobStore.sweep_temp` removes a temporary file only when the process that wrote
+   it (its name carries the pid) is gone, or when nobody touched it for ``older_than_s``.
 """
 
 from __future__ import annotations
@@ -57,6 +59,42 @@ def fsync_dir(path: str | os.PathLike[str]) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def append_synced(fd: int, data: bytes) -> None:
+    """Write all of ``data`` at the end of the file open on ``fd`` and fsync it.
+
+    Raises:
+        OSError: the write or the sync failed; the file is cut back to its old size first, so
+            no half record is left for the next append to glue onto.
+    """
+    before = os.fstat(fd).st_size
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view) :]
+        os.fsync(fd)
+    except OSError:
+        with contextlib.suppress(OSError):
+            os.ftruncate(fd, before)
+        raise
+
+
+def _writer_alive(tmp_name: str) -> bool:
+    """Whether the process named in a ``.tmp-<pid>-<token>`` file name may still be writing it."""
+    pid_text = tmp_name[len(_TMP_PREFIX) :].split("-", 1)[0]
+    if not pid_text.isdigit():
+        return True  # not our naming: leave it to the age rule
+    pid = int(pid_text)
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True  # alive but someone else's, or not a pid at all: leave it to the age rule
+    return True
 
 
 def make_dir_durably(path: str | os.PathLike[str]) -> None:
@@ -274,8 +312,11 @@ class BlobStore:
     def sweep_temp(self, *, older_than_s: float = 3600.0) -> int:
         """Delete temporary files a killed writer left behind.
 
+        A file goes when its writer's pid (part of its name) names no live process on this
+        host, or when it is older than ``older_than_s`` whatever its name says.
+
         Args:
-            older_than_s: Only files untouched for this long; a live writer's file is younger.
+            older_than_s: Files untouched for this long go even if their pid is alive (reused).
 
         Returns:
             How many files were removed.
@@ -284,7 +325,7 @@ class BlobStore:
         removed = 0
         for tmp in self._root.glob(f"*/{_TMP_PREFIX}*"):
             with contextlib.suppress(FileNotFoundError):
-                if tmp.stat().st_mtime < cutoff:
+                if not _writer_alive(tmp.name) or tmp.stat().st_mtime < cutoff:
                     tmp.unlink()
                     removed += 1
         return removed
