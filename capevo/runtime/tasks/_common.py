@@ -11,6 +11,7 @@ import math
 from typing import Any
 
 from capevo.registry.records import Predicate
+from capevo.runtime.tasks.base import Movable
 from capevo.runtime.tasks.spec import EcmStep, SignalSpec, cond, pred
 
 PANDA_PROPRIO_KEYS: tuple[str, ...] = (
@@ -98,6 +99,21 @@ def gripper_opening(env: Any) -> float:
     robot = env.robots[0]
     q = env.sim.data.qpos[robot._ref_gripper_joint_pos_indexes["right"]]
     return float(q[0] - q[1])
+
+
+def is_grasped(env: Any, obj: Any) -> bool:
+    """Whether both finger pads of the Panda's gripper touch ``obj`` (robosuite ``_check_grasp``)."""
+    return bool(env._check_grasp(gripper=env.robots[0].gripper["right"], object_geoms=obj))
+
+
+def movable(sim: Any, obj: Any, *, x_bounds: tuple[float, float], y_bounds: tuple[float, float]) -> Movable:
+    """The :class:`Movable` of robosuite object ``obj``: its free joint and contact geoms."""
+    return Movable(
+        joint=obj.joints[0],
+        geom_ids=frozenset(int(sim.model.geom_name2id(g)) for g in obj.contact_geoms),
+        x_bounds=x_bounds,
+        y_bounds=y_bounds,
+    )
 
 
 def step(

@@ -120,15 +120,7 @@ class NutAssemblyTask(TaskEnv):
         self._rest_z = float(env.table_offset[2]) + NUT_HALF_THICKNESS
 
     def _movables(self) -> tuple[Movable, ...]:
-        sim = self._sim
-        return (
-            Movable(
-                joint=self._nut.joints[0],
-                geom_ids=frozenset(int(sim.model.geom_name2id(g)) for g in self._nut.contact_geoms),
-                x_bounds=(-0.2, 0.05),
-                y_bounds=(0.05, 0.3),
-            ),
-        )
+        return (c.movable(self._sim, self._nut, x_bounds=(-0.2, 0.05), y_bounds=(0.05, 0.3)),)
 
     def _goal(self) -> tuple[float, float, float]:
         p = self._data.xpos[self._peg_body]
@@ -145,7 +137,7 @@ class NutAssemblyTask(TaskEnv):
         nut = c.xyz(d.xpos[self._nut_body])
         handle = c.xyz(d.site_xpos[self._handle_site])
         eef = c.xyz(d.site_xpos[self._eef_sites[0]])
-        grasped = bool(env._check_grasp(gripper=env.robots[0].gripper["right"], object_geoms=self._nut))
+        grasped = c.is_grasped(env, self._nut)
         s = c.reach_signals(eef, handle, nut[2], self._rest_z, grasped, c.gripper_opening(env))
         s.update(c.target_signals(nut, self._goal()))
         s["success"] = 1.0 if env._check_success() else 0.0

@@ -57,7 +57,7 @@ PEG_SIGNALS: tuple[SignalSpec, ...] = (
     SignalSpec(name="peg_hole_cos", description="|cos| of the angle between peg axis and hole normal (1 = aligned)."),
     SignalSpec(name="peg_hole_rel_speed", description="Relative linear speed of peg and plate.", units="m/s"),
     SignalSpec(name="peg_hole_contact_force", description="Norm of the summed contact force on the peg.", units="N"),
-    SignalSpec(name="success", description="1 while the task's success criterion holds, else 0."),
+    c.SUCCESS_SIGNAL,
 )
 
 

@@ -47,9 +47,9 @@ _JITTER_TEXT = (
 
 def _bin_movable(sim: Any, obj: Any) -> Movable:
     r = float(obj.horizontal_radius) + 0.01
-    return Movable(
-        joint=obj.joints[0],
-        geom_ids=frozenset(int(sim.model.geom_name2id(g)) for g in obj.contact_geoms),
+    return c.movable(
+        sim,
+        obj,
         x_bounds=(BIN1_POS[0] - BIN_INNER_HALF[0] + r, BIN1_POS[0] + BIN_INNER_HALF[0] - r),
         y_bounds=(BIN1_POS[1] - BIN_INNER_HALF[1] + r, BIN1_POS[1] + BIN_INNER_HALF[1] - r),
     )
@@ -106,8 +106,7 @@ class _PickPlaceBase(TaskEnv):
         env = self._env
         pos = c.xyz(self._data.xpos[self._obj_body[name]])
         obj = self._objects[self._object_names.index(name)]
-        grasped = bool(env._check_grasp(gripper=env.robots[0].gripper["right"], object_geoms=obj))
-        s = c.reach_signals(eef, pos, pos[2], self._start_z[name], grasped, opening)
+        s = c.reach_signals(eef, pos, pos[2], self._start_z[name], c.is_grasped(env, obj), opening)
         if to_target:
             s.update(c.target_signals(pos, self._goal(name)))
             s["object_in_bin"] = 0.0 if env.not_in_bin(np.asarray(pos), self._obj_index[name]) else 1.0

@@ -127,12 +127,12 @@ class StackTask(TaskEnv):
         self._start_z = float(env.table_offset[2]) + float(env.cubeA.size[2])
 
     def _movables(self) -> tuple[Movable, ...]:
-        env, sim = self._env, self._sim
+        env = self._env
         cx, cy = float(env.table_offset[0]), float(env.table_offset[1])
         return tuple(
-            Movable(
-                joint=cube.joints[0],
-                geom_ids=frozenset(int(sim.model.geom_name2id(g)) for g in cube.contact_geoms),
+            c.movable(
+                self._sim,
+                cube,
                 x_bounds=(cx - TABLE_REACH, cx + TABLE_REACH),
                 y_bounds=(cy - TABLE_REACH, cy + TABLE_REACH),
             )
@@ -147,8 +147,7 @@ class StackTask(TaskEnv):
         a = c.xyz(d.xpos[self._a_body])
         b = c.xyz(d.xpos[self._b_body])
         eef = c.xyz(d.site_xpos[self._eef_sites[0]])
-        grasped = bool(env._check_grasp(gripper=env.robots[0].gripper["right"], object_geoms=env.cubeA))
-        s = c.reach_signals(eef, a, a[2], self._start_z, grasped, c.gripper_opening(env))
+        s = c.reach_signals(eef, a, a[2], self._start_z, c.is_grasped(env, env.cubeA), c.gripper_opening(env))
         s.update(c.target_signals(a, (b[0], b[1], b[2] + self._stack_dz)))
         s["object_on_target"] = 1.0 if env.check_contact(env.cubeA, env.cubeB) else 0.0
         s["success"] = 1.0 if env._check_success() else 0.0

@@ -35,35 +35,26 @@ def run(env: TaskEnv, seed: int) -> tuple[bool, list[int | None]]:
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_scripted_pick_succeeds_clean_through_reach_grasp_lift(seed: int) -> None:
-    env = make_task("pick", seed=seed, perturbations=Perturbations.none())
-    try:
+    with make_task("pick", seed=seed, perturbations=Perturbations.none()) as env:
         ok, first = run(env, seed)
         assert ok, first
         assert None not in first, first
         reach, grasp, lift = first
         assert reach <= grasp <= lift == env.elapsed_steps  # type: ignore[operator]
-    finally:
-        env.close()
 
 
 @pytest.mark.parametrize("name", ["place", "stack"])
 def test_scripted_place_and_stack_succeed_clean(name: str) -> None:
-    env = make_task(name, seed=0, perturbations=Perturbations.none())
-    try:
+    with make_task(name, seed=0, perturbations=Perturbations.none()) as env:
         ok, first = run(env, 3)
         assert ok, first
         assert first[-1] == env.elapsed_steps
         assert first[0] is not None and first[1] is not None and first[0] <= first[1]
-    finally:
-        env.close()
 
 
 def test_scripted_pick_succeeds_with_perturbations_on() -> None:
-    env = make_task("pick", seed=0)
-    try:
+    with make_task("pick", seed=0) as env:
         assert run(env, 4)[0]
-    finally:
-        env.close()
 
 
 @pytest.mark.parametrize("name", ["place", "stack"])
@@ -71,18 +62,14 @@ def test_references_succeed_safely_under_the_per_task_phi(name: str) -> None:
     # Perturbations on, enforcing governance with the task's envelope, judged as the episode loop
     # judges it. Place needs the far goal quadrant at the arm's full stretch; stack lowers the hand
     # past cube A (and often beside cube B) and cube A onto cube B, all near contact.
-    env = make_task(name, seed=0)
-    try:
+    with make_task(name, seed=0) as env:
         run = run_governed(env, REFERENCES[name], Phi.for_task(name), 1000)
-    finally:
-        env.close()
     assert run["success"], run
     assert run["unsafe_steps"] == 0, run
 
 
 def test_references_are_pure_and_well_formed() -> None:
-    env = make_task("stack", seed=0, perturbations=Perturbations.none())
-    try:
+    with make_task("stack", seed=0, perturbations=Perturbations.none()) as env:
         env.reset(seed=0)
         obs = {k: v.copy() for k, v in env.obs_dict.items()}
         for policy in (REFERENCES["stack"], lambda o: pick(o, object_key="cubeA")):
@@ -91,5 +78,3 @@ def test_references_are_pure_and_well_formed() -> None:
             assert np.array_equal(a, b)
             assert np.all(np.abs(a) <= 1.0)
             assert all(np.array_equal(obs[k], env.obs_dict[k]) for k in obs)
-    finally:
-        env.close()

@@ -110,8 +110,7 @@ def test_reset_and_step_shapes(envs: dict[str, TaskEnv], name: str) -> None:
 
 @pytest.mark.parametrize("name", TASKS)
 def test_horizon_truncates_and_ends_the_episode(name: str) -> None:
-    env = make_task(name, seed=2, horizon=3)
-    try:
+    with make_task(name, seed=2, horizon=3) as env:
         with pytest.raises(Invalid) as before:
             env.step(zeros(env))
         assert "call reset()" in before.value.message
@@ -123,20 +122,14 @@ def test_horizon_truncates_and_ends_the_episode(name: str) -> None:
         assert after.value.code is ErrorCode.INVALID
         env.reset()
         assert env.step(zeros(env))[2:4] == (False, False)
-    finally:
-        env.close()
 
 
 def test_gymnasium_env_checker_passes() -> None:
     from gymnasium.utils.env_checker import check_env
 
-    env = make_task("stack", seed=0)
-    try:
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=".*infinity.*")
-            check_env(env, skip_render_check=True)
-    finally:
-        env.close()
+    with make_task("stack", seed=0) as env, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*infinity.*")
+        check_env(env, skip_render_check=True)
 
 
 def test_bad_actions_are_refused(envs: dict[str, TaskEnv]) -> None:
@@ -171,11 +164,8 @@ def test_same_seed_same_episode_fresh_or_reused(envs: dict[str, TaskEnv], name: 
     rollout(env, 12, acts)  # something else in between
     again = rollout(env, 11, acts)
     assert same(first, again)
-    fresh = make_task(name, seed=11)
-    try:
+    with make_task(name, seed=11) as fresh:
         assert same(first, rollout(fresh, None, acts))
-    finally:
-        fresh.close()
     other = rollout(env, 12, acts)
     assert not np.array_equal(first[0], other[0])
 
@@ -190,14 +180,10 @@ def test_reset_without_seed_continues_the_streams(envs: dict[str, TaskEnv]) -> N
 
 
 def test_construction_seed_is_the_first_episode_seed() -> None:
-    one, two = make_task("stack", seed=21), make_task("stack", seed=21)
-    try:
+    with make_task("stack", seed=21) as one, make_task("stack", seed=21) as two:
         first, _ = one.reset()
         assert np.array_equal(first, two.reset()[0])
         assert np.array_equal(first, two.reset(seed=21)[0])
-    finally:
-        one.close()
-        two.close()
 
 
 # --------------------------------------------------------------------------- perturbations
@@ -205,9 +191,10 @@ def test_construction_seed_is_the_first_episode_seed() -> None:
 
 def test_actuation_failure_drops_the_whole_action() -> None:
     move = np.array([0, 0, 1.0, 0, 0, 0, 0], dtype=np.float32)
-    always = make_task("stack", seed=3, perturbations=Perturbations(actuation_failure_p=1.0))
-    never = make_task("stack", seed=3, perturbations=Perturbations(actuation_failure_p=0.0))
-    try:
+    with (
+        make_task("stack", seed=3, perturbations=Perturbations(actuation_failure_p=1.0)) as always,
+        make_task("stack", seed=3, perturbations=Perturbations(actuation_failure_p=0.0)) as never,
+    ):
         rises = []
         for env in (always, never):
             env.reset(seed=3)
@@ -217,20 +204,14 @@ def test_actuation_failure_drops_the_whole_action() -> None:
             assert dropped == [env is always] * 10
         assert abs(rises[0]) < 0.01
         assert rises[1] > 0.05
-    finally:
-        always.close()
-        never.close()
 
 
 def test_a_higher_failure_probability_only_adds_dropped_steps() -> None:
     drops = []
     for p in (0.05, 0.3):
-        env = make_task("stack", seed=0, perturbations=Perturbations(actuation_failure_p=p))
-        try:
+        with make_task("stack", seed=0, perturbations=Perturbations(actuation_failure_p=p)) as env:
             env.reset(seed=12)
             drops.append({t for t in range(40) if env.step(zeros(env))[4]["actuation_dropped"]})
-        finally:
-            env.close()
     assert drops[0] < drops[1]
 
 
@@ -261,13 +242,10 @@ def test_observation_noise_only_on_position_keys(envs: dict[str, TaskEnv], name:
     d = np.concatenate(diffs)
     assert 0.007 < float(np.std(d)) < 0.013
     assert abs(float(np.mean(d))) < 0.003
-    clean_env = make_task(name, seed=6, perturbations=CLEAN)
-    try:
+    with make_task(name, seed=6, perturbations=CLEAN) as clean_env:
         clean_env.reset()
         clean_env.step(zeros(clean_env))
         assert same(clean_env.obs_dict, clean_env.clean_obs_dict)
-    finally:
-        clean_env.close()
 
 
 def _object_positions(env: TaskEnv) -> np.ndarray:
@@ -278,9 +256,10 @@ def _object_positions(env: TaskEnv) -> np.ndarray:
 
 @pytest.mark.parametrize("name", TASKS)
 def test_position_jitter_moves_the_start_within_bounds(name: str) -> None:
-    jit = make_task(name, seed=0, perturbations=Perturbations(obs_position_noise_std=0, actuation_failure_p=0))
-    ref = make_task(name, seed=0, perturbations=CLEAN)
-    try:
+    with (
+        make_task(name, seed=0, perturbations=Perturbations(obs_position_noise_std=0, actuation_failure_p=0)) as jit,
+        make_task(name, seed=0, perturbations=CLEAN) as ref,
+    ):
         moved = []
         for seed in (1, 2, 3):
             jit.reset(seed=seed)
@@ -292,9 +271,6 @@ def test_position_jitter_moves_the_start_within_bounds(name: str) -> None:
             if name == "peg_in_hole":
                 assert jit.signals()["peg_hole_contact_force"] == 0.0
         assert max(moved) > 0.005
-    finally:
-        jit.close()
-        ref.close()
 
 
 # --------------------------------------------------------------------------- success criteria
@@ -383,8 +359,7 @@ def _check_goal_signals(env: TaskEnv, signals: dict[str, float]) -> None:
 
 @pytest.mark.parametrize("name", [n for n in TASKS if n != "pick"])
 def test_success_is_detected_and_latched(name: str) -> None:
-    env = make_task(name, seed=7, perturbations=CLEAN, terminate_on_success=False)
-    try:
+    with make_task(name, seed=7, perturbations=CLEAN, terminate_on_success=False) as env:
         env.reset()
         for _ in range(2):
             assert env.step(zeros(env))[4]["is_success"] is False
@@ -404,13 +379,10 @@ def test_success_is_detected_and_latched(name: str) -> None:
         assert env.signals()["success"] == 0.0
         env.reset()
         assert env.step(zeros(env))[4]["is_success"] is False
-    finally:
-        env.close()
 
 
 def test_success_terminates_by_default() -> None:
-    env = make_task("stack", seed=8, perturbations=CLEAN)
-    try:
+    with make_task("stack", seed=8, perturbations=CLEAN) as env:
         env.reset()
         env.step(zeros(env))
         _place_at_goal(env)
@@ -418,13 +390,10 @@ def test_success_terminates_by_default() -> None:
         assert (terminated, truncated, info["is_success"]) == (True, False, True)
         with pytest.raises(Invalid):
             env.step(zeros(env))
-    finally:
-        env.close()
 
 
 def test_pick_success_latches_after_the_can_is_dropped() -> None:
-    env = make_task("pick", seed=9, perturbations=CLEAN, terminate_on_success=False)
-    try:
+    with make_task("pick", seed=9, perturbations=CLEAN, terminate_on_success=False) as env:
         env.reset()
         for _ in range(env.horizon):
             info = env.step(pick(env.obs_dict))[4]
@@ -438,13 +407,10 @@ def test_pick_success_latches_after_the_can_is_dropped() -> None:
             info = env.step(drop)[4]
         assert env.signals()["object_height_above_start"] < 0.05
         assert info["is_success"] and not info["success_now"]
-    finally:
-        env.close()
 
 
 def test_eef_force_is_near_zero_at_rest_and_up_when_pressing_down() -> None:
-    env = make_task("stack", seed=10, perturbations=CLEAN)
-    try:
+    with make_task("stack", seed=10, perturbations=CLEAN) as env:
         env.reset()
         for _ in range(15):
             env.step(zeros(env))
@@ -454,13 +420,10 @@ def test_eef_force_is_near_zero_at_rest_and_up_when_pressing_down() -> None:
         for _ in range(40):
             env.step(down)
         assert env.robot_state().arms[0].eef_force[2] > 20.0
-    finally:
-        env.close()
 
 
 def test_peg_arm_force_is_the_contact_force_on_the_peg() -> None:
-    env = make_task("peg_in_hole", seed=10, perturbations=CLEAN)
-    try:
+    with make_task("peg_in_hole", seed=10, perturbations=CLEAN) as env:
         env.reset()
         env.step(zeros(env))
         assert env.robot_state().arms[0].eef_force == (0.0, 0.0, 0.0)
@@ -470,8 +433,6 @@ def test_peg_arm_force_is_the_contact_force_on_the_peg() -> None:
         assert np.linalg.norm(f0) > 1.0
         assert np.allclose(f0, -f1, atol=1e-6 * np.linalg.norm(f0))
         assert env.signals()["peg_hole_contact_force"] == pytest.approx(float(np.linalg.norm(f0)))
-    finally:
-        env.close()
 
 
 @pytest.mark.slow
