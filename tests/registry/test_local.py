@@ -12,7 +12,6 @@ import logging
 import math
 import random
 import sqlite3
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,6 +21,7 @@ import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from procs import run_in_threads
 
 from capevo.errors import CapevoError, Corrupt, ErrorCode, Invalid, NotFound, TooLarge, Unavailable
 from capevo.records import (
@@ -264,11 +264,7 @@ def test_inv3_listeners_see_commit_order_under_threads(tmp_path: Path) -> None:
             for j in range(15):
                 reg.publish(f"ecm-{i % 2}", f"{i}-{j}".encode(), SPEC)
 
-        threads = [threading.Thread(target=work, args=(i,)) for i in range(6)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
+        run_in_threads(work, 6)
         assert [e.seq for e in rec.events] == list(range(1, 91))
         for name in ("ecm-0", "ecm-1"):
             assert [e.version for e in rec.events if e.name == name] == list(range(45))
@@ -390,22 +386,12 @@ def test_inv5_verify_reports_database_tamper(
 
 # --- thread safety ----------------------------------------------------------------------------
 def test_threads_share_one_registry(reg: LocalRegistry) -> None:
-    errors: list[BaseException] = []
-
     def work(i: int) -> None:
-        try:
-            for j in range(10):
-                reg.publish("reach", f"{i}-{j}".encode(), SPEC)
-                reg.get_version("reach", 0)
-        except BaseException as exc:  # pragma: no cover - reported below
-            errors.append(exc)
+        for j in range(10):
+            reg.publish("reach", f"{i}-{j}".encode(), SPEC)
+            reg.get_version("reach", 0)
 
-    threads = [threading.Thread(target=work, args=(i,)) for i in range(6)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    assert errors == []
+    run_in_threads(work, 6)
     versions = [v.version for v in reg.get_ecm("reach").versions]
     assert versions == list(range(60))
     assert sorted(reg.get_artifact("reach", v) for v in versions) == sorted(

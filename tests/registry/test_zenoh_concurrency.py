@@ -8,7 +8,8 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from zenoh_fixtures import ServerProcess, learner_publish_worker, promote_worker, start_server, unique_name
+from procs import ServerProcess, start_server
+from zenoh_fixtures import learner_publish_worker, promote_worker, unique_name
 
 from capevo.records import State
 from capevo.registry.descriptor import parse_publish_spec

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-from zenoh_fixtures import ServerProcess, start_server
+from procs import ServerProcess, start_server
 
 from capevo.errors import CapevoError, Conflict
 from capevo.records import Action

@@ -15,7 +15,8 @@ import pytest
 import zenoh
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
-from zenoh_fixtures import ServerProcess, raw_query, raw_session, start_server, unique_name
+from procs import ServerProcess, start_server
+from zenoh_fixtures import raw_query, raw_session, unique_name
 
 from capevo.registry.descriptor import parse_publish_spec
 from capevo.registry.keys import COMMANDS

@@ -11,7 +11,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from zenoh_fixtures import ServerProcess, hub_router, raw_query, raw_session, start_server, unique_name
+from procs import ServerProcess, start_server
+from zenoh_fixtures import hub_router, raw_query, raw_session, unique_name
 
 from capevo.errors import CapevoError, ErrorCode, Forbidden, Unavailable
 from capevo.records import Action, State

@@ -11,7 +11,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from zenoh_fixtures import ServerProcess, free_tcp_port, start_server, unique_name
+from procs import ServerProcess, free_tcp_port, start_server
+from zenoh_fixtures import unique_name
 
 from capevo.errors import CapevoError, Corrupt, ErrorCode, Invalid, TooLarge, Unavailable
 from capevo.records import Action, AuditEvent, EcmVersion, State

@@ -1,163 +1,30 @@
 """Registry servers in separate processes, for the Zenoh tests.
 
-``start_server`` runs ``python -m capevo.registry.service`` as a subprocess on a loopback
-port and waits for its ``READY`` line; ``shared_server`` keeps one per key for the whole
-session; ``make_zenoh_registry`` is the contract suite's factory (a fresh server and root
-per test, so the suite's "empty registry" assumptions hold).
+``shared_server`` keeps one server (:func:`procs.start_server`) per key for the whole session;
+``make_zenoh_registry`` is the contract suite's factory (a fresh server and root per test, so
+the suite's "empty registry" assumptions hold); ``hub_router`` is a plain Zenoh router.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
-import os
-import select
-import socket
 import subprocess
 import sys
-import time
 import uuid
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import pytest
 import zenoh
-from procs import kill, terminate
+from procs import LOOPBACK, ServerProcess, free_tcp_port, start_server
 
 from capevo.registry.client import Client
-from capevo.registry.service import READY_PREFIX
-
-LOOPBACK = "127.0.0.1"
-
-
-def free_tcp_port() -> int:
-    """A loopback TCP port that was free a moment ago (session fixtures cannot use ``free_port``)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((LOOPBACK, 0))
-        return int(s.getsockname()[1])
 
 
 def unique_name(prefix: str = "ecm") -> str:
     """A fresh valid ECM name, so tests sharing a server never collide."""
     return f"{prefix}-{uuid.uuid4().hex[:12]}"
-
-
-@dataclass
-class ServerProcess:
-    """A running registry server subprocess."""
-
-    proc: subprocess.Popen[str]
-    root: Path
-    port: int
-    namespace: str
-    info: dict[str, Any]
-    log_path: Path
-
-    @property
-    def endpoint(self) -> str:
-        return f"tcp/{LOOPBACK}:{self.port}"
-
-    def client(self, **kwargs: Any) -> Client:
-        kwargs.setdefault("namespace", self.namespace)
-        return Client([self.endpoint], **kwargs)
-
-    def running(self) -> bool:
-        return self.proc.poll() is None
-
-    def stop(self, timeout: float = 20.0) -> int:
-        """SIGTERM and wait; returns the exit code (SIGKILL if it does not exit in time)."""
-        code = terminate(self.proc, timeout)
-        self._close_pipes()
-        return code
-
-    def kill(self) -> None:
-        """SIGKILL: no handler runs, nothing is flushed or closed."""
-        kill(self.proc)
-        self._close_pipes()
-
-    def log_text(self) -> str:
-        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
-
-    def _close_pipes(self) -> None:
-        if self.proc.stdout is not None:
-            self.proc.stdout.close()
-
-
-def start_server(
-    root: Path,
-    *,
-    port: int | None = None,
-    namespace: str = "capevo",
-    config: Path | None = None,
-    max_artifact_bytes: int | None = None,
-    connect: list[str] | None = None,
-    env: dict[str, str] | None = None,
-    ready_timeout: float = 60.0,
-) -> ServerProcess:
-    """Start ``python -m capevo.registry.service`` and wait until it serves.
-
-    Raises:
-        RuntimeError: the server exited or stayed silent; the message holds its log.
-    """
-    attempts = 1 if port is not None else 3
-    last_error = ""
-    for _ in range(attempts):
-        p = port if port is not None else free_tcp_port()
-        root.mkdir(parents=True, exist_ok=True)
-        log_path = root.parent / f"{root.name}-server-{p}-{uuid.uuid4().hex[:6]}.log"
-        cmd = [
-            sys.executable,
-            "-m",
-            "capevo.registry.service",
-            "--root",
-            str(root),
-            "--listen",
-            f"tcp/{LOOPBACK}:{p}",
-            "--namespace",
-            namespace,
-            "--log-level",
-            "INFO",
-        ]
-        if config is not None:
-            cmd += ["--config", str(config)]
-        if max_artifact_bytes is not None:
-            cmd += ["--max-artifact-bytes", str(max_artifact_bytes)]
-        for endpoint in connect or ():
-            cmd += ["--connect", endpoint]
-        with open(log_path, "w") as log_file:
-            proc = subprocess.Popen(
-                cmd,
-                stdout=subprocess.PIPE,
-                stderr=log_file,
-                text=True,
-                env={**os.environ, **(env or {})},
-            )
-        info = _wait_ready(proc, ready_timeout)
-        if info is not None:
-            return ServerProcess(proc=proc, root=root, port=p, namespace=namespace, info=info, log_path=log_path)
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        last_error = log_path.read_text(errors="replace")
-    raise RuntimeError(f"registry server did not start:\n{last_error}")
-
-
-def _wait_ready(proc: subprocess.Popen[str], timeout: float) -> dict[str, Any] | None:
-    assert proc.stdout is not None
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        readable, _, _ = select.select([proc.stdout], [], [], 0.2)
-        if readable:
-            line = proc.stdout.readline()
-            if line.startswith(READY_PREFIX):
-                return dict(json.loads(line[len(READY_PREFIX) :]))
-            if not line and proc.poll() is not None:
-                return None
-        elif proc.poll() is not None:
-            return None
-    return None
 
 
 _HUB_SCRIPT = """

@@ -5,11 +5,11 @@ from __future__ import annotations
 import hashlib
 import io
 import os
-import threading
 import time
 from pathlib import Path
 
 import pytest
+from procs import run_in_threads
 
 from capevo.errors import Corrupt, ErrorCode, Invalid, NotFound, TooLarge
 from capevo.storage.blobs import BlobStore, validate_sha256
@@ -121,21 +121,12 @@ def test_inv4_put_is_idempotent_and_repairs_a_corrupt_copy(store: BlobStore) -> 
 
 def test_inv4_concurrent_puts_of_the_same_bytes(store: BlobStore) -> None:
     data = b"z" * 200_000
-    errors: list[BaseException] = []
 
-    def put() -> None:
-        try:
-            for _ in range(5):
-                assert store.put(data) == (_sha(data), len(data))
-        except BaseException as exc:  # pragma: no cover - reported below
-            errors.append(exc)
+    def put(_: int) -> None:
+        for _ in range(5):
+            assert store.put(data) == (_sha(data), len(data))
 
-    threads = [threading.Thread(target=put) for _ in range(8)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    assert errors == []
+    run_in_threads(put, 8)
     assert [p.name for p in _files(store.root)] == [_sha(data)[2:]]
 
 

@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from procs import run_in_threads
 
 from capevo.errors import (
     CapevoError,
@@ -63,20 +64,10 @@ def test_inv1_schema_refuses_a_duplicate_version(store: SqliteStore) -> None:
 
 
 def test_inv1_threads_get_unique_gap_free_versions(store: SqliteStore) -> None:
-    got: list[int] = []
-    lock = threading.Lock()
+    def work(_: int) -> list[int]:
+        return [store.create_version("hello", SPEC, REF, actor="t").record.version for _ in range(10)]
 
-    def work() -> None:
-        for _ in range(10):
-            v = store.create_version("hello", SPEC, REF, actor="t").record.version
-            with lock:
-                got.append(v)
-
-    threads = [threading.Thread(target=work) for _ in range(6)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    got = [v for versions in run_in_threads(work, 6) for v in versions]
     assert sorted(got) == list(range(60))
 
 
@@ -245,23 +236,17 @@ def test_inv3_inv4_inv5_store_matches_the_model(sequence: list[tuple[Any, ...]])
 def test_inv5_only_one_of_many_racing_threads_wins(store: SqliteStore) -> None:
     _publish(store, n=9)
     store.move_active("hello", 0, "promote", actor="t")
-    outcomes: list[str] = []
     barrier = threading.Barrier(8)
 
-    def race(version: int) -> None:
+    def race(i: int) -> str:
         barrier.wait()
         try:
-            store.move_active("hello", version, "promote", expected_active=0, actor="t")
-            outcomes.append("won")
+            store.move_active("hello", i + 1, "promote", expected_active=0, actor="t")
+            return "won"
         except Conflict as exc:
-            outcomes.append(exc.code.value)
+            return exc.code.value
 
-    threads = [threading.Thread(target=race, args=(v,)) for v in range(1, 9)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    assert sorted(outcomes) == ["conflict"] * 7 + ["won"]
+    assert sorted(run_in_threads(race, 8)) == ["conflict"] * 7 + ["won"]
     assert store.capability_set().revision == 2
 
 
