@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
-import re
 import tempfile
 import threading
 from collections.abc import Callable
@@ -32,8 +31,7 @@ from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 from capevo.errors import Corrupt, Invalid, Unavailable
-
-SHA256_PATTERN = re.compile(r"[0-9a-f]{64}")
+from capevo.storage.blobs import SHA256_PATTERN, fsync_dir
 
 
 def check_sha256(sha256: object) -> str:
@@ -65,6 +63,15 @@ class ArtifactStore(Protocol):
     def put(self, sha256: str, data: bytes) -> None: ...
 
     def fetch(self, sha256: str, load: Callable[[], bytes]) -> bytes: ...
+
+
+def _read_through(store: ArtifactStore, sha256: str, load: Callable[[], bytes]) -> bytes:
+    """``store.get(sha256)``, or on a miss ``load()``, stored with ``store.put`` (which verifies it)."""
+    data = store.get(sha256)
+    if data is None:
+        data = load()
+        store.put(sha256, data)
+    return data
 
 
 class ArtifactCache:
@@ -112,10 +119,7 @@ class ArtifactCache:
         path = self.path_for(sha256)
         try:
             data = path.read_bytes()
-        except FileNotFoundError:
-            self._count("misses")
-            return None
-        except OSError:
+        except OSError:  # missing or unreadable: either way a miss
             self._count("misses")
             return None
         try:
@@ -153,7 +157,10 @@ class ArtifactCache:
                     os.fsync(f.fileno())
             os.replace(tmp, path)
             if self.fsync:
-                _fsync_dir(path.parent)
+                # The entry is in place already; a directory that cannot be fsynced only costs
+                # durability across a power cut, so it does not fail the write.
+                with contextlib.suppress(OSError):
+                    fsync_dir(path.parent)
         except OSError as exc:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
@@ -167,12 +174,7 @@ class ArtifactCache:
             Invalid: malformed key. Corrupt: ``load()`` returned other bytes.
             Whatever ``load`` raises (e.g. :class:`Unavailable` when the registry is down).
         """
-        data = self.get(sha256)
-        if data is not None:
-            return data
-        data = load()
-        self.put(sha256, data)
-        return data
+        return _read_through(self, sha256, load)
 
     def __repr__(self) -> str:
         return f"ArtifactCache({str(self.root)!r})"
@@ -202,22 +204,4 @@ class MemoryArtifactCache:
                 self.stats["stored"] += 1
 
     def fetch(self, sha256: str, load: Callable[[], bytes]) -> bytes:
-        data = self.get(sha256)
-        if data is not None:
-            return data
-        data = load()
-        self.put(sha256, data)
-        return data
-
-
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
+        return _read_through(self, sha256, load)
