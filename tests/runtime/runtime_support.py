@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import os
 import select
-import socket
 import subprocess
 import sys
 import time
@@ -25,7 +24,6 @@ from capevo.registry.api import Registry
 from capevo.registry.records import EcmVersion, Interface, IOSpec, Kind, Origin, PublishSpec
 from capevo.runtime.tasks import task_spec
 
-LOOPBACK = "127.0.0.1"
 PICK = task_spec("T1")
 
 ACTION = (IOSpec(name="action", shape=(7,), low=-1.0, high=1.0),)
@@ -167,12 +165,6 @@ def chunk_compressions(path: str | os.PathLike[str]) -> set[str]:
 # --- processes -------------------------------------------------------------------------
 
 
-def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((LOOPBACK, 0))
-        return int(s.getsockname()[1])
-
-
 @dataclass
 class Proc:
     """A child process whose stdout carries JSON lines (``READY {...}`` or ``{...}``)."""
@@ -256,27 +248,6 @@ def spawn(cmd: list[str], log_path: Path, env: Mapping[str, str] | None = None) 
             cmd, stdout=subprocess.PIPE, stderr=log_file, text=True, env={**os.environ, **(env or {})}
         )
     return Proc(popen=popen, log_path=log_path)
-
-
-def start_registry(root: Path, port: int, *, namespace: str = "capevo", timeout: float = 60.0) -> Proc:
-    """``python -m capevo.registry.service`` on ``tcp/127.0.0.1:port``, once it serves."""
-    root.mkdir(parents=True, exist_ok=True)
-    proc = spawn(
-        [
-            sys.executable,
-            "-m",
-            "capevo.registry.service",
-            "--root",
-            str(root),
-            "--listen",
-            f"tcp/{LOOPBACK}:{port}",
-            "--namespace",
-            namespace,
-        ],
-        root.parent / f"registry-{port}.log",
-    )
-    proc.read_until(lambda line: line.get("event") == "ready", timeout)
-    return proc
 
 
 def start_worker(

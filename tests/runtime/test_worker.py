@@ -19,16 +19,8 @@ import pytest
 import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from runtime_support import (
-    LIFT,
-    Proc,
-    chunk_compressions,
-    free_tcp_port,
-    publish,
-    publish_pick,
-    start_registry,
-    start_worker,
-)
+from procs import ServerProcess, start_server
+from runtime_support import LIFT, Proc, chunk_compressions, publish, publish_pick, start_worker
 
 from capevo.errors import Invalid, Unavailable, error_from_payload
 from capevo.registry.client import Client
@@ -49,7 +41,7 @@ VALID_TASKS = {*task_names(), *task_ids()}
 @dataclass
 class Running:
     endpoint: str
-    registry: Proc
+    registry: ServerProcess
     worker: Proc
     root: Path
 
@@ -58,14 +50,19 @@ def is_episode(line: dict) -> bool:
     return line.get("event") == "episode"
 
 
+def start_pick_registry(root: Path) -> ServerProcess:
+    """A registry server process under ``root`` with T1's reach, grasp and lift published and promoted."""
+    registry = start_server(root / "registry")
+    with registry.client(actor="tester") as client:
+        publish_pick(client)
+    return registry
+
+
 @pytest.fixture(scope="module")
 def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
     root = tmp_path_factory.mktemp("worker")
-    port = free_tcp_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    registry = start_registry(root / "registry", port)
-    with Client([endpoint], actor="tester") as client:
-        publish_pick(client)
+    registry = start_pick_registry(root)
+    endpoint = registry.endpoint
     worker = start_worker(
         endpoint,
         task="T1",
@@ -87,7 +84,7 @@ def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
         yield Running(endpoint=endpoint, registry=registry, worker=worker, root=root)
     finally:
         assert worker.terminate() == 0, worker.log()[-3000:]
-        registry.terminate()
+        registry.stop()
 
 
 def adoption(endpoint: str) -> Adoption:
@@ -242,11 +239,8 @@ def _close_sessions() -> Iterator[None]:
 
 
 def test_worker_survives_a_registry_restart_and_catches_up(tmp_path: Path) -> None:
-    port = free_tcp_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    registry = start_registry(tmp_path / "registry", port)
-    with Client([endpoint], actor="tester") as client:
-        publish_pick(client)
+    registry = start_pick_registry(tmp_path)
+    endpoint = registry.endpoint
     worker = start_worker(
         endpoint, task="T1", log_path=tmp_path / "worker.log", extra=["--horizon", "20", "--worker-id", "w-restart"]
     )
@@ -256,7 +250,7 @@ def test_worker_survives_a_registry_restart_and_catches_up(tmp_path: Path) -> No
         worker.read_until(lambda x: x.get("event") == "registry" and x["connected"] is False, 30)
         away = worker.read_until(lambda x: is_episode(x) and not x["registry_connected"], 30)
         assert away["versions"] == {"pick.reach": 0, "pick.grasp": 0, "pick.lift": 0}
-        registry = start_registry(tmp_path / "registry", port)
+        registry = start_server(tmp_path / "registry", port=registry.port)
         worker.read_until(lambda x: x.get("event") == "registry" and x["connected"] is True, 60)
         with Client([endpoint], actor="tester") as client:
             new = publish(client, "pick.lift", SLOW_LIFT)  # made after the restart
@@ -265,6 +259,6 @@ def test_worker_survives_a_registry_restart_and_catches_up(tmp_path: Path) -> No
         worker.read_until(lambda x: is_episode(x) and x["versions"]["pick.lift"] == new.version, 30)
     finally:
         code = worker.terminate()
-        registry.terminate()
+        registry.stop()
     assert code == 0, worker.log()[-3000:]
     assert worker.read_until(lambda x: x.get("event") == "stopped", 1)["episodes"] >= 3
