@@ -128,12 +128,12 @@ def governance_cases(phi: Phi) -> dict[str, tuple[Callable[..., Any], Any, Any]]
     # guard's braking band and the bins' range, so several checks take their slow path);
     # "work": over the bins at grasp height.
     down = (-0.012, 0.989, 0.148, 1.0, 0.01, 0.012, 0.011, 0.148, -0.989)
-    t1 = Phi.for_task("T1")
+    t1 = Phi.for_task("pick")  # T1
     gt = t1.governor(SINGLE_PANDA)
     high = RobotState(arms=(ArmPose(eef_pos=(-0.15, -0.1, 1.15), eef_force=(0.0, 0.0, 0.0), eef_rot=down),))
     work = RobotState(arms=(ArmPose(eef_pos=(0.1, -0.25, 0.9), eef_force=(0.0, 0.0, 0.0), eef_rot=down),))
     assert gt(high, calm)[1] == ()
-    t6 = Phi.for_task("T6")
+    t6 = Phi.for_task("peg_in_hole")  # T6
     g6 = t6.governor(TWO_ARM_NO_GRIPPER)
     apart = RobotState(
         arms=(
@@ -244,8 +244,7 @@ def main(argv: list[str] | None = None) -> int:
 
     live = live_states()
     for name, (env, state, action) in live.items():
-        task = name.split("_")[2]
-        govern = Phi.for_task(task).governor(env.task_spec.action_layout)
+        govern = Phi.for_task(env).governor(env.task_spec.action_layout)
         results["cases"][name] = _time_calls(
             lambda g=govern, s=state, a=action: g(s, a), args.n, min(args.n, 20_000), batches=200
         )

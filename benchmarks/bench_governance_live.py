@@ -12,14 +12,10 @@ the same Φ, layout and action frames, in a shuffled order, each call timed alon
 ``perf_counter_ns`` (*in process*: the timer's own cost, ``timer_ns``, is included).
 ``% of env step`` is the in-process p50 over the p50 of the same episodes' ``TaskEnv.step``.
 
-Each kept pair is timed through the fused C kernel (``kernel``, what the runtime uses) and
-through the Python checks alone (``python``, ``Governor(kernel=False)``); ``handled`` is the
-share of calls the kernel decided itself rather than handing them to the Python checks.
 ``sense`` is ``TaskEnv.robot_state()`` per step: the state governance reads, which under the
 per-task Φ includes the proximity pairs MuJoCo measures (not part of R(a, Φ), but paid per step).
 
     .venv/bin/python benchmarks/bench_governance_live.py [--episodes 2] [--repeats 20] [--tasks T1 T6]
-        [--kernels kernel python]
 """
 
 from __future__ import annotations
@@ -49,8 +45,7 @@ from capevo.runtime.tasks import make_task
 
 TARGET_P50_MS = 0.005
 TASKS = ("T1", "T2", "T3", "T4", "T5", "T6")
-KERNELS = ("kernel", "python")
-ENVELOPES: dict[str, Callable[[str], Phi]] = {"paper": lambda task: Phi.default(), "per-task": Phi.for_task}
+ENVELOPES: dict[str, Callable[[Any], Phi]] = {"paper": lambda env: Phi.default(), "per-task": Phi.for_task}
 
 
 class RecordingGovernor:
@@ -103,9 +98,7 @@ def ms(xs: Sequence[float], q: float) -> float:
     return percentile(xs, q) / 1e6 if xs else float("nan")
 
 
-def measure(
-    task: str, envelope: str, episodes: int, repeats: int, horizon: int | None, kernels: Sequence[str]
-) -> dict[str, Any]:
+def measure(task: str, envelope: str, episodes: int, repeats: int, horizon: int | None) -> dict[str, Any]:
     tmp = Path(tempfile.mkdtemp(prefix="bench-gov-live-"))
     registry = LocalRegistry(tmp / "registry", actor="bench")
     env = make_task(task, horizon=horizon)
@@ -117,7 +110,7 @@ def measure(
             registry, task, observation_shapes={k: tuple(v.shape) for k, v in env.obs_dict.items()}
         )
         policy = DecompositionPolicy(identity=IdentityMemory.default())
-        phi = ENVELOPES[envelope](task)
+        phi = ENVELOPES[envelope](env)
         inner = make_governor(env, phi)
         recorder = RecordingGovernor(inner)
         step_ns: list[int] = []
@@ -149,12 +142,8 @@ def measure(
         finally:
             del env.step
             del env.robot_state
-        per_kernel: dict[str, list[list[int]]] = {}
-        for name in kernels:
-            fresh = Governor(phi, env.task_spec.action_layout, frames=inner.frames, kernel=name == "kernel")
-            per_kernel[name] = time_each(fresh, recorder.calls, repeats, seed=len(recorder.calls))
-        program = Governor(phi, env.task_spec.action_layout, frames=inner.frames)._program
-        handled = sum(1 for st, a in recorder.calls if program is not None and program(st.arms, a) is not None)
+        fresh = Governor(phi, env.task_spec.action_layout, frames=inner.frames)
+        per_call = time_each(fresh, recorder.calls, repeats, seed=len(recorder.calls))
     finally:
         if caps is not None:
             caps.close()
@@ -162,17 +151,10 @@ def measure(
         registry.close()
     n = len(recorder.calls)
     step_p50 = percentile(step_ns, 50) / 1e6
-    timings: dict[str, Any] = {}
-    for name, per_call in per_kernel.items():
-        every = [t for ts in per_call for t in ts]
-        by_outcome: dict[str, list[int]] = {"allow": [], "modify": [], "reject": []}
-        for outcome, ts in zip(recorder.outcomes, per_call, strict=True):
-            by_outcome[outcome].extend(ts)
-        timings[name] = {
-            "in_process": {"p50_ms": ms(every, 50), "p99_ms": ms(every, 99), "samples": len(every)},
-            "in_process_by_outcome_p50_ms": {k: ms(v, 50) for k, v in by_outcome.items() if v},
-            "pct_of_env_step": 100.0 * ms(every, 50) / step_p50,
-        }
+    every = [t for ts in per_call for t in ts]
+    by_outcome: dict[str, list[int]] = {"allow": [], "modify": [], "reject": []}
+    for outcome, ts in zip(recorder.outcomes, per_call, strict=True):
+        by_outcome[outcome].extend(ts)
     return {
         "task": task,
         "envelope": envelope,
@@ -182,10 +164,10 @@ def measure(
         "unsafe_episodes": unsafe,
         "actions": n,
         "share": {k: sum(1 for o in recorder.outcomes if o == k) / n for k in ("allow", "modify", "reject")},
-        "kernel_handled": handled / n,
-        "timings": timings,
+        "in_process": {"p50_ms": ms(every, 50), "p99_ms": ms(every, 99), "samples": len(every)},
+        "in_process_by_outcome_p50_ms": {k: ms(v, 50) for k, v in by_outcome.items() if v},
+        "pct_of_env_step": 100.0 * ms(every, 50) / step_p50,
         "in_loop": {"p50_ms": ms(recorder.loop_ns, 50), "p99_ms": ms(recorder.loop_ns, 99)},
-        "in_loop_kernel": inner._program is not None,
         "sense_p50_ms": percentile(sense_ns, 50) / 1e6,
         "env_step_p50_ms": step_p50,
     }
@@ -198,7 +180,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=20, help="timed calls per recorded action")
     parser.add_argument("--horizon", type=int, default=None, help="default: each task's own")
-    parser.add_argument("--kernels", nargs="+", default=list(KERNELS), choices=list(KERNELS))
     parser.add_argument("--out", default="governance_live")
     args = parser.parse_args(argv)
     if args.episodes < 1 or args.repeats < 1:
@@ -208,31 +189,27 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[dict[str, Any]] = []
     for task in args.tasks:
         for envelope in args.envelopes:
-            row = measure(task, envelope, args.episodes, args.repeats, args.horizon, args.kernels)
+            row = measure(task, envelope, args.episodes, args.repeats, args.horizon)
             rows.append(row)
-            p50s = ", ".join(f"{k} {t['in_process']['p50_ms']:.4f} ms" for k, t in row["timings"].items())
-            print(f"{task} {envelope}: {row['actions']} actions, p50 {p50s}", flush=True)
+            print(f"{task} {envelope}: {row['actions']} actions, p50 {row['in_process']['p50_ms']:.4f} ms", flush=True)
     table = []
     for r in rows:
-        for name, t in r["timings"].items():
-            by = t["in_process_by_outcome_p50_ms"]
-            table.append(
-                [
-                    r["task"],
-                    r["envelope"],
-                    name,
-                    r["actions"],
-                    " / ".join(f"{100 * r['share'][k]:.0f}" for k in ("allow", "modify", "reject")),
-                    f"{100 * r['kernel_handled']:.1f} %" if name == "kernel" else "—",
-                    f"{t['in_process']['p50_ms']:.4f}",
-                    f"{t['in_process']['p99_ms']:.4f}",
-                    " / ".join(f"{by[k]:.4f}" if k in by else "—" for k in ("allow", "modify")),
-                    f"{t['pct_of_env_step']:.3f} %",
-                    f"{r['in_loop']['p50_ms']:.4f} / {r['in_loop']['p99_ms']:.4f}",
-                    f"{r['sense_p50_ms']:.3f}",
-                    f"{r['successes']}/{r['episodes']}",
-                ]
-            )
+        by = r["in_process_by_outcome_p50_ms"]
+        table.append(
+            [
+                r["task"],
+                r["envelope"],
+                r["actions"],
+                " / ".join(f"{100 * r['share'][k]:.0f}" for k in ("allow", "modify", "reject")),
+                f"{r['in_process']['p50_ms']:.4f}",
+                f"{r['in_process']['p99_ms']:.4f}",
+                " / ".join(f"{by[k]:.4f}" if k in by else "—" for k in ("allow", "modify")),
+                f"{r['pct_of_env_step']:.3f} %",
+                f"{r['in_loop']['p50_ms']:.4f} / {r['in_loop']['p99_ms']:.4f}",
+                f"{r['sense_p50_ms']:.3f}",
+                f"{r['successes']}/{r['episodes']}",
+            ]
+        )
     print()
     print(f"timer overhead {timer:.0f} ns per call (included); target p50 <= {TARGET_P50_MS} ms")
     print(
@@ -240,15 +217,13 @@ def main(argv: list[str] | None = None) -> int:
             [
                 "task",
                 "Φ",
-                "checks",
                 "actions",
                 "allow / modify / reject %",
-                "handled",
                 "p50 ms",
                 "p99 ms",
                 "p50 allow / modify ms",
                 "p50 % of env step",
-                "in loop (kernel) p50 / p99 ms",
+                "in loop p50 / p99 ms",
                 "sense p50 ms",
                 "v0 success",
             ],

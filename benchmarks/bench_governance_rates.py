@@ -133,7 +133,7 @@ def run_job(task: str, enforce: bool, episodes: int, horizon: int, phi_kind: str
         env = make_task(task, horizon=horizon)
         env.reset(seed=0)
         shapes = {k: tuple(v.shape) for k, v in env.obs_dict.items()}
-        phi = Phi.default() if phi_kind == "paper" else Phi.for_task(task)
+        phi = Phi.default() if phi_kind == "paper" else Phi.for_task(env)
         caps = LoadedCapabilitySet(registry, task, observation_shapes=shapes)
         governor = make_governor(env, phi, enforce=enforce)
         policy = Explore(spec.ecm_names[0])

@@ -8,7 +8,7 @@ Quick use::
     from capevo.runtime.state import SINGLE_PANDA
 
     phi = Phi.default()                      # the paper's envelope; or load_phi("my_phi.yaml")
-    phi = Phi.for_task("T1")                 # the paper's envelope plus the task's scene (0 % unsafe)
+    phi = Phi.for_task("pick")               # the paper's envelope plus the task's scene (0 % unsafe)
     govern = phi.governor(SINGLE_PANDA)      # once per run; enforce=False for governance-off
     trace.header["phi_hash"] = phi.hash
     governed, interventions = govern(state, proposed)
@@ -27,7 +27,7 @@ from capevo.runtime.governance.governor import GUARD, Governor, hold_action
 from capevo.runtime.governance.guard import WorkspaceGuard
 from capevo.runtime.governance.layouts import TWO_ARM_NO_GRIPPER, check_layout, layout_for
 from capevo.runtime.governance.obstacle import ObstacleApproach
-from capevo.runtime.governance.phi import Phi, load_phi, phi_from_document
+from capevo.runtime.governance.phi import Phi, load_phi, phi_for_task, phi_from_document
 from capevo.runtime.governance.pose import ArmPose
 from capevo.runtime.governance.proximity import ArmScene, Near, ProximitySensor, near_of
 from capevo.runtime.governance.ramp import ForceRamp
@@ -35,7 +35,7 @@ from capevo.runtime.governance.reach import ReachLimit
 from capevo.runtime.governance.records import GovernanceStats, Intervention, Verdict, verdict_of
 from capevo.runtime.governance.separation import ArmSeparation
 from capevo.runtime.governance.surface import SurfaceApproach
-from capevo.runtime.governance.task_phi import TASK_GEOMETRY, TaskGeometry, phi_for_task
+from capevo.runtime.governance.task_phi import TASK_GEOMETRY, TaskGeometry
 from capevo.runtime.governance.unsafe import is_unsafe, unsafe_reasons
 from capevo.runtime.governance.zone import Aabb, ForbiddenZone
 

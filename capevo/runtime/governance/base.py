@@ -47,7 +47,7 @@ import re
 import types
 import typing
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, ClassVar, NamedTuple, Protocol, TypeVar, Union
+from typing import Any, ClassVar, Protocol, TypeVar, Union
 
 from capevo.errors import Conflict, Invalid
 from capevo.runtime.state import ActionLayout, ArmState
@@ -81,19 +81,48 @@ class Constraint(Protocol):
         ...
 
 
-class KernelSpec(NamedTuple):
-    """A constraint compiled for the fused C kernel (:mod:`capevo.runtime.governance.fused`).
+class ConstraintBase:
+    """What every built-in constraint shares: its label, its normalized config, and no hard limit.
 
-    Built by a constraint's optional ``kernel_spec(layout)`` from the same precomputed numbers as
-    its :meth:`Constraint.compile`; the C check of ``kind`` (``csrc/<kind>.c``) reads them in
-    the order its header comment lists.
+    Built-in kinds are frozen dataclasses with a ``name`` field that derive from this and
+    override :meth:`unsafe` when they have a hard limit of their own.
     """
 
-    kind: str
-    floats: tuple[float, ...]
-    ints: tuple[int, ...]
-    reasons: tuple[str, ...]
-    """Every reason the C check can give, indexed; several join with ``"; "`` as the Python check joins them."""
+    __slots__ = ()
+    kind: ClassVar[str]
+    name: str | None
+
+    @property
+    def label(self) -> str:
+        """The name interventions carry: ``name`` if set, else ``kind``."""
+        return self.name or self.kind
+
+    def to_config(self) -> dict[str, Any]:
+        """Normalized config: every field with its value (defaults filled), JSON types only."""
+        return config_of(self)
+
+    def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
+        """None: a rule without a hard limit of its own never makes a step unsafe."""
+        return None
+
+
+def edited(b: list[float] | None, notes: Sequence[str]) -> Result:
+    """A check's answer: None when it left the action alone, else the edited copy ``b`` with its reasons."""
+    return None if b is None else (b, "; ".join(notes))
+
+
+AXES = ("x", "y", "z")
+
+
+def check_corners(low: Sequence[float], high: Sequence[float]) -> None:
+    """Check that ``low`` is below ``high`` on every axis (a box's corners, world frame).
+
+    Raises:
+        Invalid: naming ``high`` and the first axis where it is not above ``low``.
+    """
+    for k, axis in enumerate(AXES):
+        if not low[k] < high[k]:
+            raise invalid("high", f"high.{axis} ({high[k]}) must be above low.{axis} ({low[k]})")
 
 
 C = TypeVar("C")

@@ -21,9 +21,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
 
-from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, ConstraintBase, Result, invalid, normalize, register
 from capevo.runtime.state import ActionLayout, ArmState
 
 INF = math.inf
@@ -39,7 +38,7 @@ def pose_norm2(a: Sequence[float], o: int) -> float:
 
 @register("velocity_cap")
 @dataclass(frozen=True, slots=True, kw_only=True)
-class VelocityCap:
+class VelocityCap(ConstraintBase):
     """Per-arm cap on the L2 norm of the six OSC pose-delta components.
 
     Args:
@@ -50,7 +49,6 @@ class VelocityCap:
         Invalid: naming the field, on a wrong type or a non-positive or non-finite cap.
     """
 
-    kind: ClassVar[str]
     max_norm: float = 1.5
     name: str | None = None
 
@@ -59,15 +57,7 @@ class VelocityCap:
         if not self.max_norm > 0:
             raise invalid("max_norm", f"must be > 0, got {self.max_norm}")
 
-    @property
-    def label(self) -> str:
-        return self.name or self.kind
-
-    def to_config(self) -> dict[str, Any]:
-        return config_of(self)
-
-    def _prepared(self, layout: ActionLayout) -> tuple[float, float, tuple[tuple[int, str], ...]]:
-        # The numbers and strings compile() and kernel_spec() share: cap2, target, per_arm.
+    def compile(self, layout: ActionLayout) -> Check:
         cap = self.max_norm
         cap2 = cap * cap
         target = cap * SHRINK
@@ -76,10 +66,6 @@ class VelocityCap:
             (arm.offset, f"arm {i}: pose-delta norm above the cap {cap}: scaled down to it")
             for i, arm in enumerate(layout.arms)
         )
-        return cap2, target, per_arm
-
-    def compile(self, layout: ActionLayout) -> Check:
-        cap2, target, per_arm = self._prepared(layout)
         sqrt, hypot = math.sqrt, math.hypot
 
         def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
@@ -106,13 +92,6 @@ class VelocityCap:
             return b, reason  # type: ignore[return-value]
 
         return check
-
-    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
-        """This check for the fused kernel (``csrc/velocity_cap.c``); the same numbers as :meth:`compile`."""
-        cap2, target, per_arm = self._prepared(layout)
-        return KernelSpec(
-            self.kind, (float(cap2), float(target)), tuple(o for o, _ in per_arm), tuple(n for _, n in per_arm)
-        )
 
     def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
         if action is None:

@@ -53,37 +53,18 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar, NamedTuple
+from typing import ClassVar
 
-from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, ConstraintBase, Result, edited, invalid, normalize, register
 from capevo.runtime.governance.brake import brake_along
 from capevo.runtime.governance.cap import SHRINK
 from capevo.runtime.governance.proximity import LOOSE
 from capevo.runtime.state import ActionLayout, ArmState
 
 
-class _Compiled(NamedTuple):
-    """The numbers and strings :meth:`ContactApproach.compile` and ``kernel_spec`` share."""
-
-    band: float
-    cl: float
-    br_fixed: float
-    t_fixed: float
-    br_loose: float
-    t_loose: float
-    u_fixed: float
-    u_loose: float
-    lever: float
-    lever2: float
-    split: bool
-    turn: bool
-    offsets: tuple[int, ...]
-    reasons: tuple[str, ...]
-
-
 @register("contact_approach")
 @dataclass(frozen=True, slots=True, kw_only=True)
-class ContactApproach:
+class ContactApproach(ConstraintBase):
     """Closing speed along each sensed hand-to-scene pair limited in proportion to its distance.
 
     Args:
@@ -102,7 +83,6 @@ class ContactApproach:
             a non-positive brake or lever, or ``touch`` outside [0, 1].
     """
 
-    kind: ClassVar[str]
     reads_proximity: ClassVar[bool] = True
     """The state must carry proximity pairs (:class:`~capevo.runtime.governance.proximity.ArmScene`)."""
     clearance: float = 0.005
@@ -129,13 +109,6 @@ class ContactApproach:
         if not self.lever > 0:
             raise invalid("lever", f"must be > 0, got {self.lever}")
 
-    @property
-    def label(self) -> str:
-        return self.name or self.kind
-
-    def to_config(self) -> dict[str, Any]:
-        return config_of(self)
-
     def bound(self, dist: float, owner: int = -1) -> float:
         """Largest closing speed ``q`` allowed at ``dist`` metres (1.0 beyond the band)."""
         loose = owner == LOOSE
@@ -145,8 +118,9 @@ class ContactApproach:
         t = self.touch_loose if loose else self.touch
         return t + (1.0 - t) * x
 
-    def _compiled(self, layout: ActionLayout) -> _Compiled:
+    def compile(self, layout: ActionLayout) -> Check:
         band = self.clearance + max(self.brake, self.brake_loose or 0.0)
+        turn, lever = self.rotation, self.lever
         # bound()'s terms as locals: the loop inlines it (the same operations, so the same bits),
         # since a method call per pair costs more than the rest of a pair that needs no edit.
         cl = self.clearance
@@ -159,25 +133,9 @@ class ContactApproach:
         split = repr((br_loose, t_loose)) != repr((br_fixed, t_fixed))
         offsets = tuple(arm.offset for arm in layout.arms)
         reasons = tuple(f"arm {i}: hand near a contact: motion towards it braked" for i in range(len(offsets)))
-        lever = self.lever
+        isfinite, sqrt, inf = math.isfinite, math.sqrt, math.inf
         # Below this |r|^2 the lever factor is 1, rounding included (sqrt is monotone).
         lever2 = lever * lever * (1.0 - 1e-12)
-        return _Compiled(
-            band, cl, br_fixed, t_fixed, br_loose, t_loose, u_fixed, u_loose, lever, lever2,
-            split, self.rotation, offsets, reasons,
-        )  # fmt: skip
-
-    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
-        """This check for the fused kernel (``csrc/contact_approach.c``); the same numbers as :meth:`compile`."""
-        p = self._compiled(layout)
-        floats = (p.band, p.cl, p.br_fixed, p.t_fixed, p.br_loose, p.t_loose, p.u_fixed, p.u_loose, p.lever, p.lever2)
-        ints = (int(p.split), int(p.turn), len(p.offsets), *p.offsets)
-        return KernelSpec(self.kind, tuple(float(v) for v in floats), ints, p.reasons)
-
-    def compile(self, layout: ActionLayout) -> Check:
-        (band, cl, br_fixed, t_fixed, br_loose, t_loose, u_fixed, u_loose,
-         lever, lever2, split, turn, offsets, reasons) = self._compiled(layout)  # fmt: skip
-        isfinite, sqrt, inf = math.isfinite, math.sqrt, math.inf
 
         n_arms = len(offsets)
 
@@ -185,7 +143,7 @@ class ContactApproach:
             poses = [list(a[o : o + 6]) for o in offsets]
             q_rot = [inf] * n_arms
             # Arms an edit may have changed; the others are still their slice of ``a``.
-            edited = [False] * n_arms
+            touched = [False] * n_arms
             for i in range(n_arms):
                 arm = poses[i]
                 qr_i = q_rot[i]  # only this arm's own pairs change it in this loop (owner != i)
@@ -225,17 +183,17 @@ class ContactApproach:
                         # against its support when pushed down: that part keeps the fixed bound.
                         if v2 > q_down:
                             arm[2] = q_down / nz * SHRINK
-                            edited[i] = True
+                            touched[i] = True
                         if c > q:
                             brake_along(arm, ((0, nx), (1, ny)), q)
-                            edited[i] = True
+                            touched[i] = True
                         q = q_down
                     else:
                         if v2 > 0.0:
                             c += v2
                         if c > q:
                             brake_along(arm, ((0, nx), (1, ny), (2, nz)), q)
-                            edited[i] = True
+                            touched[i] = True
                     if turn:
                         rr = rx * rx + ry * ry + rz * rz
                         if rr < lever2:
@@ -256,7 +214,7 @@ class ContactApproach:
                             c += v2
                         if c > q:
                             brake_along(other, ((0, nx), (1, ny), (2, nz)), q, sign=-1.0)
-                            edited[owner] = True
+                            touched[owner] = True
                         if turn and q < q_rot[owner]:
                             q_rot[owner] = q
                 q_rot[i] = qr_i
@@ -270,15 +228,13 @@ class ContactApproach:
                         v = arm[k]
                         if abs(v) > qr:
                             arm[k] = qr if v > 0.0 else -qr
-                            edited[i] = True
-                if edited[i] and any(arm[j] != a[o + j] for j in range(6)):
+                            touched[i] = True
+                if touched[i] and any(arm[j] != a[o + j] for j in range(6)):
                     if b is None:
                         b = list(a)
                     b[o : o + 6] = arm
                     notes.append(reasons[i])
-            if b is None:
-                return None
-            return b, notes[0] if len(notes) == 1 else "; ".join(notes)
+            return edited(b, notes)
 
         def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             for arm in arms:
@@ -287,6 +243,3 @@ class ContactApproach:
             return None
 
         return check
-
-    def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
-        return None

@@ -36,18 +36,25 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
 
-from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import AXES, Check, ConstraintBase, Result, edited, invalid, normalize, register
+from capevo.runtime.governance.prefilter import unless_all_forces_within
 from capevo.runtime.state import ActionLayout, ArmState
 
-AXES = ("x", "y", "z")
 INF = math.inf
+
+
+def into_contact(v: float, f: float) -> bool:
+    """Whether an action component ``v`` moves against the force component ``f`` on the same axis.
+
+    Compared by sign, not by product: ``v * f`` can underflow to -0.0.
+    """
+    return (v > 0.0 and f < 0.0) or (v < 0.0 and f > 0.0)
 
 
 @register("contact_force")
 @dataclass(frozen=True, slots=True, kw_only=True)
-class ContactForce:
+class ContactForce(ConstraintBase):
     """Contact-force limit at each end effector.
 
     Args:
@@ -58,7 +65,6 @@ class ContactForce:
         Invalid: naming the field, on a wrong type or a non-positive or non-finite limit.
     """
 
-    kind: ClassVar[str]
     max_force: float = 20.0
     name: str | None = None
 
@@ -67,16 +73,7 @@ class ContactForce:
         if not self.max_force > 0:
             raise invalid("max_force", f"must be > 0, got {self.max_force}")
 
-    @property
-    def label(self) -> str:
-        return self.name or self.kind
-
-    def to_config(self) -> dict[str, Any]:
-        return config_of(self)
-
-    def _prepared(self, layout: ActionLayout) -> tuple[float, tuple[tuple[int, tuple[str, ...]], ...]]:
-        # The numbers and strings compile() and kernel_spec() share: lim2, and per arm
-        # (offset, reasons for x, y, z).
+    def compile(self, layout: ActionLayout) -> Check:
         limit = self.max_force
         lim2 = limit * limit
         per_arm = tuple(
@@ -88,14 +85,10 @@ class ContactForce:
             )
             for i, arm in enumerate(layout.arms)
         )
-        return lim2, per_arm
-
-    def compile(self, layout: ActionLayout) -> Check:
-        lim2, per_arm = self._prepared(layout)
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             b: list[float] | None = None
-            reason: str | None = None
+            notes: list[str] = []
             for i, arm in enumerate(arms):
                 fx, fy, fz = f = arm.eef_force
                 n2 = fx * fx + fy * fy + fz * fz
@@ -105,47 +98,15 @@ class ContactForce:
                 if not n2 < INF and (fx - fx != 0.0 or fy - fy != 0.0 or fz - fz != 0.0):
                     return None, f"arm {i}: force reading {f} is not finite"  # rare: format here
                 o, reasons = per_arm[i]
-                ax, ay, az = a[o : o + 3]
-                # Compare signs, not products: a * f can underflow to -0.0.
-                zx = (ax > 0.0 and fx < 0.0) or (ax < 0.0 and fx > 0.0)
-                zy = (ay > 0.0 and fy < 0.0) or (ay < 0.0 and fy > 0.0)
-                zz = (az > 0.0 and fz < 0.0) or (az < 0.0 and fz > 0.0)
-                if not (zx or zy or zz):
-                    continue
-                if b is None:
-                    b = list(a)
-                # Reasons join as "; ".join would, without building a list for the usual single one.
-                if zx:
-                    b[o] = 0.0
-                    reason = reasons[0] if reason is None else f"{reason}; {reasons[0]}"
-                if zy:
-                    b[o + 1] = 0.0
-                    reason = reasons[1] if reason is None else f"{reason}; {reasons[1]}"
-                if zz:
-                    b[o + 2] = 0.0
-                    reason = reasons[2] if reason is None else f"{reason}; {reasons[2]}"
-            if b is None:
-                return None
-            return b, reason  # type: ignore[return-value]
+                for k in (0, 1, 2):
+                    if into_contact(a[o + k], f[k]):
+                        if b is None:
+                            b = list(a)
+                        b[o + k] = 0.0
+                        notes.append(reasons[k])
+            return edited(b, notes)
 
-        def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
-            for arm in arms:
-                fx, fy, fz = arm.eef_force
-                if not fx * fx + fy * fy + fz * fz <= lim2:
-                    return slow(arms, a)
-            return None
-
-        return check
-
-    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
-        """This check for the fused kernel (``csrc/contact_force.c``); the same numbers as :meth:`compile`."""
-        lim2, per_arm = self._prepared(layout)
-        return KernelSpec(
-            self.kind,
-            (float(lim2),),
-            tuple(o for o, _ in per_arm),
-            tuple(note for _, notes in per_arm for note in notes),
-        )
+        return unless_all_forces_within(lim2, slow)
 
     def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
         lim2 = self.max_force * self.max_force

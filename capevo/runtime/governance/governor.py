@@ -23,13 +23,6 @@ modified action back, so "outward through the +x face" means world +x whatever w
 robot is mounted (the two Pandas of TwoArmPegInHole are turned ±90° about z). For the
 identity and for right-angle rotations with exact entries the round trip is exact.
 
-Where every constraint of Φ has a port (all built-in kinds do), the checks run in the fused C
-kernel (:mod:`capevo.runtime.governance.fused`): one call reads the state and the action,
-applies Φ in order and builds the records, 0.6–4 µs per action where the Python checks take
-18–77 µs (BENCHMARKS.md). The Python checks stay the specification: the kernel hands every
-input it cannot decide exactly as they would (non-float components, non-finite values, rare
-paths with formatted reasons) back to them, so the results below hold either way, bit for bit.
-
 Before Φ runs, the governor itself (label ``governor``) rejects an action of the wrong
 length, with a non-numeric or non-finite (NaN/inf) component, or a state with the wrong
 number of arms.
@@ -64,7 +57,6 @@ from typing import TYPE_CHECKING, Any
 from numpy import ndarray
 
 from capevo.errors import Invalid
-from capevo.runtime.governance.fused import fused_program
 from capevo.runtime.governance.layouts import check_layout
 from capevo.runtime.governance.records import GovernanceStats, Intervention, new_intervention
 from capevo.runtime.state import ActionLayout, ArmState, RobotState
@@ -94,8 +86,6 @@ class Governor:
         enforce: False for the evaluation-only governance-off mode (count, never change).
         frames: Per arm, the rotation from the arm's action (base) frame to the world frame as
             9 floats, row-major; None means the identity for every arm.
-        kernel: Run the checks in the fused C kernel where it has every constraint of Φ
-            (:mod:`capevo.runtime.governance.fused`); False: always the Python checks.
 
     Raises:
         Invalid: if the layout's indices do not fit its dimension, or a frame is not a rotation.
@@ -108,7 +98,6 @@ class Governor:
         "_labels",
         "_modified",
         "_n_arms",
-        "_program",
         "_rejected",
         "_rot",
         "_steps",
@@ -125,7 +114,6 @@ class Governor:
         *,
         enforce: bool = True,
         frames: Sequence[Sequence[float]] | None = None,
-        kernel: bool = True,
     ) -> None:
         self.phi = phi
         self.layout = check_layout(layout)
@@ -139,8 +127,6 @@ class Governor:
         self._labels = tuple(c.label for c in phi.constraints)
         self._dim = layout.dim
         self._n_arms = len(layout.arms)
-        # The same checks fused into one C call where every constraint has a port (fused.py).
-        self._program = fused_program(phi, layout, self._rot) if kernel else None
         self.reset_stats()
 
     def reset_stats(self) -> None:
@@ -173,15 +159,6 @@ class Governor:
         Returns:
             ``(governed, interventions)``; see the module docstring.
         """
-        program = self._program
-        if program is not None:
-            r = program(state.arms, action, self.enforce)
-            if r is True:
-                self._steps += 1
-                return action, NO_INTERVENTIONS
-            if r is not None:
-                self._steps += 1
-                return self._from_program(action, r)
         self._steps += 1
         t = type(action)
         if t is ndarray:
@@ -251,17 +228,6 @@ class Governor:
             else:
                 self._modified += 1
                 return (original if enforce else action), tuple(records)
-
-    def _from_program(self, action: Any, r: tuple[Any, Any, Any]) -> tuple[Any, tuple[Intervention, ...]]:
-        governed, records, indices = r
-        counts = self._counts
-        for i in indices:
-            counts[i] += 1
-        if governed is None:
-            self._rejected += 1
-            return (None if self.enforce else action), records
-        self._modified += 1
-        return (governed if self.enforce else action), records
 
     def _guard(self, action: Any, a: Any, arms: Sequence[ArmState]) -> tuple[Any, tuple[Intervention, ...]]:
         if a is None:

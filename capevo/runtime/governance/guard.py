@@ -36,19 +36,28 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
 
-from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import (
+    AXES,
+    Check,
+    ConstraintBase,
+    Result,
+    check_corners,
+    edited,
+    invalid,
+    normalize,
+    register,
+)
+from capevo.runtime.governance.prefilter import unless_all_inside
 from capevo.runtime.state import ActionLayout, ArmState
 
-AXES = ("x", "y", "z")
 MAX_RESTORE = 0.6
 """Upper bound on every restoring speed: 0.6·√6 < 1.5, so a restoring arm stays under the paper's cap."""
 
 
 @register("workspace_guard")
 @dataclass(frozen=True, slots=True, kw_only=True)
-class WorkspaceGuard:
+class WorkspaceGuard(ConstraintBase):
     """Braking band, restoring motion and a rotation freeze at the faces of a world-frame box.
 
     Args:
@@ -67,7 +76,6 @@ class WorkspaceGuard:
             outside [0, 0.6].
     """
 
-    kind: ClassVar[str]
     low: tuple[float, float, float] = (-0.6, -0.6, 0.6)
     high: tuple[float, float, float] = (0.6, 0.6, 1.3)
     margin: float = 0.08
@@ -78,9 +86,7 @@ class WorkspaceGuard:
 
     def __post_init__(self) -> None:
         normalize(self)
-        for k, axis in enumerate(AXES):
-            if not self.low[k] < self.high[k]:
-                raise invalid("high", f"high.{axis} ({self.high[k]}) must be above low.{axis} ({self.low[k]})")
+        check_corners(self.low, self.high)
         if self.margin < 0:
             raise invalid("margin", f"must be >= 0, got {self.margin}")
         if self.brake < 0:
@@ -96,21 +102,12 @@ class WorkspaceGuard:
                     f"2 * (margin + brake) = {2 * (self.margin + self.brake)} m",
                 )
 
-    @property
-    def label(self) -> str:
-        return self.name or self.kind
-
-    def to_config(self) -> dict[str, Any]:
-        return config_of(self)
-
-    def _prepared(
-        self, layout: ActionLayout
-    ) -> tuple[float, tuple[float, ...], tuple[int, ...], tuple[tuple[str, str, str], ...]]:
-        """What :meth:`compile` and :meth:`kernel_spec` precompute: band, inner box, offsets, reasons."""
-        low, high, m, rs = self.low, self.high, self.margin, self.restore
-        band = m + self.brake
-        # Strictly inside this inner box (lx, ly, lz, hx, hy, hz), no rule applies: the fast path.
-        inner = (*(v + band for v in low), *(v - band for v in high))
+    def compile(self, layout: ActionLayout) -> Check:
+        low, high, m, br, rs, freeze = self.low, self.high, self.margin, self.brake, self.restore, self.freeze_rotation
+        band = m + br
+        # Strictly inside this inner box, no rule applies: the fast path.
+        inner_low = tuple(v + band for v in low)
+        inner_high = tuple(v - band for v in high)
         offsets = tuple(arm.offset for arm in layout.arms)
         reasons = tuple(
             (
@@ -120,11 +117,6 @@ class WorkspaceGuard:
             )
             for i in range(len(offsets))
         )
-        return band, inner, offsets, reasons
-
-    def compile(self, layout: ActionLayout) -> Check:
-        low, high, m, br, rs, freeze = self.low, self.high, self.margin, self.brake, self.restore, self.freeze_rotation
-        band, (ilx, ily, ilz, ihx, ihy, ihz), offsets, reasons = self._prepared(layout)
         isfinite = math.isfinite
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
@@ -175,25 +167,6 @@ class WorkspaceGuard:
                             b = list(a)
                         b[o + 3] = b[o + 4] = b[o + 5] = 0.0
                         notes.append(reasons[i][2])
-            if b is None:
-                return None
-            return b, notes[0] if len(notes) == 1 else "; ".join(notes)
+            return edited(b, notes)
 
-        def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
-            for arm in arms:
-                x, y, z = arm.eef_pos
-                if not (ilx < x < ihx and ily < y < ihy and ilz < z < ihz):
-                    return slow(arms, a)
-            return None
-
-        return check
-
-    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
-        """This check for the fused kernel (``csrc/workspace_guard.c``); the same numbers as :meth:`compile`."""
-        band, inner, offsets, reasons = self._prepared(layout)
-        floats = (*self.low, *self.high, self.margin, self.brake, self.restore, band, *inner)
-        ints = (int(self.freeze_rotation), *offsets)
-        return KernelSpec(self.kind, tuple(float(v) for v in floats), ints, tuple(r for arm in reasons for r in arm))
-
-    def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
-        return None
+        return unless_all_inside(inner_low, inner_high, slow)

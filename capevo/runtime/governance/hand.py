@@ -6,6 +6,8 @@ Invariants:
 2. :func:`hand_reach` bounds the distance of every corner from the site, so for any rotation
    every offset from the two functions above lies within ``[−hand_reach, hand_reach]``.
 3. No boxes: the site point itself (offsets 0, reach 0).
+4. :func:`box_gap` gives, per axis, 0 and side 0 where two boxes overlap on that axis (or touch,
+   or a bound is NaN), else their positive distance along it; ``dist`` is the Euclidean norm.
 """
 
 from __future__ import annotations
@@ -67,3 +69,23 @@ def hand_extent(hand: Sequence[Aabb], rot: Sequence[float]) -> tuple[Vec3, Vec3]
             lo[k] = min(lo[k], mid - half)
             hi[k] = max(hi[k], mid + half)
     return (lo[0], lo[1], lo[2]), (hi[0], hi[1], hi[2])
+
+
+def box_gap(
+    low: Sequence[float], high: Sequence[float], other_low: Sequence[float], other_high: Sequence[float]
+) -> tuple[float, list[float], list[int]]:
+    """How far the box ``[other_low, other_high]`` lies from the box ``[low, high]``, world frame.
+
+    Returns:
+        ``(dist, gaps, sides)``: per axis the gap between the two boxes and the side the other
+        box lies on (+1: towards +k from the first, -1: towards -k, 0: they overlap along k),
+        and ``dist``, the distance between the boxes.
+    """
+    gaps = [0.0, 0.0, 0.0]
+    sides = [0, 0, 0]
+    for k in (0, 1, 2):
+        if high[k] < other_low[k]:
+            gaps[k], sides[k] = other_low[k] - high[k], 1
+        elif other_high[k] < low[k]:
+            gaps[k], sides[k] = low[k] - other_high[k], -1
+    return math.sqrt(gaps[0] * gaps[0] + gaps[1] * gaps[1] + gaps[2] * gaps[2]), gaps, sides

@@ -44,32 +44,15 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
 
 from capevo.errors import Invalid
-from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
-from capevo.runtime.governance.hand import hand_reach
-from capevo.runtime.governance.pose import DOWN, rotation_of
+from capevo.runtime.governance.base import Check, ConstraintBase, Result, edited, invalid, normalize, register
+from capevo.runtime.governance.hand import box_gap, hand_reach
+from capevo.runtime.governance.pose import finite_rotation_or_down, rotation_of
 from capevo.runtime.governance.zone import Aabb
 from capevo.runtime.state import ActionLayout, ArmState
 
 Vec3 = tuple[float, float, float]
-
-
-def hand_shapes(hand: Sequence[Aabb]) -> tuple[tuple[tuple[float, ...], tuple[float, ...]], ...]:
-    """Per box of ``hand``, its centre and half sizes in the site frame, as :func:`extent_of` turns them."""
-    return tuple(
-        (
-            tuple((box.low[j] + box.high[j]) / 2 for j in range(3)),
-            tuple((box.high[j] - box.low[j]) / 2 for j in range(3)),
-        )
-        for box in hand
-    )
-
-
-def kernel_shapes(hand: Sequence[Aabb]) -> tuple[float, ...]:
-    """:func:`hand_shapes` flat for the kernel's ``csrc/hand.c``: per box ``c0, c1, c2, h0, h1, h2``."""
-    return tuple(float(v) for centre, half in hand_shapes(hand) for v in (*centre, *half))
 
 
 def extent_of(hand: Sequence[Aabb]) -> Callable[[Sequence[float]], tuple[Vec3, Vec3]]:
@@ -79,7 +62,13 @@ def extent_of(hand: Sequence[Aabb]) -> Callable[[Sequence[float]], tuple[Vec3, V
     ``hand_extent``'s, in its order (``x < lo`` where it takes ``min(lo, x)``), so the result is
     the same to the bit, NaN included.
     """
-    shapes = hand_shapes(hand)
+    shapes = tuple(
+        (
+            tuple((box.low[j] + box.high[j]) / 2 for j in range(3)),
+            tuple((box.high[j] - box.low[j]) / 2 for j in range(3)),
+        )
+        for box in hand
+    )
     if not shapes:
         zero: tuple[Vec3, Vec3] = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
         return lambda rot: zero
@@ -113,7 +102,7 @@ def extent_of(hand: Sequence[Aabb]) -> Callable[[Sequence[float]], tuple[Vec3, V
 
 @register("obstacle_approach")
 @dataclass(frozen=True, slots=True, kw_only=True)
-class ObstacleApproach:
+class ObstacleApproach(ConstraintBase):
     """Motion towards fixed world-frame boxes limited in proportion to the hand's distance from them.
 
     Args:
@@ -131,7 +120,6 @@ class ObstacleApproach:
             brake; and, when compiled, an arm index the layout does not have.
     """
 
-    kind: ClassVar[str]
     boxes: tuple[Aabb, ...]
     hand: tuple[Aabb, ...] = ()
     clearance: float = 0.01
@@ -151,16 +139,8 @@ class ObstacleApproach:
         if self.brake < 0:
             raise invalid("brake", f"must be >= 0, got {self.brake}")
 
-    @property
-    def label(self) -> str:
-        return self.name or self.kind
-
-    def to_config(self) -> dict[str, Any]:
-        return config_of(self)
-
-    def _plan(self, layout: ActionLayout) -> tuple[Any, ...]:
-        """What :meth:`compile` and :meth:`kernel_spec` share: the obstacles, their hull, arms and reasons."""
-        hand, cl, br = self.hand, self.clearance, self.brake
+    def compile(self, layout: ActionLayout) -> Check:
+        hand, cl, br, turn = self.hand, self.clearance, self.brake, self.rotation
         grow = hand_reach(hand) + cl + br
         # Per obstacle: its box, its centre, and the box the site must be in for the rule to apply.
         obstacles = tuple(
@@ -185,31 +165,8 @@ class ObstacleApproach:
             tuple(f"arm {i}: hand near obstacle {j}: motion towards it braked" for j in range(len(obstacles)))
             for i in range(len(layout.arms))
         )
-        return obstacles, gl, gh, offsets, reasons, cl + br
-
-    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
-        """This check for the fused kernel (``csrc/obstacle_approach.c``); the same numbers as :meth:`compile`.
-
-        floats: ``clearance, brake, band, *gl, *gh``, per obstacle ``*low, *high, *centre, *grown_low,
-        *grown_high``, then :func:`kernel_shapes` of the hand; ints: ``rotation, obstacles, hand boxes,
-        governed arms``, then per governed arm ``(index, offset)``; reasons: arm-major, ``n_arms * obstacles``.
-        """
-        obstacles, gl, gh, offsets, reasons, band = self._plan(layout)
-        floats = [self.clearance, self.brake, band, *gl, *gh]
-        for o in obstacles:
-            for part in o:
-                floats.extend(part)
-        floats.extend(kernel_shapes(self.hand))
-        ints = [int(self.rotation), len(obstacles), len(self.hand), len(offsets)]
-        for i, o in offsets:
-            ints.extend((i, o))
-        flat = tuple(r for per_arm in reasons for r in per_arm)
-        return KernelSpec(self.kind, tuple(float(v) for v in floats), tuple(ints), flat)
-
-    def compile(self, layout: ActionLayout) -> Check:
-        hand, cl, br, turn = self.hand, self.clearance, self.brake, self.rotation
-        obstacles, gl, gh, offsets, reasons, band = self._plan(layout)
-        isfinite, sqrt, inf = math.isfinite, math.sqrt, math.inf
+        isfinite, inf = math.isfinite, math.inf
+        band = cl + br
         flat = tuple((j, *o[3], *o[4]) for j, o in enumerate(obstacles))
         # Each hand box separately: a wide hand body above narrow fingers is not one big box.
         parts = tuple(extent_of((box,)) for box in hand) or (extent_of(()),)
@@ -226,14 +183,9 @@ class ObstacleApproach:
                 near = [j for j, lx, ly, lz, hx, hy, hz in flat if lx <= px <= hx and ly <= py <= hy and lz <= pz <= hz]
                 if not near:
                     continue
-                rot = rotation_of(arm)
+                rot = finite_rotation_or_down(arm)
                 if rot is None:
-                    rot = DOWN
-                else:
-                    # A finite sum proves every entry finite; an overflowing one takes the exact test.
-                    s = sum(rot)
-                    if s - s != 0.0 and not all(isfinite(v) for v in rot):
-                        return None, f"arm {i}: end-effector orientation {rot} is not finite"
+                    return None, f"arm {i}: end-effector orientation {rotation_of(arm)} is not finite"
                 hulls = []
                 for extent in parts:
                     (l0, l1, l2), (h0, h1, h2) = extent(rot)
@@ -244,29 +196,8 @@ class ObstacleApproach:
                 hit: list[str] = []
                 for j in near:
                     lo, hi, centre, _, _ = obstacles[j]
-                    lo0, lo1, lo2 = lo
-                    hi0, hi1, hi2 = hi
                     for hl, hh in hulls:
-                        # Per axis the separation s_k and the side (+1: the obstacle lies towards +k).
-                        if hh[0] < lo0:
-                            s0, d0 = lo0 - hh[0], 1
-                        elif hl[0] > hi0:
-                            s0, d0 = hl[0] - hi0, -1
-                        else:
-                            s0, d0 = 0.0, 0
-                        if hh[1] < lo1:
-                            s1, d1 = lo1 - hh[1], 1
-                        elif hl[1] > hi1:
-                            s1, d1 = hl[1] - hi1, -1
-                        else:
-                            s1, d1 = 0.0, 0
-                        if hh[2] < lo2:
-                            s2, d2 = lo2 - hh[2], 1
-                        elif hl[2] > hi2:
-                            s2, d2 = hl[2] - hi2, -1
-                        else:
-                            s2, d2 = 0.0, 0
-                        dist = sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+                        dist, s, sides = box_gap(hl, hh, lo, hi)
                         if dist >= band and dist > cl:
                             continue
                         q = (dist - cl) / br if br > 0.0 and dist > cl else 0.0
@@ -274,9 +205,9 @@ class ObstacleApproach:
                         if dist > 0.0:
                             # One bound for every approaching axis: the closing speed sum(a_k * s_k / dist)
                             # is then at most q, and an axis with little separation is not starved.
-                            bound = q * dist / (s0 + s1 + s2)
-                            for k, side in ((0, d0), (1, d1), (2, d2)):
-                                v = arm_a[k]
+                            bound = q * dist / (s[0] + s[1] + s[2])
+                            for k in (0, 1, 2):
+                                v, side = arm_a[k], sides[k]
                                 if side and v * side > 0.0 and abs(v) > bound:
                                     arm_a[k] = bound * side
                                     changed = True
@@ -303,9 +234,7 @@ class ObstacleApproach:
                         b = list(a)
                     b[o : o + 6] = arm_a
                     notes.extend(hit)
-            if b is None:
-                return None
-            return b, notes[0] if len(notes) == 1 else "; ".join(notes)
+            return edited(b, notes)
 
         glx, gly, glz = gl
         ghx, ghy, ghz = gh
@@ -319,6 +248,3 @@ class ObstacleApproach:
             return None
 
         return check
-
-    def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
-        return None

@@ -28,6 +28,12 @@ Invariants:
    path of the offending field (``constraints[1].margin``) and ``details["field"]`` is that path.
 5. ``Phi.default()`` is the packaged ``default_phi.yaml``, which equals every default
    constraint built with no arguments: workspace_box, contact_force, velocity_cap (in that order).
+6. ``phi_for_task(t, base)`` (``Phi.for_task``) starts with every constraint of ``base`` in
+   order, the task's constraints (:mod:`capevo.runtime.governance.task_phi`) inserted just
+   before its first ``velocity_cap`` (appended when it has none), so the cap still acts last.
+7. Its result depends only on the task's name and the base: equal inputs, equal hash; the six
+   built-in tasks give four distinct hashes (pick, place and pick_place_multi share a scene),
+   none equal to the base's. An unknown task raises :class:`Invalid` listing the known ones.
 """
 
 from __future__ import annotations
@@ -59,6 +65,8 @@ from capevo.runtime.governance import (  # noqa: F401 - registers the built-in k
     zone,
 )
 from capevo.runtime.governance.base import CONSTRAINTS, Constraint, build, constraint_kinds, prefixed
+from capevo.runtime.governance.cap import VelocityCap
+from capevo.runtime.governance.task_phi import TASK_GEOMETRY, task_constraints, task_name_of
 from capevo.runtime.state import ActionLayout
 
 if TYPE_CHECKING:
@@ -109,17 +117,7 @@ class Phi:
 
     @classmethod
     def for_task(cls, task: Any, base: Phi | None = None) -> Phi:
-        """The paper's envelope (or ``base``) plus the task's scene: see :mod:`capevo.runtime.governance.task_phi`.
-
-        Args:
-            task: A task name or id (``"T1"``, ``"pick"``), a ``TaskSpec`` or a ``TaskEnv``.
-            base: The envelope to extend; default :meth:`default`.
-
-        Raises:
-            Invalid: for an unknown task.
-        """
-        from capevo.runtime.governance.task_phi import phi_for_task
-
+        """The paper's envelope (or ``base``) plus the task's scene; see :func:`phi_for_task`."""
         return phi_for_task(task, base)
 
     @property
@@ -167,6 +165,24 @@ class Phi:
         from capevo.runtime.governance.governor import Governor
 
         return Governor(self, layout, enforce=enforce, frames=frames)
+
+
+def phi_for_task(task: Any, base: Phi | None = None) -> Phi:
+    """Φ for one task: ``base`` (default: the paper's) plus the task's scene constraints.
+
+    Args:
+        task: A task name (``"pick"``), a ``TaskSpec`` or a ``TaskEnv``; for a task id
+            (``"T1"``) pass its spec, ``capevo.runtime.tasks.task_spec("T1")``.
+        base: The envelope to extend; default :meth:`Phi.default`.
+
+    Raises:
+        Invalid: for an unknown task, or if an added label collides with one of ``base``.
+    """
+    base = Phi.default() if base is None else base
+    added = task_constraints(TASK_GEOMETRY[task_name_of(task)], base.constraints)
+    cs = list(base.constraints)
+    at = next((i for i, c in enumerate(cs) if isinstance(c, VelocityCap)), len(cs))
+    return Phi((*cs[:at], *added, *cs[at:]))
 
 
 def phi_from_document(doc: object) -> Phi:

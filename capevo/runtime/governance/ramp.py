@@ -35,16 +35,17 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
 
-from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, ConstraintBase, Result, edited, invalid, normalize, register
+from capevo.runtime.governance.force import into_contact
 from capevo.runtime.governance.guard import MAX_RESTORE
+from capevo.runtime.governance.prefilter import unless_all_forces_within
 from capevo.runtime.state import ActionLayout, ArmState
 
 
 @register("force_ramp")
 @dataclass(frozen=True, slots=True, kw_only=True)
-class ForceRamp:
+class ForceRamp(ConstraintBase):
     """Into-contact speed ramped down between ``soft_from`` and ``max_force``; back-off above it.
 
     Args:
@@ -59,7 +60,6 @@ class ForceRamp:
             ``[0, max_force)``, a non-positive speed or ``backoff`` outside [0, 0.6].
     """
 
-    kind: ClassVar[str]
     max_force: float = 20.0
     soft_from: float = 10.0
     speed: float = 0.05
@@ -75,21 +75,14 @@ class ForceRamp:
         if not 0 <= self.backoff <= MAX_RESTORE:
             raise invalid("backoff", f"must be in [0, {MAX_RESTORE}], got {self.backoff}")
 
-    @property
-    def label(self) -> str:
-        return self.name or self.kind
-
-    def to_config(self) -> dict[str, Any]:
-        return config_of(self)
-
     def ramp_bound(self, magnitude: float) -> float:
         """Largest into-contact component allowed at force ``magnitude`` (<= max_force)."""
         return self.speed * (self.max_force - magnitude) / (self.max_force - self.soft_from)
 
-    def _prepared(self, layout: ActionLayout) -> tuple[float, float, tuple[int, ...], tuple[tuple[str, str], ...]]:
-        """What :meth:`compile` and :meth:`kernel_spec` precompute: soft², limit², offsets, reasons."""
+    def compile(self, layout: ActionLayout) -> Check:
         soft2 = self.soft_from * self.soft_from
         lim2 = self.max_force * self.max_force
+        ramp_bound, backoff = self.ramp_bound, self.backoff
         offsets = tuple(arm.offset for arm in layout.arms)
         reasons = tuple(
             (
@@ -98,11 +91,6 @@ class ForceRamp:
             )
             for i in range(len(offsets))
         )
-        return soft2, lim2, offsets, reasons
-
-    def compile(self, layout: ActionLayout) -> Check:
-        soft2, lim2, offsets, reasons = self._prepared(layout)
-        ramp_bound, backoff = self.ramp_bound, self.backoff
         sqrt = math.sqrt
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
@@ -121,7 +109,7 @@ class ForceRamp:
                     changed = False
                     for k in (0, 1, 2):
                         v = (a if b is None else b)[o + k]
-                        if ((v > 0.0 and f[k] < 0.0) or (v < 0.0 and f[k] > 0.0)) and abs(v) > bound:
+                        if into_contact(v, f[k]) and abs(v) > bound:
                             if b is None:
                                 b = list(a)
                             b[o + k] = bound if v > 0.0 else -bound
@@ -134,7 +122,7 @@ class ForceRamp:
                     changed = False
                     for k in (0, 1, 2):
                         v = (a if b is None else b)[o + k]
-                        if (v > 0.0 and f[k] < 0.0) or (v < 0.0 and f[k] > 0.0):
+                        if into_contact(v, f[k]):
                             if b is None:
                                 b = list(a)
                             b[o + k] = 0.0
@@ -155,28 +143,6 @@ class ForceRamp:
                         b = list(a)
                     b[o : o + 6] = arm
                     notes.append(reasons[i][1])
-            if b is None:
-                return None
-            return b, notes[0] if len(notes) == 1 else "; ".join(notes)
+            return edited(b, notes)
 
-        def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
-            for arm in arms:
-                fx, fy, fz = arm.eef_force
-                if not fx * fx + fy * fy + fz * fz <= soft2:
-                    return slow(arms, a)
-            return None
-
-        return check
-
-    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
-        """This check for the fused kernel (``csrc/force_ramp.c``); the same numbers as :meth:`compile`.
-
-        The C check computes :meth:`ramp_bound` from ``speed``, ``max_force`` and ``soft_from``
-        with the same expression.
-        """
-        soft2, lim2, offsets, reasons = self._prepared(layout)
-        floats = (soft2, lim2, self.speed, self.max_force, self.soft_from, self.backoff)
-        return KernelSpec(self.kind, tuple(float(v) for v in floats), offsets, tuple(r for arm in reasons for r in arm))
-
-    def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
-        return None
+        return unless_all_forces_within(soft2, slow)

@@ -50,13 +50,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar, NamedTuple
 
 from capevo.errors import Invalid
-from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, ConstraintBase, Result, edited, invalid, normalize, register
 from capevo.runtime.governance.brake import brake_along
 from capevo.runtime.governance.guard import MAX_RESTORE
-from capevo.runtime.governance.pose import DOWN, rotation_of
+from capevo.runtime.governance.pose import DOWN, finite_rotation_or_down, rotation_of
 from capevo.runtime.state import ActionLayout, ArmState
 
 
@@ -74,22 +73,9 @@ def polar(v: tuple[float, float, float]) -> tuple[float, tuple[float, float, flo
     return mx * n, (x / n, y / n, z / n)
 
 
-class _Params(NamedTuple):
-    """What ``ReachLimit.compile`` precomputes for a layout (shared with its ``kernel_spec``)."""
-
-    band: float
-    lever: float
-    far_out2: float
-    near_in2: float
-    far_w2: float
-    near_in2_safe: float
-    arms_info: tuple[tuple[int, tuple[float, float, float]], ...]
-    reasons: tuple[tuple[str, str, str, str], ...]
-
-
 @register("reach_limit")
 @dataclass(frozen=True, slots=True, kw_only=True)
-class ReachLimit:
+class ReachLimit(ConstraintBase):
     """Outer reach sphere and inner base column per arm, with braking and restoring.
 
     Args:
@@ -114,7 +100,6 @@ class ReachLimit:
             margin or brake, or ``restore`` outside [0, 0.6].
     """
 
-    kind: ClassVar[str]
     centres: tuple[tuple[float, float, float], ...]
     max_radius: float
     min_radius: float = 0.0
@@ -142,21 +127,13 @@ class ReachLimit:
         if not 0 <= self.creep <= 1:
             raise invalid("creep", f"must be in [0, 1], got {self.creep}")
 
-    @property
-    def label(self) -> str:
-        return self.name or self.kind
-
-    def to_config(self) -> dict[str, Any]:
-        return config_of(self)
-
-    def _params(self, layout: ActionLayout) -> _Params:
-        """The numbers and reasons :meth:`compile` and :meth:`kernel_spec` share, computed once."""
+    def compile(self, layout: ActionLayout) -> Check:
         if len(self.centres) != len(layout.arms):
             raise Invalid(
                 f"centres: {len(self.centres)} given; the layout has {len(layout.arms)} arm(s)",
                 details={"field": "centres"},
             )
-        m, br, rs = self.margin, self.brake, self.restore
+        m, br, rs, creep = self.margin, self.brake, self.restore, self.creep
         band = m + br
         r_out = self.max_radius
         r_in = self.min_radius
@@ -166,13 +143,6 @@ class ReachLimit:
         # The limited point is within `lever` of the site, so the site being this close is enough.
         far_out2 = (r_out - band - lever) ** 2 if r_out > band + lever else -1.0
         near_in2 = (r_in + band) ** 2 if r_in > 0.0 else -1.0
-        # The site's test gives up `lever` (0.2 m for a wrist) before the limited point can be
-        # near the reach, so most states of a stretched-out task fail it. Then the point itself is
-        # tested, computed as slow() computes it, with a relative margin (1e-9, far above the few
-        # ulps by which slow()'s polar() can differ) so that passing proves slow() would do nothing.
-        safe = 1e-9
-        far_w2 = ((r_out - band) * (1.0 - safe)) ** 2 if r_out > band else -1.0
-        near_in2_safe = ((r_in + band) * (1.0 + safe)) ** 2 if r_in > 0.0 else -1.0
         arms_info = tuple((arm.offset, c) for arm, c in zip(layout.arms, self.centres, strict=True))
         reasons = tuple(
             (
@@ -183,40 +153,6 @@ class ReachLimit:
             )
             for i in range(len(arms_info))
         )
-        return _Params(band, lever, far_out2, near_in2, far_w2, near_in2_safe, arms_info, reasons)
-
-    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
-        """This check for the fused kernel (``csrc/reach_limit.c``); the same numbers as :meth:`compile`."""
-        pm = self._params(layout)
-        floats = (
-            self.margin,
-            self.brake,
-            self.restore,
-            self.creep,
-            pm.band,
-            self.max_radius,
-            self.min_radius,
-            pm.lever,
-            pm.far_out2,
-            pm.near_in2,
-            pm.far_w2,
-            pm.near_in2_safe,
-            *self.point,
-            *DOWN,
-            *(v for _, c in pm.arms_info for v in c),
-        )
-        ints = (len(pm.arms_info), *(o for o, _ in pm.arms_info))
-        reasons = tuple(text for per_arm in pm.reasons for text in per_arm)
-        return KernelSpec(self.kind, tuple(float(v) for v in floats), ints, reasons)
-
-    def compile(self, layout: ActionLayout) -> Check:
-        pm = self._params(layout)
-        m, br, rs, creep = self.margin, self.brake, self.restore, self.creep
-        band, lever, far_out2, near_in2 = pm.band, pm.lever, pm.far_out2, pm.near_in2
-        far_w2, near_in2_safe, arms_info, reasons = pm.far_w2, pm.near_in2_safe, pm.arms_info, pm.reasons
-        r_out = self.max_radius
-        r_in = self.min_radius
-        pt = self.point
         isfinite = math.isfinite
 
         def limit(d: float) -> float:
@@ -238,13 +174,9 @@ class ReachLimit:
                 # Outer sphere: u the unit vector from the centre to the limited point, r the distance.
                 w = p
                 if lever > 0.0:
-                    rot = rotation_of(arms[i])
+                    rot = finite_rotation_or_down(arms[i])
                     if rot is None:
-                        rot = DOWN
-                    else:
-                        s = sum(rot)  # a finite sum proves every entry finite; else the exact test
-                        if s - s != 0.0 and not all(isfinite(v) for v in rot):
-                            return None, f"arm {i}: end-effector orientation {rot} is not finite"
+                        return None, f"arm {i}: end-effector orientation {rotation_of(arms[i])} is not finite"
                     w = tuple(
                         p[k] + rot[3 * k] * pt[0] + rot[3 * k + 1] * pt[1] + rot[3 * k + 2] * pt[2] for k in range(3)
                     )
@@ -303,10 +235,15 @@ class ReachLimit:
                         b = list(a)
                     b[o : o + 6] = arm
                     notes.extend(why)
-            if b is None:
-                return None
-            return b, notes[0] if len(notes) == 1 else "; ".join(notes)
+            return edited(b, notes)
 
+        # The site's test gives up `lever` (0.2 m for a wrist) before the limited point can be
+        # near the reach, so most states of a stretched-out task fail it. Then the point itself is
+        # tested, computed as slow() computes it, with a relative margin (1e-9, far above the few
+        # ulps by which slow()'s polar() can differ) so that passing proves slow() would do nothing.
+        safe = 1e-9
+        far_w2 = ((r_out - band) * (1.0 - safe)) ** 2 if r_out > band else -1.0
+        near_in2_safe = ((r_in + band) * (1.0 + safe)) ** 2 if r_in > 0.0 else -1.0
         pt0, pt1, pt2 = pt
 
         def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
@@ -332,6 +269,3 @@ class ReachLimit:
             return None
 
         return check
-
-    def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
-        return None

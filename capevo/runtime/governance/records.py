@@ -96,7 +96,7 @@ class Intervention:
         )
 
 
-# Also bound directly by the governor's intervention loop, which saves a call per record.
+# The slot setters new_intervention writes through, looked up once.
 _NEW = object.__new__
 _SET_CONSTRAINT, _SET_ORIGINAL, _SET_RESULT, _SET_REASON, _SET_ENFORCED = (
     Intervention.__dict__[f].__set__ for f in ("constraint", "original", "result", "reason", "enforced")

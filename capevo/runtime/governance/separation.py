@@ -38,13 +38,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
 
 from capevo.errors import Invalid
-from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
-from capevo.runtime.governance.hand import hand_reach
-from capevo.runtime.governance.obstacle import extent_of, kernel_shapes
-from capevo.runtime.governance.pose import DOWN, rotation_of
+from capevo.runtime.governance.base import Check, ConstraintBase, Result, edited, invalid, normalize, register
+from capevo.runtime.governance.hand import box_gap, hand_reach
+from capevo.runtime.governance.obstacle import extent_of
+from capevo.runtime.governance.pose import finite_rotation_or_down, rotation_of
 from capevo.runtime.governance.zone import Aabb
 from capevo.runtime.state import ActionLayout, ArmState
 
@@ -54,7 +53,7 @@ CENTRE_TIE = 1e-9
 
 @register("arm_separation")
 @dataclass(frozen=True, slots=True, kw_only=True)
-class ArmSeparation:
+class ArmSeparation(ConstraintBase):
     """Approach between the arms' hands slowed with distance, down to a gentle floor speed.
 
     Args:
@@ -72,7 +71,6 @@ class ArmSeparation:
             layout's arm count.
     """
 
-    kind: ClassVar[str]
     hands: tuple[tuple[Aabb, ...], ...]
     clearance: float = 0.0
     brake: float = 0.15
@@ -91,19 +89,11 @@ class ArmSeparation:
         if not self.floor > 0:
             raise invalid("floor", f"must be > 0, got {self.floor}")
 
-    @property
-    def label(self) -> str:
-        return self.name or self.kind
-
-    def to_config(self) -> dict[str, Any]:
-        return config_of(self)
-
-    def _plan(self, layout: ActionLayout) -> tuple[Any, ...]:
-        """What :meth:`compile` and :meth:`kernel_spec` share: the offsets, the pairs and their reasons."""
+    def compile(self, layout: ActionLayout) -> Check:
         n = len(layout.arms)
         if len(self.hands) != n:
             raise Invalid(f"hands: {len(self.hands)} given; the layout has {n} arm(s)", details={"field": "hands"})
-        hands, cl, br = self.hands, self.clearance, self.brake
+        hands, cl, br, fl, turn = self.hands, self.clearance, self.brake, self.floor, self.rotation
         offsets = tuple(arm.offset for arm in layout.arms)
         # A hand's box lies within sqrt(3) * reach of its site, so sites farther apart than this are out of range.
         pairs = tuple(
@@ -112,29 +102,7 @@ class ArmSeparation:
             for j in range(i + 1, n)
         )
         reasons = {(i, j): f"arms {i} and {j}: hands near each other: approach slowed" for i, j, _ in pairs}
-        return offsets, pairs, reasons
-
-    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
-        """This check for the fused kernel (``csrc/arm_separation.c``); the same numbers as :meth:`compile`.
-
-        floats: ``clearance, brake, floor, clearance + brake, CENTRE_TIE``, each pair's reach (pairs
-        ``i < j`` in order), then per arm :func:`~capevo.runtime.governance.obstacle.kernel_shapes` of
-        its hand; ints: ``rotation, n_arms``, each arm's offset, each arm's hand box count;
-        reasons: one per pair, in pair order.
-        """
-        offsets, pairs, reasons = self._plan(layout)
-        cl, br = self.clearance, self.brake
-        floats = [cl, br, self.floor, cl + br, CENTRE_TIE, *(reach for _, _, reach in pairs)]
-        for hand in self.hands:
-            floats.extend(kernel_shapes(hand))
-        ints = (int(self.rotation), len(offsets), *offsets, *(len(hand) for hand in self.hands))
-        return KernelSpec(self.kind, tuple(float(v) for v in floats), ints, tuple(reasons[(i, j)] for i, j, _ in pairs))
-
-    def compile(self, layout: ActionLayout) -> Check:
-        n = len(layout.arms)
-        offsets, pairs, reasons = self._plan(layout)
-        hands, cl, br, fl, turn = self.hands, self.clearance, self.brake, self.floor, self.rotation
-        isfinite, sqrt = math.isfinite, math.sqrt
+        isfinite = math.isfinite
 
         extents = tuple(extent_of(h) for h in hands)
 
@@ -145,14 +113,9 @@ class ArmSeparation:
                 px, py, pz = p[0], p[1], p[2]
                 if not (isfinite(px) and isfinite(py) and isfinite(pz)):
                     return f"arm {i}: end-effector position {p} is not finite"
-                rot = rotation_of(arms[i])
+                rot = finite_rotation_or_down(arms[i])
                 if rot is None:
-                    rot = DOWN
-                else:
-                    # A finite sum proves every entry finite; an overflowing one takes the exact test.
-                    s = sum(rot)
-                    if s - s != 0.0 and not all(isfinite(v) for v in rot):
-                        return f"arm {i}: end-effector orientation {rot} is not finite"
+                    return f"arm {i}: end-effector orientation {rotation_of(arms[i])} is not finite"
                 (l0, l1, l2), (h0, h1, h2) = extents[i](rot)
                 out.append(((px + l0, py + l1, pz + l2), (px + h0, py + h1, pz + h2)))
             return out
@@ -165,14 +128,7 @@ class ArmSeparation:
             notes: list[str] = []
             for i, j, _ in pairs:
                 (li, hi_), (lj, hj) = hull[i], hull[j]
-                s = [0.0, 0.0, 0.0]
-                side = [0.0, 0.0, 0.0]  # +1: arm i approaches j by moving +k
-                for k in (0, 1, 2):
-                    if hi_[k] < lj[k]:
-                        s[k], side[k] = lj[k] - hi_[k], 1.0
-                    elif hj[k] < li[k]:
-                        s[k], side[k] = li[k] - hj[k], -1.0
-                dist = sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
+                dist, s, side = box_gap(li, hi_, lj, hj)  # side +1: arm i approaches j by moving +k
                 if dist >= cl + br and dist > cl:
                     continue
                 q = (dist - cl) / br if br > 0.0 and dist > cl else 0.0
@@ -205,9 +161,7 @@ class ArmSeparation:
                                 changed = True
                 if changed:
                     notes.append(reasons[(i, j)])
-            if b is None:
-                return None
-            return b, notes[0] if len(notes) == 1 else "; ".join(notes)
+            return edited(b, notes)
 
         def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             for i, j, reach in pairs:
@@ -219,6 +173,3 @@ class ArmSeparation:
             return None
 
         return check
-
-    def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
-        return None

@@ -45,18 +45,17 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
 
-from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import Check, ConstraintBase, Result, edited, invalid, normalize, register
 from capevo.runtime.governance.hand import hand_reach, lowest_offset
-from capevo.runtime.governance.pose import DOWN, rotation_of
+from capevo.runtime.governance.pose import DOWN, finite_rotation_or_down, rotation_of
 from capevo.runtime.governance.zone import Aabb
 from capevo.runtime.state import ActionLayout, ArmState
 
 
 @register("surface_approach")
 @dataclass(frozen=True, slots=True, kw_only=True)
-class SurfaceApproach:
+class SurfaceApproach(ConstraintBase):
     """Downward (and turning) motion limited in proportion to the hand's height above a horizontal surface.
 
     Args:
@@ -78,7 +77,6 @@ class SurfaceApproach:
             ``lateral`` outside [0, 1].
     """
 
-    kind: ClassVar[str]
     height: float
     clearance: float = 0.0
     brake: float = 0.1
@@ -94,42 +92,21 @@ class SurfaceApproach:
         if self.lateral is not None and not 0 <= self.lateral <= 1:
             raise invalid("lateral", f"must be in [0, 1], got {self.lateral}")
 
-    @property
-    def label(self) -> str:
-        return self.name or self.kind
-
-    def to_config(self) -> dict[str, Any]:
-        return config_of(self)
-
     def gap(self, arm: ArmState) -> float:
         """Height of ``arm``'s lowest hand point above the stop height (negative below it)."""
         rot = rotation_of(arm)
         return arm.eef_pos[2] + lowest_offset(self.hand, DOWN if rot is None else rot) - (self.height + self.clearance)
 
-    def _prepared(self, layout: ActionLayout) -> tuple[float, float, float, tuple[int, ...], tuple[str, ...]]:
-        """``(stop, br, top, offsets, reasons)``: what :meth:`compile` and :meth:`kernel_spec` share."""
-        stop, br = self.height + self.clearance, self.brake
+    def compile(self, layout: ActionLayout) -> Check:
+        stop, br, hand, turn = self.height + self.clearance, self.brake, self.hand, self.rotation
+        lat = self.lateral
         # No corner is farther from the site than this, whatever the orientation: above
         # stop + reach + brake the rule cannot apply (the fast path).
-        top = stop + hand_reach(self.hand) + br
+        top = stop + hand_reach(hand) + br
         offsets = tuple(arm.offset for arm in layout.arms)
         reasons = tuple(
             f"arm {i}: hand near the surface at {self.height} m: motion towards it braked" for i in range(len(offsets))
         )
-        return stop, br, top, offsets, reasons
-
-    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
-        """This check for the fused kernel (``csrc/surface_approach.c``); the same numbers as :meth:`compile`."""
-        stop, br, top, offsets, reasons = self._prepared(layout)
-        lat = self.lateral
-        corners = (float(v) for box in self.hand for v in (*box.low, *box.high))
-        floats = (float(top), float(stop), float(br), float(lat) if lat is not None else 0.0, *corners)
-        ints = (int(self.rotation), int(lat is not None), len(self.hand), *offsets)
-        return KernelSpec(self.kind, floats, ints, reasons)
-
-    def compile(self, layout: ActionLayout) -> Check:
-        stop, br, top, offsets, reasons = self._prepared(layout)
-        hand, turn, lat = self.hand, self.rotation, self.lateral
         isfinite, inf = math.isfinite, math.inf
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
@@ -140,14 +117,9 @@ class SurfaceApproach:
                 z = arm.eef_pos[2]
                 if not isfinite(z):
                     return None, f"arm {i}: end-effector height {z} is not finite"  # rare: format here
-                rot = rotation_of(arm)
+                rot = finite_rotation_or_down(arm)
                 if rot is None:
-                    rot = DOWN
-                else:
-                    # A finite sum proves every entry finite; an overflowing one takes the exact test.
-                    s = sum(rot)
-                    if s - s != 0.0 and not all(isfinite(v) for v in rot):
-                        return None, f"arm {i}: end-effector orientation {rot} is not finite"
+                    return None, f"arm {i}: end-effector orientation {rotation_of(arm)} is not finite"
                 gap = z + lowest_offset(hand, rot) - stop
                 if gap >= br and gap > 0.0:
                     continue
@@ -171,9 +143,7 @@ class SurfaceApproach:
                     for j in (o, o + 1):
                         b[j] = min(max(b[j], -ql), ql)
                 notes.append(reasons[i])
-            if b is None:
-                return None
-            return b, notes[0] if len(notes) == 1 else "; ".join(notes)
+            return edited(b, notes)
 
         def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             for arm in arms:
@@ -182,6 +152,3 @@ class SurfaceApproach:
             return None
 
         return check
-
-    def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
-        return None

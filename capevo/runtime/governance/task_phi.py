@@ -1,7 +1,8 @@
 """Per-task Φ: the paper's envelope plus what is known about each task's scene.
 
 The paper's default Φ (``Phi.default()``: workspace box, contact-force limit, velocity cap) is
-the base and stays unchanged. :func:`phi_for_task` adds, before the cap:
+the base and stays unchanged. :func:`task_constraints` are what
+:func:`~capevo.runtime.governance.phi.phi_for_task` (``Phi.for_task``) adds, before the cap:
 
 * ``workspace_guard`` on the same box: a braking band inside the margin, an inward push when
   an end effector is outside, and no turning within the margin;
@@ -19,7 +20,7 @@ the base and stays unchanged. :func:`phi_for_task` adds, before the cap:
 * ``reach_limit`` around each arm's shoulder: the Panda's reach (with a slow creep left up to
   its edge) and a column around its base wide enough to keep the elbow off its joint limit.
 
-:func:`phi_for_task` (``Phi.for_task``) is opt-in: the runtime's default stays the paper's Φ.
+The per-task Φ is opt-in: the runtime's default stays the paper's Φ.
 The scripted pick, place and stack references (``capevo.runtime.tasks.scripted``) succeed under
 it about as often as under the paper's Φ, with no unsafe step (measured by
 ``python -m capevo.runtime.tasks.bench --phi paper task``). What used to stop them here:
@@ -32,26 +33,26 @@ The scene numbers are robosuite's defaults for the environments capevo builds (c
 the live simulators in the slow tests). The result is an ordinary Φ: fixed for the run, its
 hash differs per task and goes into every trace like any other.
 
+Tasks are known here by name only (:data:`TASK_GEOMETRY`): the task ids (``"T1"``) belong to
+:mod:`capevo.runtime.tasks`, which sits above governance, so a caller holding an id passes the
+task's spec (``capevo.runtime.tasks.task_spec("T1")``) or its environment instead.
+
 Invariants:
-1. ``phi_for_task(t)`` starts with every constraint of the base in order, the new ones inserted
-   just before the base's first ``velocity_cap`` (appended when it has none), so the cap still
-   acts last.
-2. The result depends only on the task's name and the base: equal inputs, equal hash; the six
-   built-in tasks give six distinct hashes, none equal to the base's.
-3. An unknown task raises :class:`Invalid` listing the known ones.
+1. :func:`task_constraints` depends only on the geometry and the base's constraints.
+2. :func:`task_name_of` accepts a task name, a ``TaskSpec`` or a ``TaskEnv`` of a task in
+   :data:`TASK_GEOMETRY`; anything else raises :class:`Invalid` listing the known names.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from capevo.errors import Invalid
 from capevo.runtime.governance.base import Constraint
 from capevo.runtime.governance.box import WorkspaceBox
-from capevo.runtime.governance.cap import VelocityCap
 from capevo.runtime.governance.contact_approach import ContactApproach
 from capevo.runtime.governance.force import ContactForce
 from capevo.runtime.governance.guard import WorkspaceGuard
@@ -61,9 +62,6 @@ from capevo.runtime.governance.reach import ReachLimit
 from capevo.runtime.governance.separation import ArmSeparation
 from capevo.runtime.governance.surface import SurfaceApproach
 from capevo.runtime.governance.zone import Aabb
-
-if TYPE_CHECKING:
-    from capevo.runtime.governance.phi import Phi
 
 Vec3 = tuple[float, float, float]
 
@@ -202,29 +200,30 @@ TASK_GEOMETRY: Mapping[str, TaskGeometry] = MappingProxyType(
 
 
 def task_name_of(task: Any) -> str:
-    """The task name for a name, an id (``"T1"``), a ``TaskSpec`` or anything with a ``task_spec``.
+    """The task name for a name, a ``TaskSpec`` or anything with a ``task_spec`` (a ``TaskEnv``).
 
     Raises:
-        Invalid: if the task is unknown.
+        Invalid: if no geometry is known for the task; the message lists the known names.
     """
     spec = getattr(task, "task_spec", task)
     name = getattr(spec, "name", spec)
-    if isinstance(name, str) and name not in TASK_GEOMETRY:
-        from capevo.runtime.tasks.registry import task_ids
-
-        name = task_ids().get(name, name)
     if not isinstance(name, str) or name not in TASK_GEOMETRY:
         raise Invalid(
-            f"task: no scene geometry for {name!r}; known tasks: {', '.join(TASK_GEOMETRY)}",
+            f"task: no scene geometry for {name!r}; known tasks: {', '.join(TASK_GEOMETRY)} "
+            f"(for a task id, pass its spec: capevo.runtime.tasks.task_spec(id))",
             details={"field": "task", "valid": list(TASK_GEOMETRY)},
         )
     return name
 
 
-def task_constraints(geometry: TaskGeometry, base: Phi) -> list[Constraint]:
-    """The constraints :func:`phi_for_task` adds to ``base`` for a scene."""
-    box = next((c for c in base.constraints if isinstance(c, WorkspaceBox)), WorkspaceBox())
-    force = next((c for c in base.constraints if isinstance(c, ContactForce)), ContactForce())
+def task_constraints(geometry: TaskGeometry, base: Sequence[Constraint]) -> list[Constraint]:
+    """The constraints a per-task Φ adds to the constraints ``base`` for a scene.
+
+    The guard and the force ramp take their box and force limit from ``base``'s
+    ``workspace_box`` and ``contact_force`` (their defaults when it has none).
+    """
+    box = next((c for c in base if isinstance(c, WorkspaceBox)), WorkspaceBox())
+    force = next((c for c in base if isinstance(c, ContactForce)), ContactForce())
     added: list[Constraint] = [
         WorkspaceGuard(low=box.low, high=box.high, margin=box.margin),
         ForceRamp(max_force=force.max_force, soft_from=force.max_force / 2),
@@ -261,22 +260,3 @@ def task_constraints(geometry: TaskGeometry, base: Phi) -> list[Constraint]:
         )
     )
     return added
-
-
-def phi_for_task(task: Any, base: Phi | None = None) -> Phi:
-    """Φ for one task: ``base`` (default: the paper's) plus the task's scene constraints.
-
-    Args:
-        task: A task name or id, a ``TaskSpec``, or a ``TaskEnv``.
-        base: The envelope to extend; default :meth:`Phi.default`.
-
-    Raises:
-        Invalid: for an unknown task, or if an added label collides with one of ``base``.
-    """
-    from capevo.runtime.governance.phi import Phi
-
-    base = Phi.default() if base is None else base
-    added = task_constraints(TASK_GEOMETRY[task_name_of(task)], base)
-    cs = list(base.constraints)
-    at = next((i for i, c in enumerate(cs) if isinstance(c, VelocityCap)), len(cs))
-    return Phi((*cs[:at], *added, *cs[at:]))

@@ -22,12 +22,19 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
 
-from capevo.runtime.governance.base import Check, KernelSpec, Result, config_of, invalid, normalize, register
+from capevo.runtime.governance.base import (
+    AXES,
+    Check,
+    ConstraintBase,
+    Result,
+    check_corners,
+    edited,
+    invalid,
+    normalize,
+    register,
+)
 from capevo.runtime.state import ActionLayout, ArmState
-
-AXES = ("x", "y", "z")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -43,14 +50,12 @@ class Aabb:
 
     def __post_init__(self) -> None:
         normalize(self)
-        for k, axis in enumerate(AXES):
-            if not self.low[k] < self.high[k]:
-                raise invalid("high", f"high.{axis} ({self.high[k]}) must be above low.{axis} ({self.low[k]})")
+        check_corners(self.low, self.high)
 
 
 @register("forbidden_zone")
 @dataclass(frozen=True, slots=True, kw_only=True)
-class ForbiddenZone:
+class ForbiddenZone(ConstraintBase):
     """Boxes the end effectors must not enter.
 
     Args:
@@ -62,7 +67,6 @@ class ForbiddenZone:
         Invalid: naming the field, on no boxes, a bad box or a negative margin.
     """
 
-    kind: ClassVar[str]
     boxes: tuple[Aabb, ...]
     margin: float = 0.08
     name: str | None = None
@@ -74,15 +78,7 @@ class ForbiddenZone:
         if self.margin < 0:
             raise invalid("margin", f"must be >= 0, got {self.margin}")
 
-    @property
-    def label(self) -> str:
-        return self.name or self.kind
-
-    def to_config(self) -> dict[str, Any]:
-        return config_of(self)
-
-    def _prepared(self, layout: ActionLayout) -> tuple[tuple[Any, ...], tuple[int, ...], tuple[Any, ...]]:
-        # The numbers and strings compile() and kernel_spec() share: zones, offsets, reasons.
+    def compile(self, layout: ActionLayout) -> Check:
         m = self.margin
         # (grown low, grown high, zone low, zone high, centre) per box, flattened for the fast path.
         zones = tuple(
@@ -95,6 +91,7 @@ class ForbiddenZone:
             )
             for z in self.boxes
         )
+        grown = tuple((*g_lo, *g_hi) for g_lo, g_hi, _, _, _ in zones)
         offsets = tuple(arm.offset for arm in layout.arms)
         n_arms = len(offsets)
         # reasons[arm][zone][inside][axis], built once so the slow path never formats.
@@ -112,12 +109,6 @@ class ForbiddenZone:
             )
             for i in range(n_arms)
         )
-        return zones, offsets, reasons
-
-    def compile(self, layout: ActionLayout) -> Check:
-        zones, offsets, reasons = self._prepared(layout)
-        grown = tuple((*g_lo, *g_hi) for g_lo, g_hi, _, _, _ in zones)
-        n_arms = len(offsets)
         isfinite = math.isfinite
 
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
@@ -139,9 +130,7 @@ class ForbiddenZone:
                                 b = list(a)
                             b[o + k] = 0.0
                             notes.append(reasons[i][zi][inside][k])
-            if b is None:
-                return None
-            return b, notes[0] if len(notes) == 1 else "; ".join(notes)
+            return edited(b, notes)
 
         def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             for arm in arms:
@@ -153,13 +142,6 @@ class ForbiddenZone:
             return None
 
         return check
-
-    def kernel_spec(self, layout: ActionLayout) -> KernelSpec:
-        """This check for the fused kernel (``csrc/forbidden_zone.c``); the same numbers as :meth:`compile`."""
-        zones, offsets, reasons = self._prepared(layout)
-        floats = tuple(float(v) for zone in zones for corner in zone for v in corner)
-        flat = tuple(note for arm in reasons for zone in arm for side in zone for note in side)
-        return KernelSpec(self.kind, floats, (len(zones), *offsets), flat)
 
     def unsafe(self, arms: Sequence[ArmState], action: Sequence[float] | None, layout: ActionLayout) -> str | None:
         for i, arm in enumerate(arms):

@@ -32,6 +32,7 @@ from capevo.runtime.governance.hand import hand_extent, hand_reach, lowest_offse
 from capevo.runtime.governance.obstacle import extent_of
 from capevo.runtime.governance.task_phi import PANDA_HAND
 from capevo.runtime.state import SINGLE_PANDA, ArmState, RobotState
+from capevo.runtime.tasks import task_spec
 
 TOL = 1e-9
 COORD = st.floats(-1.0, 2.0)
@@ -286,15 +287,18 @@ def test_obstacle_approach_lets_the_hand_pass_over_a_wall_but_not_into_it() -> N
     assert e.value.details["field"] == "arm"
 
 
-def test_per_arm_obstacle_rules_only_govern_their_arm() -> None:
-    rule = ObstacleApproach(boxes=(Aabb(low=(-1.0, -1.0, 0.0), high=(1.0, 1.0, 0.5)),), arm=1)
+@pytest.mark.parametrize("arm", [0, 1])
+def test_per_arm_obstacle_rules_only_govern_their_arm(arm: int) -> None:
+    rule = ObstacleApproach(boxes=(Aabb(low=(-1.0, -1.0, 0.0), high=(1.0, 1.0, 0.5)),), arm=arm)
     gov = Phi((rule,)).governor(TWO_ARM_NO_GRIPPER)
     low = ArmState(eef_pos=(0.0, 0.0, 0.52), eef_force=(0.0, 0.0, 0.0))
-    out, _ = gov(RobotState(arms=(low, low)), (0.0, 0.0, -1.0, 0.0, 0.0, 0.0) * 2)
-    assert out[2] == -1.0 and out[8] == pytest.approx(-0.1)  # 2 cm above, 1 cm past the clearance
+    out, (record,) = gov(RobotState(arms=(low, low)), (0.0, 0.0, -1.0, 0.0, 0.0, 0.0) * 2)
+    governed, other = (out[2], out[8]) if arm == 0 else (out[8], out[2])
+    assert other == -1.0 and governed == pytest.approx(-0.1)  # 2 cm above, 1 cm past the clearance
+    assert record.reason == f"arm {arm}: hand near obstacle 0: motion towards it braked"
 
 
-TASK_PHIS = {t: Phi.for_task(t) for t in ("T1", "T3", "T4")}
+TASK_PHIS = {t: Phi.for_task(task_spec(t)) for t in ("T1", "T3", "T4")}
 
 
 @pytest.mark.parametrize("task", list(TASK_PHIS))
@@ -321,7 +325,7 @@ def test_per_task_phi_satisfies_every_rule_at_once_where_nothing_restores(task, 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.filter_too_much])
 @given(data=st.data())
 def test_two_arm_task_phi_satisfies_every_rule_at_once_where_nothing_restores(data) -> None:
-    phi = Phi.for_task("T6")
+    phi = Phi.for_task(task_spec("T6"))
     reach = next(c for c in phi.constraints if isinstance(c, ReachLimit))
     arms_ = []
     for i in range(2):
@@ -362,7 +366,7 @@ def test_reach_limit_on_its_wrist_test_brakes_right_at_the_edge_of_its_band(q, d
     # The check decides from the wrist itself that a state is clear: near the band's edge it
     # must still brake where the rule says so (10 nm and more either side of the edge: at the
     # edge itself the rule and govcheck may round d differently).
-    reach = next(c for c in Phi.for_task("T4").constraints if isinstance(c, ReachLimit))
+    reach = next(c for c in Phi.for_task(task_spec("T4")).constraints if isinstance(c, ReachLimit))
     c, rot = reach.centres[0], rotation(q)
     u = [v / math.sqrt(sum(x * x for x in direction[:3]) or 1.0) for v in direction[:3]]
     assume(sum(x * x for x in u) > 0.5 and abs(u[2]) < 0.7)  # keep out of the base column

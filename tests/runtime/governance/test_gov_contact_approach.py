@@ -35,6 +35,7 @@ from capevo.runtime.governance.cap import SHRINK
 from capevo.runtime.governance.pose import DOWN
 from capevo.runtime.governance.proximity import FIXED, LOOSE
 from capevo.runtime.state import SINGLE_PANDA, ArmState, RobotState
+from capevo.runtime.tasks import task_spec
 
 TOL = 1e-9
 RULE = ContactApproach()
@@ -329,7 +330,7 @@ def test_the_compiled_check_agrees_with_the_reference_rule_to_the_bit(
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.filter_too_much])
 @given(data=st.data())
 def test_inside_the_task_phi_every_rule_holds_at_once_where_nothing_restores(task: str, data: st.DataObject) -> None:
-    phi = Phi.for_task(task)
+    phi = Phi.for_task(task_spec(task))
     reach = next(c for c in phi.constraints if isinstance(c, ReachLimit))
     c = reach.centres[0]
     # Well inside the reach and out of the column and the box's margins: no restoring edit fires.
@@ -345,12 +346,12 @@ def test_inside_the_task_phi_every_rule_holds_at_once_where_nothing_restores(tas
 
 def test_the_task_phi_adds_contact_approach_before_the_cap() -> None:
     for task in ("T1", "T2", "T3", "T4", "T5", "T6"):
-        phi = Phi.for_task(task)
-        assert phi == Phi.for_task(task)
+        phi = Phi.for_task(task_spec(task))
+        assert phi == Phi.for_task(task_spec(task))
         labels = phi.labels
         assert "contact_approach" in labels and labels[-1] == "velocity_cap"
         assert labels[:2] == ("workspace_box", "contact_force")
-    rule = next(c for c in Phi.for_task("T3").constraints if isinstance(c, ContactApproach))
+    rule = next(c for c in Phi.for_task(task_spec("T3")).constraints if isinstance(c, ContactApproach))
     assert rule == ContactApproach(clearance=0.005, brake=0.1, touch=0.04, touch_loose=0.04)
 
 
@@ -524,7 +525,7 @@ def test_a_constant_push_into_a_loose_cube_is_contained() -> None:
     try:
         layout = env.task_spec.action_layout
         results = {}
-        for name, phi in (("task", Phi.for_task("T3")), ("paper", Phi.default())):
+        for name, phi in (("task", Phi.for_task(task_spec("T3"))), ("paper", Phi.default())):
             env.reset(seed=0)
             govern_ = make_governor(env, phi)
             cube = np.asarray(env.obs_dict["cubeA_pos"], dtype=np.float64).copy()

@@ -165,7 +165,8 @@ the 0.6 m box floor); their would-be interventions are still counted."""
 @pytest.mark.parametrize("direction", list(DIRECTIONS))
 def test_constant_adversary_is_contained_by_the_task_phi(task_envs: dict[str, Any], task: str, direction: str) -> None:
     # T6: two Pandas turned +-90 degrees, each action in its own base frame; the same vector for both.
-    env, phi = task_envs[task], Phi.for_task(task)
+    env = task_envs[task]
+    phi = Phi.for_task(env)
     propose = _constant(task, DIRECTIONS[direction])
     on = _run_task(env, phi, propose, enforce=True)
     assert on.unsafe_steps == 0, on
@@ -178,7 +179,8 @@ def test_constant_adversary_is_contained_by_the_task_phi(task_envs: dict[str, An
 
 @pytest.mark.parametrize("task", ["T1", "T6"])
 def test_aggressive_random_adversary_is_contained_by_the_task_phi(task_envs: dict[str, Any], task: str) -> None:
-    env, phi = task_envs[task], Phi.for_task(task)
+    env = task_envs[task]
+    phi = Phi.for_task(env)
     on = _run_task(env, phi, _aggressive(task, 1), enforce=True, seed=1)
     off = _run_task(env, phi, _aggressive(task, 1), enforce=False, seed=1)
     assert on.unsafe_steps == 0 and on.commanded_violations == 0, on

@@ -25,10 +25,15 @@ from capevo.runtime.tasks import task_ids, task_spec
 TASKS = ("T1", "T2", "T3", "T4", "T5", "T6")
 
 
+def for_task(task_id: str, base: Phi | None = None) -> Phi:
+    """The per-task Φ of a task id: ids are the tasks package's, so the caller resolves them."""
+    return Phi.for_task(task_spec(task_id), base)
+
+
 def test_the_papers_envelope_is_the_base_and_the_cap_still_acts_last() -> None:
     base = Phi.default()
     for task in TASKS:
-        phi = Phi.for_task(task)
+        phi = for_task(task)
         assert phi.constraints[:2] == base.constraints[:2]  # workspace_box, contact_force
         assert phi.constraints[-1] == base.constraints[-1] and isinstance(phi.constraints[-1], VelocityCap)
         assert set(base.labels) <= set(phi.labels)
@@ -36,12 +41,12 @@ def test_the_papers_envelope_is_the_base_and_the_cap_still_acts_last() -> None:
 
 
 def test_each_task_gets_its_own_phi_and_hash() -> None:
-    hashes = {Phi.for_task(t).hash for t in TASKS}
+    hashes = {for_task(t).hash for t in TASKS}
     # T1, T2 and T5 share the bins scene, so they share Φ.
-    assert Phi.for_task("T1") == Phi.for_task("T2") == Phi.for_task("T5")
+    assert for_task("T1") == for_task("T2") == for_task("T5")
     assert len(hashes) == 4 and Phi.default().hash not in hashes
-    assert Phi.for_task("pick") == Phi.for_task("T1") == phi_for_task(task_spec("T1"))
-    kinds = {t: [c.kind for c in Phi.for_task(t).constraints] for t in TASKS}
+    assert Phi.for_task("pick") == for_task("T1") == phi_for_task("pick") == phi_for_task(task_spec("T1"))
+    kinds = {t: [c.kind for c in for_task(t).constraints] for t in TASKS}
     assert "surface_approach" in kinds["T3"] and "surface_approach" not in kinds["T6"]
     assert all("obstacle_approach" in kinds[t] for t in ("T1", "T3", "T4"))  # walls, pegs, the mount
     assert kinds["T6"].count("obstacle_approach") == 2 and "arm_separation" in kinds["T6"]
@@ -50,18 +55,21 @@ def test_each_task_gets_its_own_phi_and_hash() -> None:
 
 def test_a_custom_base_is_extended_before_its_cap() -> None:
     base = load_phi("constraints: [{kind: workspace_box, margin: 0.05}, {kind: velocity_cap, max_norm: 1.0}]")
-    phi = Phi.for_task("T3", base)
+    phi = for_task("T3", base)
     assert phi.constraints[0] == base.constraints[0] and phi.constraints[-1] == base.constraints[-1]
     guard = phi.constraints[1]
     assert guard.kind == "workspace_guard" and guard.margin == 0.05
 
 
-def test_an_unknown_task_is_refused_listing_the_known_ones() -> None:
+@pytest.mark.parametrize("task", ["T9", "T1", "lift"])
+def test_an_unknown_task_is_refused_listing_the_known_ones(task: str) -> None:
+    # A task id is the tasks package's to resolve: governance knows the scenes by task name only.
     with pytest.raises(Invalid) as e:
-        Phi.for_task("T9")
+        Phi.for_task(task)
     assert e.value.code is ErrorCode.INVALID and e.value.details["field"] == "task"
     assert e.value.message == (
-        "task: no scene geometry for 'T9'; known tasks: pick, place, stack, nut_assembly, pick_place_multi, peg_in_hole"
+        f"task: no scene geometry for {task!r}; known tasks: pick, place, stack, nut_assembly, pick_place_multi, "
+        "peg_in_hole (for a task id, pass its spec: capevo.runtime.tasks.task_spec(id))"
     )
     assert set(TASK_GEOMETRY) == set(task_ids().values())
 
