@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import enum
 import json
+from collections.abc import Sequence
 from typing import Any
 
 
@@ -138,6 +139,17 @@ _BY_CODE: dict[ErrorCode, type[CapevoError]] = {
         IdentityViolation,
     )
 }
+
+
+def check_choice(value: object, valid: Sequence[str], *, what: str, field: str) -> str:
+    """``value`` if it is one of ``valid``.
+
+    Raises:
+        Invalid: anything else, naming ``what`` and listing the valid values (details ``field``).
+    """
+    if not isinstance(value, str) or value not in valid:
+        raise Invalid(f"unknown {what} {value!r}; valid: {', '.join(valid)}", details={"field": field})
+    return value
 
 
 def error_class(code: ErrorCode | str) -> type[CapevoError]:

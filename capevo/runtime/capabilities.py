@@ -40,7 +40,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
-from capevo.errors import CapevoError, Invalid, NotFound, Timeout, Unavailable
+from capevo.errors import CapevoError, Invalid, NotFound, Timeout, Unavailable, check_choice
 from capevo.registry.api import Registry
 from capevo.registry.predicates import missing_signals
 from capevo.registry.records import CapabilitySet, EcmVersion, Interface, Kind, State
@@ -72,11 +72,7 @@ def check_recovery_mode(mode: str) -> str:
     Raises:
         Invalid: naming the valid modes.
     """
-    if mode not in RECOVERY_MODES:
-        raise Invalid(
-            f"unknown recovery mode {mode!r}; valid: {', '.join(RECOVERY_MODES)}", details={"field": "recovery"}
-        )
-    return mode
+    return check_choice(mode, RECOVERY_MODES, what="recovery mode", field="recovery")
 
 
 def _label(record: EcmVersion) -> str:

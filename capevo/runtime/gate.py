@@ -83,7 +83,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
-from capevo.errors import Conflict, IllegalTransition, Invalid, NotFound
+from capevo.errors import Conflict, IllegalTransition, Invalid, NotFound, check_choice
 from capevo.registry.records import CapabilitySet, EcmVersion, State
 from capevo.runtime.evaluation import EpisodeOutcome, Evaluator
 from capevo.runtime.gate_stats import (
@@ -264,10 +264,7 @@ class SeedPlan:
         Raises:
             Invalid: unknown purpose (lists the valid ones).
         """
-        if purpose not in PURPOSES:
-            raise Invalid(
-                f"unknown seed purpose {purpose!r}; valid: {', '.join(PURPOSES)}", details={"field": "purpose"}
-            )
+        check_choice(purpose, PURPOSES, what="seed purpose", field="purpose")
         start = (self.base_seed * 3 + PURPOSES.index(purpose)) * self.block
         return range(start, start + self.block)
 

@@ -44,7 +44,7 @@ import numpy as np
 from scipy import optimize
 from scipy import stats as sps
 
-from capevo.errors import Invalid
+from capevo.errors import Invalid, check_choice
 from capevo.runtime.evaluation import EpisodeOutcome
 
 REWARD_TOLERANCE = 1e-9
@@ -302,11 +302,7 @@ def check_speed_metric(metric: str) -> str:
     Raises:
         Invalid: naming the valid metrics.
     """
-    if metric not in SPEED_METRICS:
-        raise Invalid(
-            f"unknown speed metric {metric!r}; valid: {', '.join(SPEED_METRICS)}", details={"field": "speed_metric"}
-        )
-    return metric
+    return check_choice(metric, SPEED_METRICS, what="speed metric", field="speed_metric")
 
 
 def _finite_mean(xs: Sequence[float]) -> float:

@@ -52,7 +52,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from scipy import stats as sps
 
-from capevo.errors import CapevoError, IllegalTransition, Invalid, NotFound
+from capevo.errors import CapevoError, IllegalTransition, Invalid, NotFound, check_choice
 from capevo.registry.records import Action, AuditEvent, EcmVersion, State
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.gate import EVIDENCE_SCHEMA
@@ -180,15 +180,8 @@ class MonitorConfig:
                 raise Invalid(f"{name} must be a number in [0, 1], got {v!r}", details={"field": name})
         check_alpha(self.alpha)
         make_signal(self.signal)
-        if self.reference not in REFERENCES:
-            raise Invalid(
-                f"unknown reference {self.reference!r}; valid: {', '.join(REFERENCES)}", details={"field": "reference"}
-            )
-        if self.attribution not in ATTRIBUTIONS:
-            raise Invalid(
-                f"unknown attribution {self.attribution!r}; valid: {', '.join(ATTRIBUTIONS)}",
-                details={"field": "attribution"},
-            )
+        check_choice(self.reference, REFERENCES, what="reference", field="reference")
+        check_choice(self.attribution, ATTRIBUTIONS, what="attribution", field="attribution")
 
     @classmethod
     def cpu_small(cls) -> MonitorConfig:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from capevo.errors import Invalid
+from capevo.errors import Invalid, check_choice
 from capevo.registry.records import COMPARISON_OPS, Condition, Descriptor, Predicate
 from capevo.runtime.state import ActionLayout
 
@@ -92,8 +92,7 @@ def cond(signal: str, op: str, value: float) -> Condition:
     Raises:
         Invalid: ``op`` is not one of :data:`capevo.registry.records.COMPARISON_OPS`.
     """
-    if op not in COMPARISON_OPS:
-        raise Invalid(f"unknown comparison {op!r}; valid: {', '.join(COMPARISON_OPS)}", details={"field": "op"})
+    check_choice(op, COMPARISON_OPS, what="comparison", field="op")
     return Condition(signal=signal, op=op, value=float(value))
 
 
