@@ -23,11 +23,7 @@ the base and stays unchanged. :func:`task_constraints` are what
 The per-task Φ is opt-in: the runtime's default stays the paper's Φ.
 The scripted pick, place and stack references (``capevo.runtime.tasks.scripted``) succeed under
 it about as often as under the paper's Φ, with no unsafe step (measured by
-``python -m capevo.runtime.tasks.bench --phi paper task``). What used to stop them here:
-``reach_limit`` stopped the wrist at 0.79 m and capped every outward axis, so a can was never
-lowered at full stretch (place); ``contact_approach`` scaled every approaching
-component by one factor, and box pairs were bounded by a sphere around the finger pad, so a hand
-moving past a cube or a wall was slowed as if it moved at it (stack, and slow grasps).
+``python -m capevo.runtime.tasks.bench --phi paper task``).
 
 The scene numbers are robosuite's defaults for the environments capevo builds (checked against
 the live simulators in the slow tests). The result is an ordinary Φ: fixed for the run, its
