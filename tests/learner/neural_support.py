@@ -13,7 +13,6 @@ import json
 import os
 import select
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -23,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from procs import LOOPBACK
 
 from capevo.registry.predicates import predicate_holds
 from capevo.registry.records import CapabilitySet
@@ -31,15 +31,8 @@ from capevo.runtime.tasks import Perturbations, make_task, task_spec
 from capevo.runtime.tasks.scripted import REFERENCES
 from capevo.runtime.traces import EnvStep, EpisodeSummary, TraceMetadata, TraceWriter
 
-LOOPBACK = "127.0.0.1"
 REPO = Path(__file__).resolve().parents[2]
 READY_PREFIX = "READY "
-
-
-def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((LOOPBACK, 0))
-        return int(s.getsockname()[1])
 
 
 def subprocess_env() -> dict[str, str]:

@@ -24,7 +24,6 @@ from hypothesis import strategies as st
 from neural_support import (
     REPO,
     Proc,
-    free_tcp_port,
     learner_args,
     read_events,
     start_learner,
@@ -32,6 +31,7 @@ from neural_support import (
     subprocess_env,
     write_scripted_trace,
 )
+from procs import free_tcp_port
 
 from capevo.learner.neural_seed import seed_policy
 from capevo.registry.client import Client
