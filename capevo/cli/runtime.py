@@ -208,11 +208,12 @@ def serve_cmd(
 def _phi(phi_path: Path | None, task: str) -> Phi:
     """``--phi``: a YAML file, the word ``task`` (the per-task envelope), or None (the paper's)."""
     from capevo.runtime.governance import Phi, load_phi
+    from capevo.runtime.tasks import task_spec
 
     if phi_path is None:
         return Phi.default()
     if str(phi_path) == "task":
-        return Phi.for_task(task)
+        return Phi.for_task(task_spec(task))
     return load_phi(phi_path)
 
 

@@ -18,7 +18,7 @@ def test_default_is_the_papers_envelope() -> None:
 
 def test_task_selects_the_per_task_envelope() -> None:
     phi = _phi(Path("task"), "stack")
-    assert phi.hash == Phi.for_task("T3").hash != Phi.default().hash
+    assert phi.hash == Phi.for_task("stack").hash != Phi.default().hash
     assert phi.reads_proximity
 
 
