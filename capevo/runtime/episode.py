@@ -67,14 +67,13 @@ from capevo.runtime.state import ActionLayout, RobotState
 from capevo.runtime.traces import (
     NOT_ENFORCED_PREFIX,
     EcmInvocation,
+    EnvStep,
     EpisodeSummary,
     PlanStep,
     TraceSink,
 )
 from capevo.runtime.traces import Intervention as TraceIntervention
 from capevo.runtime.traces import Outcome as TraceOutcome
-from capevo.runtime.traces.rows import concatenated_input, observation_index
-from capevo.runtime.traces.rows import input_state_of as _input_state
 
 log = logging.getLogger(__name__)
 
@@ -190,7 +189,6 @@ class _Running:
         "attempt",
         "ecm",
         "end_after_step",
-        "input_index",
         "input_keys",
         "invoker",
         "record",
@@ -199,9 +197,7 @@ class _Running:
         "termination",
     )
 
-    def __init__(
-        self, record: EcmVersion, invoker: EcmInvoker, start_step: int, env: EpisodeEnv, obs: np.ndarray
-    ) -> None:
+    def __init__(self, record: EcmVersion, invoker: EcmInvoker, start_step: int) -> None:
         self.record = record
         self.ecm = record.name
         self.invoker = invoker
@@ -209,30 +205,27 @@ class _Running:
         self.steps = 0
         self.end_after_step: StepEnd | None = None
         self.input_keys = tuple(s.name for s in record.interface.inputs)
-        self.input_index = _input_index(env, obs, self.input_keys)
         self.termination = record.descriptor.termination
 
 
-def _input_index(env: EpisodeEnv, flat: np.ndarray, keys: tuple[str, ...]) -> tuple[int, ...] | None:
-    """Where an ECM's inputs sit in the flat observation, for its invocation rows (see
-    :mod:`capevo.runtime.traces.rows`): a TaskEnv's flat observation is its ``obs_dict``'s
-    observation keys concatenated, so the trace selects the input from it instead of the loop
-    packing a copy every step. Checked once per activation against the packed input; None (the
-    loop packs) for an env where the two differ, or inputs outside the flat observation."""
-    flat_keys = getattr(env.task_spec, "observation_keys", None)
-    if not keys or not flat_keys:
-        return None
-    obs = env.obs_dict
-    try:
-        index = observation_index(obs, flat_keys, keys)
-    except KeyError:
-        return None
-    if index is None or not all(i < flat.size for i in index):
-        return None
-    same = np.array_equal(
-        np.asarray(flat).reshape(-1)[list(index)], np.asarray(concatenated_input(obs, keys)).reshape(-1)
-    )
-    return index if same else None
+def _ecm_input(obs: Mapping[str, np.ndarray], keys: tuple[str, ...]) -> np.ndarray | tuple[()]:
+    """The flat input an ECM with inputs ``keys`` saw, for its invocation record: the values of
+    each key ``obs`` has, in order, flattened, as one read-only float32 array (``()`` for none)."""
+    parts = [obs[k] for k in keys if k in obs]
+    if not parts:
+        return ()
+    flat = np.concatenate(parts, axis=None, dtype=np.float32)
+    flat.flags.writeable = False
+    return flat
+
+
+def _key_state(arms: Sequence[Any]) -> dict[str, tuple[float, ...]]:
+    """An env step's key state: each arm's end-effector position and force."""
+    out: dict[str, tuple[float, ...]] = {}
+    for i, arm in enumerate(arms):
+        out[f"arm{i}_eef_pos"] = arm.eef_pos
+        out[f"arm{i}_eef_force"] = arm.eef_force
+    return out
 
 
 def run_episode_detailed(
@@ -349,25 +342,22 @@ def run_episode_detailed(
         if sink is None:
             failures += sum(1 for a in result.attempts if a.status in FAILURES)
             return
-        input_state, input_index = obs_t, run.input_index
-        if input_index is None and run.input_keys:
-            input_state = _input_state(env.obs_dict, run.input_keys)
+        # An ECM that declares no inputs is traced with the whole flat observation.
+        input_state = _ecm_input(env.obs_dict, run.input_keys) if run.input_keys else obs_t
         for a in result.attempts:
             if a.status in FAILURES:
                 failures += 1
-            # A row, not a record: see capevo.runtime.traces.rows for why.
-            sink.write_invocation_row(
-                (
-                    episode,
-                    steps,
-                    a.ecm,
-                    a.version,
-                    input_state,
-                    input_index,
-                    a.action,
-                    a.duration_s,
-                    _TRACE_OUTCOME[a.status],
-                    a.error,
+            sink.write_invocation(
+                EcmInvocation(
+                    episode=episode,
+                    step=steps,
+                    ecm=a.ecm,
+                    version=a.version,
+                    input_state=input_state,
+                    output=a.action,
+                    duration_s=a.duration_s,
+                    outcome=_TRACE_OUTCOME[a.status],
+                    error=a.error,
                 )
             )
 
@@ -422,7 +412,7 @@ def run_episode_detailed(
                     )
                 plan_step += 1
                 invoker = capabilities.make_invoker(record.name, step_budget=step_budget_per_ecm, timeout_s=timeout_s)
-                running = _Running(record, invoker, steps, env, obs_t)
+                running = _Running(record, invoker, steps)
             run = running
             termination = run.termination
             if termination.all and predicate_holds(termination, current_signals()):
@@ -511,20 +501,20 @@ def run_episode_detailed(
             total_reward += reward
         success = bool(info.get("is_success", success))
         if sink is not None:
-            sink.write_env_step_row(
-                (
-                    episode,
-                    steps,
-                    source[0],
-                    source[1],
-                    obs_t,
-                    executed,
-                    reward,
-                    next_t,
-                    bool(terminated),
-                    bool(truncated),
-                    success,
-                    state.arms,
+            sink.write_env_step(
+                EnvStep(
+                    episode=episode,
+                    step=steps,
+                    ecm=source[0],
+                    version=source[1],
+                    obs=obs_t,
+                    action=executed,
+                    reward=reward,
+                    next_obs=next_t,
+                    terminated=bool(terminated),
+                    truncated=bool(truncated),
+                    is_success=success,
+                    key_state=_key_state(state.arms),
                 )
             )
         obs_t = next_t

@@ -41,7 +41,6 @@ from capevo.runtime.policy import DecisionPolicy
 from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
 from capevo.runtime.traces import (
     DEFAULT_COMPRESSION,
-    RUNTIME_BATCH,
     TraceMetadata,
     TraceWriter,
     check_compression,
@@ -228,7 +227,7 @@ class LocalEvaluator:
             outcomes: list[EpisodeOutcome] = []
             path = self.trace_dir / f"{spec.name}-{run_id}.mcap" if self.trace_dir is not None else None
             sink_cm = (
-                TraceWriter(path, metadata, batch=RUNTIME_BATCH, compression=self.trace_compression)
+                TraceWriter(path, metadata, compression=self.trace_compression)
                 if path is not None
                 else contextlib.nullcontext(None)
             )

@@ -85,7 +85,6 @@ from capevo.runtime.policy import DecisionPolicy
 from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
 from capevo.runtime.traces import (
     DEFAULT_COMPRESSION,
-    RUNTIME_BATCH,
     TraceMetadata,
     TraceWriter,
     check_compression,
@@ -736,7 +735,6 @@ class RuntimeWorker:
         return TraceWriter(
             self.config.trace_dir / f"{run_id}.mcap",
             metadata,
-            batch=RUNTIME_BATCH,
             compression=self.config.trace_compression,
         )
 

@@ -8,7 +8,6 @@ only at episode boundaries (3), trace counts equal outcome counts (4), the no-pr
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import math
 from collections.abc import Iterator
@@ -131,31 +130,28 @@ def test_pick_episode_is_traced_to_mcap_and_read_back(
     assert set(steps[0].key_state) == {"arm0_eef_pos", "arm0_eef_force"}
 
 
-def test_invocation_inputs_selected_from_the_observation_are_the_packed_inputs(
-    env: TaskEnv, registry: LocalRegistry, policy: DecompositionPolicy, monkeypatch: pytest.MonkeyPatch
+def test_invocation_inputs_are_the_ecms_inputs_from_the_observation(
+    env: TaskEnv, registry: LocalRegistry, policy: DecompositionPolicy
 ) -> None:
-    import capevo.runtime.episode as episode_module
-
-    publish_pick(registry)
-    chosen: list[object] = []
-    select = episode_module._input_index
-
-    def spied(*args: object) -> object:
-        chosen.append(select(*args))  # type: ignore[arg-type]
-        return chosen[-1]
-
-    def invocations() -> list[object]:
-        sink = MemoryTraceSink()
-        with load(registry, env) as caps:
-            run_episode(env, caps, policy, make_governor(env, PHI), sink, seed=3, episode=0)
-        return [dataclasses.replace(r, duration_s=0.0) for r in sink.invocations]  # durations are wall time
-
-    monkeypatch.setattr(episode_module, "_input_index", spied)
-    selected = invocations()
-    assert chosen and all(index is not None for index in chosen)  # a TaskEnv's ECMs select their input
-    monkeypatch.setattr(episode_module, "_input_index", lambda *args: None)  # the loop packs it
-    packed = invocations()
-    assert selected == packed and len(selected) > 10
+    # Each invocation record holds what its ECM read: the values of its declared inputs at that
+    # step, in order, as float32 (checked against the step's flat observation).
+    published = publish_pick(registry)
+    sink = MemoryTraceSink()
+    with load(registry, env) as caps:
+        run_episode(env, caps, policy, make_governor(env, PHI), sink, seed=3, episode=0)
+    positions: dict[str, range] = {}
+    at = 0
+    for key in env.task_spec.observation_keys:
+        size = int(np.size(env.obs_dict[key]))
+        positions[key] = range(at, at + size)
+        at += size
+    obs_at = {s.step: np.asarray(s.obs, dtype=np.float32) for s in sink.env_steps}
+    calls = sink.invocations
+    for call in calls:
+        keys = [spec.name for spec in published[call.ecm].interface.inputs]
+        index = [i for key in keys for i in positions[key]]
+        assert np.array_equal(np.asarray(call.input_state, dtype=np.float32), obs_at[call.step][index])
+    assert len(calls) > 10
 
 
 def test_adversarial_ecm_cannot_leave_the_box_with_governance(

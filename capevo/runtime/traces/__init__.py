@@ -47,7 +47,6 @@ from capevo.runtime.traces.summary import EpisodeRow, TraceSummary, summarize
 from capevo.runtime.traces.writer import (
     COMPRESSIONS,
     DEFAULT_COMPRESSION,
-    RUNTIME_BATCH,
     TraceWriter,
     check_compression,
 )
@@ -58,7 +57,6 @@ __all__ = [
     "EXPORT_FORMATS",
     "NOT_ENFORCED_PREFIX",
     "PACKAGES",
-    "RUNTIME_BATCH",
     "TRACE_FORMAT",
     "EcmInvocation",
     "EnvStep",

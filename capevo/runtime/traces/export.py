@@ -39,9 +39,10 @@ Invariants:
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
-from collections.abc import Collection, Container, Iterable, Iterator
+from collections.abc import Collection, Container, Iterable, Iterator, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, ClassVar
@@ -49,11 +50,29 @@ from typing import Any, ClassVar
 import numpy as np
 
 from capevo.errors import Corrupt, Invalid, Unavailable
-from capevo.runtime.traces.codec import format_vector
 from capevo.runtime.traces.reader import TraceReader
 from capevo.runtime.traces.records import EnvStep
 
 EXPORT_FORMATS: tuple[str, ...] = ("npz", "jsonl")
+
+# Format strings per vector length: "%.9g,%.9g,...". A handful of lengths occur per export.
+_VECTOR_FORMATS: dict[int, str] = {}
+
+
+def format_vector(values: Sequence[float]) -> str:
+    """Comma-separated ``%.9g`` numbers (``null`` for non-finite ones), without brackets: nine
+    significant digits name each float32 uniquely."""
+    if type(values) is not tuple:
+        values = tuple(values)
+    n = len(values)
+    fmt = _VECTOR_FORMATS.get(n)
+    if fmt is None:
+        fmt = _VECTOR_FORMATS[n] = ",".join(["%.9g"] * n)
+    text = fmt % values
+    # %g prints only digits, sign, '.', 'e' and '+' for finite values: an 'n' means nan or inf.
+    if "n" in text:
+        text = ",".join(f"{v:.9g}" if math.isfinite(v) else "null" for v in values)
+    return text
 
 
 @dataclass(frozen=True, slots=True, kw_only=True, eq=False)

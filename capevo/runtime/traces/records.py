@@ -5,16 +5,12 @@ Schema (``SCHEMA``, draft 2020-12, ``"type": "object"`` at the root as Foxglove 
 ``to_dict`` produces exactly the object the schema describes and ``from_dict`` is its inverse;
 nothing else in the package spells a field name, so the schema and the data cannot drift.
 
-Wire conventions (see :mod:`capevo.runtime.traces.codec`):
-
-- A non-finite float (NaN, +-inf) is written as JSON ``null`` and read back as NaN, because
-  JSON has no NaN; every float field's schema is therefore ``number | null``.
-- Vectors (obs, action, next_obs, key_state, input_state, output, original/result action)
-  are float32 data. Observation vectors are written as the shortest text that names each
-  float32; the runtime's own float64 vectors (action, key_state, output) are written exactly
-  (see :mod:`capevo.runtime.traces.codec`). ``from_dict`` rounds every vector to float32, so
-  float32 values come back bit-exact and a float64 value comes back as a float32 within one
-  float32 ulp. Scalar floats (reward, durations, total reward) are float64 and written exactly.
+Vectors (obs, action, next_obs, key_state, input_state, output, original/result action) are
+float32 data: ``from_dict`` rounds every vector to float32, so float32 values come back bit-exact
+and a float64 value comes back as the float32 nearest to it. A non-finite float (NaN, +-inf) is
+written as JSON ``null`` and read back as NaN, because JSON has no NaN; every float field's schema
+is therefore ``number | null``. Scalar floats (reward, durations, total reward) are float64. How
+a record is printed is :mod:`capevo.runtime.traces.codec`'s.
 
 Invariants:
 1. For every record ``r`` whose floats are finite and whose vectors hold float32 values:
@@ -261,7 +257,8 @@ class PlanStep:
     version: int
     reason: str = ""
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self, *, vector: Callable[[Any], Any] = _as_list) -> dict[str, Any]:
+        """The object :attr:`SCHEMA` describes (no vector fields: ``vector`` is not called)."""
         return {
             "episode": self.episode,
             "step": self.step,
@@ -322,14 +319,15 @@ class EcmInvocation(_ByValue):
     outcome: Outcome = Outcome.OK
     error: str | None = None
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self, *, vector: Callable[[Any], Any] = _as_list) -> dict[str, Any]:
+        """The object :attr:`SCHEMA` describes; ``vector`` makes each vector field (default: a list of floats)."""
         return {
             "episode": self.episode,
             "step": self.step,
             "ecm": self.ecm,
             "version": self.version,
-            "input_state": _as_list(self.input_state),
-            "output": None if self.output is None else list(self.output),
+            "input_state": vector(self.input_state),
+            "output": None if self.output is None else vector(self.output),
             "duration_s": self.duration_s,
             "outcome": Outcome(self.outcome).value,
             "error": self.error,
@@ -393,13 +391,14 @@ class Intervention:
     def rejected(self) -> bool:
         return self.result_action is None
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self, *, vector: Callable[[Any], Any] = _as_list) -> dict[str, Any]:
+        """The object :attr:`SCHEMA` describes; ``vector`` makes each vector field (default: a list of floats)."""
         return {
             "episode": self.episode,
             "step": self.step,
             "constraint": self.constraint,
-            "original_action": list(self.original_action),
-            "result_action": None if self.result_action is None else list(self.result_action),
+            "original_action": vector(self.original_action),
+            "result_action": None if self.result_action is None else vector(self.result_action),
             "reason": self.reason,
             "enforced": self.enforced,
         }
@@ -476,20 +475,21 @@ class EnvStep(_ByValue):
     def done(self) -> bool:
         return self.terminated or self.truncated
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self, *, vector: Callable[[Any], Any] = _as_list) -> dict[str, Any]:
+        """The object :attr:`SCHEMA` describes; ``vector`` makes each vector field (default: a list of floats)."""
         return {
             "episode": self.episode,
             "step": self.step,
             "ecm": self.ecm,
             "version": self.version,
-            "obs": _as_list(self.obs),
-            "action": list(self.action),
+            "obs": vector(self.obs),
+            "action": vector(self.action),
             "reward": self.reward,
-            "next_obs": _as_list(self.next_obs),
+            "next_obs": vector(self.next_obs),
             "terminated": self.terminated,
             "truncated": self.truncated,
             "is_success": self.is_success,
-            "key_state": {k: list(v) for k, v in self.key_state.items()},
+            "key_state": {k: vector(v) for k, v in self.key_state.items()},
         }
 
     @classmethod
@@ -545,7 +545,8 @@ class EpisodeSummary:
     duration_s: float
     revision: int | None = None
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self, *, vector: Callable[[Any], Any] = _as_list) -> dict[str, Any]:
+        """The object :attr:`SCHEMA` describes (no vector fields: ``vector`` is not called)."""
         return {
             "episode": self.episode,
             "seed": self.seed,

@@ -1,15 +1,15 @@
 """Lenient sequential MCAP reading: every good record up to the first bad one.
 
 A worker killed mid-run leaves an MCAP with no summary, no footer and possibly half a chunk
-at the end. The mcap package's readers either need the footer (seeking reader) or raise on
-the first short read (stream reader), losing the records already parsed in a chunk. This
-scanner frames each record itself (opcode + length, checked against the file size before
-reading), parses the body with the mcap package's record classes, decompresses and
-CRC-checks a chunk as a whole, and yields its records only when the whole chunk is good.
+at the end. The ``mcap`` library's :class:`~mcap.stream_reader.StreamReader` reads records in
+file order and raises where one is truncated or corrupt; this module runs it with chunk and CRC
+checks on and stops there instead. What it adds to the library, which has none of it: where
+and why reading stopped (:class:`ScanResult`), whether a file is finished without reading it
+(:func:`has_footer`), and capevo's errors for a file that cannot be opened.
 
 Invariants:
-1. The scanner never reads past the end of the file and never allocates more than the
-   bytes left in the file for one record, whatever a corrupt length field says.
+1. The scanner never reads past the end of the file and never loads a record longer than the
+   file, whatever a corrupt length field says.
 2. The records of a chunk are yielded all or none: none when the chunk is truncated, fails
    to decompress, fails its CRC or holds a malformed record.
 3. After iteration :attr:`McapScan.result` says whether the file was complete (footer and
@@ -21,7 +21,6 @@ Invariants:
 
 from __future__ import annotations
 
-import io
 import os
 import struct
 from collections.abc import Iterator
@@ -29,34 +28,21 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
-from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import (
-    Attachment,
-    Channel,
-    Chunk,
-    DataEnd,
-    Footer,
-    Header,
-    McapRecord,
-    Message,
-    Metadata,
-    Schema,
-)
-from mcap.stream_reader import CRCValidationError, breakup_chunk
+from mcap.records import Attachment, Channel, Chunk, Footer, Header, McapRecord, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import MCAP0_MAGIC as MAGIC
 
 from capevo.errors import Corrupt, Forbidden, Invalid, NotFound
-from capevo.runtime.traces.mcapfile import MAGIC
 
 _RECORD_HEADER = struct.Struct("<BQ")
 _FOOTER_RECORD_SIZE = 1 + 8 + 8 + 8 + 4
 
-# What a damaged chunk or record can raise from the mcap parsers and the decompressors
-# (lz4 raises RuntimeError, zstandard raises ZstdError, a subclass of Exception).
+# What a damaged record can raise from the mcap parsers and the decompressors (lz4 raises
+# RuntimeError; zstandard's ZstdError is added below).
 _PARSE_ERRORS: tuple[type[BaseException], ...] = (
     McapError,
-    CRCValidationError,
     struct.error,
     ValueError,
     UnicodeDecodeError,
@@ -71,17 +57,10 @@ try:
 except ImportError:  # pragma: no cover - zstandard ships with mcap's usual installs
     pass
 
-RECOVER_HINT = "salvage what it holds with `capevo trace recover FILE`"
+_YIELDED = (Header, Metadata, Schema, Channel, Message, Attachment)
+"""What a scan yields; indexes, statistics and other summary records are skipped."""
 
-_BODY_PARSERS = {
-    Opcode.HEADER: Header.read,
-    Opcode.METADATA: Metadata.read,
-    Opcode.SCHEMA: Schema.read,
-    Opcode.CHANNEL: Channel.read,
-    Opcode.ATTACHMENT: Attachment.read,
-    Opcode.DATA_END: DataEnd.read,
-    Opcode.FOOTER: Footer.read,
-}
+RECOVER_HINT = "salvage what it holds with `capevo trace recover FILE`"
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -149,8 +128,8 @@ class McapScan:
 
     Args:
         path: The MCAP file.
-        decode_chunks: Decompress chunks and yield their records; False skips chunks (fast,
-            for metadata only).
+        decode_chunks: Decompress chunks and yield their records; False skips them (for
+            metadata only).
         strict: Raise :class:`Corrupt` on a damaged or unfinished file instead of stopping.
 
     Raises:
@@ -167,73 +146,60 @@ class McapScan:
     def __iter__(self) -> Iterator[McapRecord]:
         with open_trace_file(self.path) as f:
             _check_magic(f, self.path)
-            size = os.fstat(f.fileno()).st_size
-            yield from self._records(f, size)
-
-    def _stop(self, *, complete: bool, reason: str, offset: int, size: int, chunks: int) -> None:
-        self.result = ScanResult(complete=complete, reason=reason, good_bytes=offset, size=size, chunks=chunks)
-        if self.strict and not complete:
-            raise Corrupt(
-                f"trace file {self.path} is damaged or unfinished ({reason}); {RECOVER_HINT}",
-                details={"path": str(self.path), "offset": offset},
-            )
+            yield from self._records(f, os.fstat(f.fileno()).st_size)
 
     def _records(self, f: BinaryIO, size: int) -> Iterator[McapRecord]:
-        offset = len(MAGIC)
-        chunks = 0
+        # A length beyond the file fails at once (invariant 1); the magic is checked above.
+        records = StreamReader(f, skip_magic=True, emit_chunks=True, record_size_limit=size).records
+        good, chunks, footer = f.tell(), 0, False
         while True:
-            head = f.read(_RECORD_HEADER.size)
-            if not head:
-                self._stop(complete=False, reason="file ends without a footer", offset=offset, size=size, chunks=chunks)
-                return
-            if len(head) < _RECORD_HEADER.size:
-                reason = f"truncated record at offset {offset}"
-                self._stop(complete=False, reason=reason, offset=offset, size=size, chunks=chunks)
-                return
-            opcode, length = _RECORD_HEADER.unpack(head)
-            body_start = offset + _RECORD_HEADER.size
-            if opcode == 0 or length > size - body_start:
-                what = "invalid opcode 0" if opcode == 0 else f"truncated {_opcode_name(opcode)} record"
-                self._stop(complete=False, reason=f"{what} at offset {offset}", offset=offset, size=size, chunks=chunks)
-                return
-            if opcode == Opcode.CHUNK and not self.decode_chunks:
-                f.seek(length, io.SEEK_CUR)
-                offset = body_start + length
-                chunks += 1
-                continue
-            body = f.read(length)
             try:
-                records = self._parse(opcode, body)
-            except _PARSE_ERRORS as exc:
-                self._stop(
-                    complete=False,
-                    reason=f"corrupt {_opcode_name(opcode)} record at offset {offset}: {type(exc).__name__}: {exc}",
-                    offset=offset,
-                    size=size,
-                    chunks=chunks,
-                )
+                record = next(records)
+                inner: list[McapRecord] = [record]
+                if isinstance(record, Chunk):
+                    inner = breakup_chunk(record, validate_crc=True) if self.decode_chunks else []
+            except StopIteration:  # the reader stops after the footer and the closing magic
+                self._stop(ScanResult(complete=True, reason="complete", good_bytes=size, size=size, chunks=chunks))
                 return
-            offset = body_start + length
-            if opcode == Opcode.CHUNK:
-                chunks += 1
-            for record in records:
-                if isinstance(record, Footer):
-                    complete = f.read(len(MAGIC)) == MAGIC
-                    reason = "complete" if complete else f"missing closing magic after the footer at offset {offset}"
-                    self._stop(complete=complete, reason=reason, offset=offset, size=size, chunks=chunks)
-                    return
-                if not isinstance(record, DataEnd):
-                    yield record
+            except _PARSE_ERRORS as exc:
+                reason = (
+                    f"missing closing magic after the footer at offset {good}"
+                    if footer
+                    else self._why(f, good, size, exc)
+                )
+                self._stop(ScanResult(complete=False, reason=reason, good_bytes=good, size=size, chunks=chunks))
+                return
+            good = f.tell()
+            chunks += isinstance(record, Chunk)
+            footer = isinstance(record, Footer)
+            for r in inner:
+                if isinstance(r, _YIELDED):
+                    yield r
 
     @staticmethod
-    def _parse(opcode: int, body: bytes) -> list[McapRecord]:
-        stream = ReadDataStream(io.BytesIO(body))
-        if opcode == Opcode.CHUNK:
-            return breakup_chunk(Chunk.read(stream), validate_crc=True)
-        if opcode == Opcode.MESSAGE:
-            return [Message.read(stream, len(body))]
-        parser = _BODY_PARSERS.get(opcode)  # type: ignore[call-overload]
-        return [] if parser is None else [parser(stream)]
+    def _why(f: BinaryIO, offset: int, size: int, exc: BaseException) -> str:
+        """Why the record at ``offset`` did not parse, for :attr:`ScanResult.reason`."""
+        if offset == size:
+            return "file ends without a footer"
+        f.seek(offset)
+        head = f.read(_RECORD_HEADER.size)
+        if len(head) < _RECORD_HEADER.size:
+            return f"truncated record at offset {offset}"
+        opcode, length = _RECORD_HEADER.unpack(head)
+        if opcode == 0:
+            return f"invalid opcode 0 at offset {offset}"
+        name = _opcode_name(opcode)
+        if length > size - offset - _RECORD_HEADER.size:
+            return f"truncated {name} record at offset {offset}"
+        return f"corrupt {name} record at offset {offset}: {type(exc).__name__}: {exc}"
+
+    def _stop(self, result: ScanResult) -> None:
+        self.result = result
+        if self.strict and not result.complete:
+            raise Corrupt(
+                f"trace file {self.path} is damaged or unfinished ({result.reason}); {RECOVER_HINT}",
+                details={"path": str(self.path), "offset": result.good_bytes},
+            )
 
 
 def _opcode_name(opcode: int) -> str:

@@ -6,9 +6,9 @@ The runtime depends on :class:`TraceSink` only; production passes a
 
 Invariants:
 1. :class:`MemoryTraceSink` accepts exactly what :class:`TraceWriter` accepts: each record
-   must be of its method's type, each row a tuple of its length (else :class:`Invalid`), and
-   must encode (it is run through the same codec), and writing after ``close()`` raises
-   :class:`Conflict`. A row is kept as the record it stands for.
+   must be of its method's type (else :class:`Invalid`) and must encode (it is run through the
+   same codec; the sink refuses one that does not at once, the writer when it encodes it), and
+   writing after ``close()`` raises :class:`Conflict`.
 2. :class:`MemoryTraceSink` keeps records in write order; ``by_topic`` preserves that order.
 """
 
@@ -27,15 +27,6 @@ from capevo.runtime.traces.records import (
     TraceMetadata,
     TraceRecord,
 )
-from capevo.runtime.traces.rows import (
-    ENV_STEP_ROW_LEN,
-    INVOCATION_ROW_LEN,
-    EnvStepRow,
-    InvocationRow,
-    check_row,
-    env_step_of,
-    invocation_of,
-)
 
 
 @runtime_checkable
@@ -50,14 +41,6 @@ class TraceSink(Protocol):
 
     def write_env_step(self, record: EnvStep) -> None: ...
 
-    def write_env_step_row(self, row: EnvStepRow) -> None:
-        """``write_env_step(env_step_of(row))``, without building the record in the loop."""
-        ...
-
-    def write_invocation_row(self, row: InvocationRow) -> None:
-        """``write_invocation(invocation_of(row))``, without building the record in the loop."""
-        ...
-
     def write_episode_summary(self, record: EpisodeSummary) -> None: ...
 
     def flush(self) -> None: ...
@@ -68,13 +51,11 @@ class TraceSink(Protocol):
 WRITE_METHODS: tuple[str, ...] = (
     "write_plan_step",
     "write_invocation",
-    "write_invocation_row",
     "write_intervention",
     "write_env_step",
-    "write_env_step_row",
     "write_episode_summary",
 )
-"""The :class:`TraceSink` methods that take a record or a row (for wrappers that clock or count them)."""
+"""The :class:`TraceSink` methods that take a record (for wrappers that clock or count them)."""
 
 
 def check_record(record: Any, expected: type[Any], method: str) -> None:
@@ -117,21 +98,6 @@ class MemoryTraceSink:
 
     def write_env_step(self, record: EnvStep) -> None:
         self._add(record, EnvStep, "write_env_step")
-
-    def write_env_step_row(self, row: EnvStepRow) -> None:
-        self._add_row(row, True, ENV_STEP_ROW_LEN, "write_env_step_row")
-
-    def write_invocation_row(self, row: InvocationRow) -> None:
-        self._add_row(row, False, INVOCATION_ROW_LEN, "write_invocation_row")
-
-    def _add_row(self, row: Any, is_step: bool, length: int, method: str) -> None:
-        if self.closed:
-            raise Conflict(f"trace sink is closed; cannot {method}")
-        check_row(row, length, method)
-        (payload,) = codec.RecordEncoder().rows([(is_step, row)])
-        if not isinstance(payload, bytes):
-            raise payload
-        self.records.append(env_step_of(row) if is_step else invocation_of(row))
 
     def write_episode_summary(self, record: EpisodeSummary) -> None:
         self._add(record, EpisodeSummary, "write_episode_summary")

@@ -1,50 +1,40 @@
 """TraceWriter: the MCAP file of one run, crash-safe to about the last second.
 
-Layout (see :mod:`capevo.runtime.traces.mcapfile`): the MCAP magic and header, the
-metadata records (``capevo.run``, ``capevo.packages``), the five JSON-schema schemas and
-channels, then compressed chunks of messages; ``close()`` writes the summary (schemas,
-channels, statistics, chunk and metadata indexes) and the footer, so Foxglove and the
-``mcap`` tools open the file directly. Everything before the first chunk reaches the OS in
-the constructor, so even a worker killed at once leaves a file naming its run.
+The file is written by the ``mcap`` library's own :class:`mcap.writer.Writer` (chunking,
+compression, CRCs, indexes, summary): the MCAP magic and header, the metadata records
+(``capevo.run``, ``capevo.packages``), then chunks of messages, the first of which also holds the
+five JSON-schema schemas and channels; ``close()`` writes the summary (schemas, channels,
+statistics, chunk and metadata indexes) and the footer, so Foxglove and the ``mcap`` tools open
+the file directly.
 
-Batching: with ``batch > 1`` records are kept as they are written and encoded and framed
-``batch`` at a time, back to back. Inside an episode loop every robosuite step between two
-writes evicts the encoder from the CPU caches, so encoding a record where it is written costs
-several times what it costs warm (benchmarks/bench_traces_loop.py). A kept record is as safe as
-one in the open chunk: both reach the OS at the next flush. The runtime's writers use
-:data:`RUNTIME_BATCH`; the default, 1, encodes each record at once.
+Records are kept as they are written and encoded (:mod:`~capevo.runtime.traces.codec`) and
+handed to the mcap Writer all at once, at each flush or every :data:`KEPT_RECORDS`: in the
+episode loop every robosuite step between two writes evicts the CPU caches, so encoding a record
+where it is written costs about three times what it costs in a run of them, which took the
+writer past 1 % of an episode (benchmarks/bench_traces_loop.py). A kept record is as safe as one
+in the open chunk: both reach the OS at the next flush.
 
-The hot path is C where it is built (``csrc/``, :mod:`capevo.runtime.traces.queue`): the episode
-loop's ``write_env_step_row``/``write_invocation_row`` are the queue's own append (the wall-clock
-stamp, the entry, the batch and deadline checks, one call), and a batch is encoded and framed
-into the open chunk in one C call (``csrc/frame.c``: rows spliced as
-:meth:`~capevo.runtime.traces.codec.RecordEncoder.rows` splices them, other records through
-their encode functions, no Python object per message). ``native=False``, or a source tree
-nobody built, runs their Python versions: the same file.
-
-Crash safety: a chunk is finished and handed to the OS when it reaches ``chunk_size`` bytes
-and at least every ``flush_interval_s`` seconds while it holds data, checked on every write
-and by a background thread (so an idle worker's last records reach the file too). Data the
-OS has survives the writer being killed with SIGKILL; ``fsync_on_flush=True`` also survives
-power loss at the cost of a disk sync per flush. :func:`capevo.runtime.traces.recover`
-turns the unfinished file of a killed worker into a finished one.
+Crash safety: :meth:`mcap.writer.Writer.flush` finishes the open chunk and hands everything to
+the OS. The writer calls it at least every ``flush_interval_s`` seconds while records wait,
+checked on every write and by a background thread (so an idle worker's last records reach the
+file too), at every episode summary and at ``flush()``. Data the OS has survives the writer being
+killed with SIGKILL; ``fsync_on_flush=True`` also survives power loss at the cost of a disk sync
+per flush. :func:`capevo.runtime.traces.recover` turns the unfinished file of a killed worker into
+a finished one.
 
 Invariants:
-1. Header, metadata, schemas and channels are in the OS before the constructor returns.
+1. Header and metadata are in the OS before the constructor returns.
 2. A record written at time t is in the OS by t + ``flush_interval_s`` (+ one background
    tick, a quarter of the interval) or at the next ``flush()``, whichever is first, as
    long as the process lives; after ``flush()`` returns, every record written before it is.
 3. ``close()`` is idempotent, leaves a finished MCAP (summary, footer, closing magic) and
    stops the background thread; writes after it raise :class:`Conflict`.
-4. Each ``write_*`` method accepts only its record type, or for ``write_*_row`` a tuple of
-   its row's length (:class:`Invalid` otherwise, at once), and writes it to its own topic;
-   messages get the wall-clock time of the write call as log and publish time and a
-   per-channel sequence number starting at 0, in write order. A row's message is its
-   record's (:meth:`~capevo.runtime.traces.codec.RecordEncoder.rows`). A record or row whose
-   fields do not encode is dropped with :class:`Invalid`: with ``batch=1`` raised by its own
-   write call; otherwise by the call that encodes its batch (a later write, ``flush()`` or
-   ``close()``, the next of them if the background thread did), after every other record of
-   the batch is written.
+4. Each ``write_*`` method accepts only its record type (:class:`Invalid` otherwise) and writes
+   it to its own topic; messages get the wall-clock time of the write call as log and publish
+   time and a per-channel sequence number starting at 0, in write order. A record whose fields
+   do not encode is left out, after every other kept record is written, with :class:`Invalid`
+   raised by the call that encoded it (a write, ``flush()`` or ``close()``), or, when the
+   background thread did, by the owner's next one.
 5. An existing file is never overwritten unless ``overwrite=True`` (:class:`Conflict`).
 """
 
@@ -58,13 +48,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from mcap.writer import LIBRARY_IDENTIFIER
+from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 from capevo.errors import CapevoError, Conflict, Invalid, Unavailable
 from capevo.runtime.traces import codec
-from capevo.runtime.traces.mcapfile import McapFileWriter
-from capevo.runtime.traces.native import NATIVE
-from capevo.runtime.traces.queue import Entry, make_queue
 from capevo.runtime.traces.records import (
     MESSAGE_ENCODING,
     SCHEMA_ENCODING,
@@ -74,22 +61,22 @@ from capevo.runtime.traces.records import (
     Intervention,
     PlanStep,
     TraceMetadata,
+    TraceRecord,
     record_type,
     topics,
-)
-from capevo.runtime.traces.rows import (
-    EnvStepRow,
-    InvocationRow,
-    check_row,
 )
 from capevo.runtime.traces.sink import check_record
 
 COMPRESSIONS: Mapping[str, str] = {"lz4": "lz4", "zstd": "zstd", "none": ""}
-"""Chunk compression by name -> MCAP compression string. lz4 is the default: zstd costs
-several µs more per env step, amortised (see benchmarks/bench_traces.py); ``none`` saves lz4's
-share of the per-step cost (a fifth to a quarter of it for T6) for files about three times larger
-(benchmarks/bench_traces_loop.py ``--compressions lz4 none``)."""
+"""Chunk compression by name -> MCAP compression string. lz4 is the default: cheap to write;
+``zstd`` makes smaller files for more CPU, ``none`` larger ones (about three times lz4's) for less."""
 DEFAULT_COMPRESSION = "lz4"
+
+_COMPRESSION_TYPES: Mapping[str, CompressionType] = {
+    "lz4": CompressionType.LZ4,
+    "zstd": CompressionType.ZSTD,
+    "none": CompressionType.NONE,
+}
 
 
 def check_compression(name: object) -> str:
@@ -108,13 +95,10 @@ def check_compression(name: object) -> str:
 
 DEFAULT_CHUNK_SIZE = 256 * 1024
 DEFAULT_FLUSH_INTERVAL_S = 1.0
-RUNTIME_BATCH = 1024
-"""Records the runtime's writers (worker, evaluator) keep before encoding them: more than one flush
-interval brings at the speeds the runtime reaches (about 400 a second at 200 env steps/s, an
-invocation per step), so they encode once per flush, at its deadline (and at each episode's
-end). Each batch pays the cold caches once, so fewer batches cost less: T1 64 -> 1024, 30.0 ->
-24.2 µs per step in one alternating run (benchmarks/bench_traces_loop.py); the bound caps the
-memory a long flush interval could keep (about a MiB)."""
+KEPT_RECORDS = 1024
+"""Records kept before they are encoded, unless a flush comes first: more than one flush
+interval brings at the speeds the runtime reaches (a few hundred records a second); the bound
+caps the memory a long interval could keep."""
 
 _SEQUENCE_MOD = 2**32
 
@@ -139,17 +123,14 @@ class TraceWriter:
         path: File to create; parent directories are created.
         metadata: Run metadata, written as MCAP metadata records at the start.
         chunk_size: Finish a chunk once it holds this many bytes (uncompressed).
-        flush_interval_s: Finish a chunk at least this often while it holds data.
+        flush_interval_s: Finish a chunk and hand it to the OS at least this often while records wait.
         compression: ``"lz4"`` (default), ``"zstd"`` or ``"none"``.
         fsync_on_flush: Also fsync at every flush (power-loss safety; slower).
         background_flush: Run the thread that flushes while no writes arrive.
         overwrite: Replace an existing file instead of raising :class:`Conflict`.
-        batch: Encode records this many at a time (see the module docstring); 1: each at once.
-        native: Keep records in the C queue and encode and frame batches in C where they are
-            built (False: their Python versions, to compare).
 
     Raises:
-        Invalid: bad chunk size, interval, compression name or batch.
+        Invalid: bad chunk size, interval or compression name.
         Conflict: ``path`` exists and ``overwrite`` is false.
         Unavailable: the file cannot be created (OS error, with the reason).
     """
@@ -165,8 +146,6 @@ class TraceWriter:
         fsync_on_flush: bool = False,
         background_flush: bool = True,
         overwrite: bool = False,
-        batch: int = 1,
-        native: bool = True,
     ) -> None:
         if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size <= 0:
             raise Invalid(f"chunk_size must be a positive integer, got {chunk_size!r}", details={"field": "chunk_size"})
@@ -175,8 +154,6 @@ class TraceWriter:
                 f"flush_interval_s must be a positive number, got {flush_interval_s!r}",
                 details={"field": "flush_interval_s"},
             )
-        if isinstance(batch, bool) or not isinstance(batch, int) or batch <= 0:
-            raise Invalid(f"batch must be a positive integer, got {batch!r}", details={"field": "batch"})
         check_compression(compression)
         if not isinstance(metadata, TraceMetadata):
             raise Invalid("metadata must be a TraceMetadata", details={"field": "metadata"})
@@ -189,49 +166,32 @@ class TraceWriter:
         self._error: CapevoError | None = None
         self._messages = 0
         self._flushes = 0
-        self._encoder = codec.RecordEncoder(kernel=native)
-        self._frame_batch = NATIVE.frame_batch if native and NATIVE is not None else None
-        self.batch = batch
-        # A kept record that failed to encode in the background thread, for the owner's next call.
+        self._waiting = False  # records written since the last flush
+        # Records written and not yet encoded, oldest first: (channel, wall-clock ns, record).
+        self._kept: list[tuple[int, int, TraceRecord]] = []
+        # A kept record that did not encode, for the owner's next call to raise.
         self._undelivered: Invalid | None = None
         self._file = self._open(self.path, overwrite)
         try:
-            self._mcap = McapFileWriter(self._file, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
+            self._mcap = Writer(self._file, chunk_size=chunk_size, compression=_COMPRESSION_TYPES[compression])
             self._mcap.start(profile="", library=_library())
             for name, data in metadata.to_mcap().items():
                 self._mcap.add_metadata(name, data)
             self._channels: dict[str, int] = {}
             for topic in topics():
                 cls = record_type(topic)
-                schema_id = self._mcap.register_schema(
-                    name=cls.SCHEMA_NAME, encoding=SCHEMA_ENCODING, data=json.dumps(cls.SCHEMA).encode()
-                )
-                self._channels[topic] = self._mcap.register_channel(
-                    topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id
-                )
-            # Channel ids are 1..n in registration order; a list index beats a dict lookup per write.
-            self._sequences = [0] * (len(self._channels) + 1)
-            self._step_channel = self._channels[EnvStep.TOPIC]
-            self._queue = make_queue(
-                native=native,
-                step_channel=self._step_channel,
-                call_channel=self._channels[EcmInvocation.TOPIC],
-                batch=batch,
-                on_full=self._on_full,
-                refuse=self._refuse,
-                check_row=check_row,
-            )
-            # The loop's hot path is the queue's own append, without a Python frame of ours
-            # (the methods of the same name below do the same, one frame slower).
-            self.write_env_step_row = self._queue.step  # type: ignore[method-assign]
-            self.write_invocation_row = self._queue.call  # type: ignore[method-assign]
-            self._file.flush()
+                schema = json.dumps(cls.SCHEMA).encode()
+                schema_id = self._mcap.register_schema(cls.SCHEMA_NAME, SCHEMA_ENCODING, schema)
+                self._channels[topic] = self._mcap.register_channel(topic, MESSAGE_ENCODING, schema_id)
+            self._sequences = dict.fromkeys(self._channels.values(), 0)
+            self._mcap.flush()
             if fsync_on_flush:
                 os.fsync(self._file.fileno())
         except OSError as exc:
             self._file.close()
             raise Unavailable(f"cannot write trace file {self.path}: {exc.strerror or exc}") from None
-        self._flushed_at(time.monotonic())
+        self._last_flush = time.monotonic()
+        self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
         if background_flush:
             self._thread = threading.Thread(target=self._flush_loop, name=f"trace-flush:{self.path.name}", daemon=True)
@@ -255,155 +215,79 @@ class TraceWriter:
         if self._closed or self._error is not None:
             raise self._error or Conflict(f"trace writer for {self.path} is closed")
 
-    def _refuse(self, method: str) -> None:
-        """The queue's callback for an append to a closed or failed writer: raise why."""
-        self._check_open()
-        raise Conflict(f"trace writer for {self.path} refuses {method}")  # pragma: no cover - closed implies raised
-
     def _fail(self, error: CapevoError) -> CapevoError:
         """Record the error that ends this writer; every later write raises it."""
         self._error = error
-        self._queue.closed = True
         return error
 
-    def _flushed_at(self, monotonic: float) -> None:
-        self._last_flush = monotonic
-        self._queue.flushed_ns = int(monotonic * 1e9)
-        self._arm_deadline()
-
-    def _arm_deadline(self) -> None:
-        # The queue calls back at the next timed flush, or at the next write when a record the
-        # background thread encoded failed: that write raises it.
-        due = 1 if self._undelivered is not None else int((self._last_flush + self.flush_interval_s) * 1e9)
-        self._queue.deadline_ns = due
-
-    def _on_full(self) -> None:
-        """The queue's callback when a batch is full or a timed flush is due."""
+    def _write(self, record: TraceRecord, expected: type[Any], method: str) -> None:
+        now = time.time_ns()
+        check_record(record, expected, method)
         with self._lock:
-            if self._closed or self._error is not None:
-                return  # close() encodes what is left; a failed writer refuses the next write
+            self._check_open()
+            self._kept.append((self._channels[expected.TOPIC], now, record))
+            self._messages += 1
+            self._waiting = True
             try:
-                due = time.monotonic() - self._last_flush >= self.flush_interval_s
-                try:
-                    self._encode_pending_locked()
-                finally:
-                    if due:
-                        self._flush_locked(self.fsync_on_flush)
+                if time.monotonic() - self._last_flush >= self.flush_interval_s:
+                    self._flush_locked(self.fsync_on_flush)
+                elif len(self._kept) >= KEPT_RECORDS:
+                    self._encode_kept_locked()
             except OSError as exc:
                 raise self._fail(Unavailable(f"writing trace file {self.path} failed: {exc.strerror or exc}")) from None
-            self._raise_undelivered()
-
-    def _encode_pending_locked(self) -> None:
-        if len(self._queue) == 0:
-            return
-        native = self._frame_batch is not None
-        failed = self._frame_natively() if native else self._frame_in_python(self._queue.take())
-        self._queue.dirty = True
-        if failed is not None:
-            raise failed
-
-    def _frame_natively(self, pending: list[Entry] | None = None) -> Invalid | None:
-        """Frame ``pending`` (entries as ``take()`` gives them), or the queue's own entries, which
-        the C framer takes itself (``take()`` would build a tuple per entry)."""
-        source = self._queue if pending is None else pending
-
-        def frame(chunk: bytearray, index: dict[int, bytearray]) -> tuple[Any, ...]:
-            args = (source, self._step_channel, self._sequences, self._encoder.name_json, self._payload)
-            return self._frame_batch(chunk, index, *args)  # type: ignore[no-any-return, misc]
-
-        count, _, _, failed = self._mcap.add_framed(frame)
-        self._messages += count
-        return failed  # type: ignore[no-any-return]
-
-    def _payload(self, entry: Entry) -> bytes | Invalid:
-        """An entry's payload where the C framer does not splice it: a record's, or a row's
-        through its record (frame.c's fallback); the :class:`Invalid` that drops it."""
-        channel_id, encode, item, _ = entry
-        if encode is None:
-            return self._encoder.record_path(channel_id == self._step_channel, item)
-        try:
-            return encode(item)
-        except Invalid as exc:
-            return exc
-
-    def _frame_in_python(self, pending: list[Entry]) -> Invalid | None:
-        """What the C framer (csrc/frame.c) does, in Python: its specification."""
-        sequences = self._sequences
-        failed: Invalid | None = None
-        step_channel = self._step_channel
-        rows = [(channel_id == step_channel, item) for channel_id, encode, item, _ in pending if encode is None]
-        row_payloads = iter(self._encoder.rows(rows) if rows else ())
-        messages: list[tuple[int, int, int, bytes]] = []
-        for channel_id, encode, record, now in pending:
-            try:
-                payload = next(row_payloads) if encode is None else encode(record)
-            except Invalid as exc:
-                failed = failed or exc
-                continue
-            if type(payload) is not bytes:  # a row's Invalid, in its place
-                failed = failed or payload
-                continue
-            sequence = sequences[channel_id]
-            sequences[channel_id] = (sequence + 1) % _SEQUENCE_MOD
-            messages.append((channel_id, now, sequence, payload))
-        self._mcap.add_messages(messages)
-        self._messages += len(messages)
-        return failed
-
-    def _raise_undelivered(self) -> None:
-        failed, self._undelivered = self._undelivered, None
-        if failed is not None:
-            self._arm_deadline()
-            raise failed
+            self._deliver_locked()
 
     def write_plan_step(self, record: PlanStep) -> None:
         """Append a plan step to ``/plan``."""
-        check_record(record, PlanStep, "write_plan_step")
-        self._queue.record(self._channels[PlanStep.TOPIC], self._encoder.encode, record, "write_plan_step")
+        self._write(record, PlanStep, "write_plan_step")
 
     def write_invocation(self, record: EcmInvocation) -> None:
         """Append an ECM invocation to ``/ecm/invocation``."""
-        if type(record) is not EcmInvocation:
-            check_record(record, EcmInvocation, "write_invocation")
-        self._queue.record(self._channels[EcmInvocation.TOPIC], self._encoder.invocation, record, "write_invocation")
+        self._write(record, EcmInvocation, "write_invocation")
 
     def write_intervention(self, record: Intervention) -> None:
         """Append a governance intervention to ``/governance/intervention``."""
-        check_record(record, Intervention, "write_intervention")
-        self._queue.record(self._channels[Intervention.TOPIC], self._encoder.encode, record, "write_intervention")
+        self._write(record, Intervention, "write_intervention")
 
     def write_env_step(self, record: EnvStep) -> None:
-        """Append an env step to ``/env/step`` (the hot path: one call per control step)."""
-        if type(record) is not EnvStep:
-            check_record(record, EnvStep, "write_env_step")
-        self._queue.record(self._step_channel, self._encoder.env_step, record, "write_env_step")
-
-    def write_env_step_row(self, row: EnvStepRow) -> None:
-        """Append an env step given as a row (:mod:`~capevo.runtime.traces.rows`) to ``/env/step``:
-        the episode loop's hot path. The same message as ``write_env_step(env_step_of(row))``."""
-        self._queue.step(row)
-
-    def write_invocation_row(self, row: InvocationRow) -> None:
-        """Append an ECM invocation given as a row to ``/ecm/invocation``; the same message as
-        ``write_invocation(invocation_of(row))``."""
-        self._queue.call(row)
+        """Append an env step to ``/env/step``."""
+        self._write(record, EnvStep, "write_env_step")
 
     def write_episode_summary(self, record: EpisodeSummary) -> None:
         """Append an episode summary to ``/episode/summary`` and flush: episodes are the unit
         learners consume, so a finished episode should not wait for the timer."""
-        check_record(record, EpisodeSummary, "write_episode_summary")
-        self._queue.record(self._channels[EpisodeSummary.TOPIC], self._encoder.encode, record, "write_episode_summary")
+        self._write(record, EpisodeSummary, "write_episode_summary")
         self.flush()
 
     # -- flushing --------------------------------------------------------------------------
 
+    def _encode_kept_locked(self) -> None:
+        """Encode the kept records into the mcap Writer, in write order; one that does not encode
+        is dropped, its :class:`Invalid` kept for the owner's next call (:meth:`_deliver_locked`)."""
+        kept, self._kept = self._kept, []
+        for channel, now, record in kept:
+            try:
+                payload = codec.encode(record)
+            except Invalid as exc:
+                self._messages -= 1
+                self._undelivered = self._undelivered or exc
+                continue
+            sequence = self._sequences[channel]
+            self._sequences[channel] = (sequence + 1) % _SEQUENCE_MOD
+            self._mcap.add_message(channel, now, payload, now, sequence)
+
+    def _deliver_locked(self) -> None:
+        failed, self._undelivered = self._undelivered, None
+        if failed is not None:
+            raise failed
+
     def _flush_locked(self, fsync: bool) -> None:
-        # Callers encode the kept records first; a chunk is finished whatever they raised.
+        self._encode_kept_locked()
         self._mcap.flush()
         if fsync:
             os.fsync(self._file.fileno())
-        self._flushed_at(time.monotonic())
-        self._queue.dirty = False
+        self._last_flush = time.monotonic()
+        self._waiting = False
         self._flushes += 1
 
     def flush(self, *, fsync: bool | None = None) -> None:
@@ -415,35 +299,26 @@ class TraceWriter:
         Raises:
             Conflict: the writer is closed.
             Unavailable: the OS refused the write.
+            Invalid: a record written since the last such error did not encode (it is left out).
         """
         with self._lock:
             self._check_open()
             try:
-                try:
-                    self._encode_pending_locked()
-                finally:
-                    self._flush_locked(self.fsync_on_flush if fsync is None else fsync)
+                self._flush_locked(self.fsync_on_flush if fsync is None else fsync)
             except OSError as exc:
                 failure = Unavailable(f"flushing trace file {self.path} failed: {exc.strerror or exc}")
                 raise self._fail(failure) from None
-            self._raise_undelivered()
+            self._deliver_locked()
 
     def _flush_loop(self) -> None:
-        # The queue's wait_due sleeps, without the GIL, until a grace (a quarter of the interval)
-        # after the flush is due while records wait: a busy writer, whose own writes flush at the
-        # deadline, is never disturbed; an idle one's last records are flushed here.
-        interval_ns = int(self.flush_interval_s * 1e9)
-        while self._queue.wait_due(interval_ns, interval_ns // 4):
+        # Wakes four times an interval; a busy writer's own writes flush at the deadline, so
+        # here only an idle writer's last records are flushed.
+        while not self._stopping.wait(self.flush_interval_s / 4):
             with self._lock:
                 if self._closed or self._error is not None:
                     return
-                kept = self._queue.dirty or len(self._queue) > 0
-                if kept and time.monotonic() - self._last_flush >= self.flush_interval_s:
+                if self._waiting and time.monotonic() - self._last_flush >= self.flush_interval_s:
                     try:
-                        try:
-                            self._encode_pending_locked()
-                        except Invalid as exc:
-                            self._undelivered = self._undelivered or exc
                         self._flush_locked(self.fsync_on_flush)
                     except OSError as exc:
                         # Surfaces on the next write/flush/close of the owning thread.
@@ -460,21 +335,17 @@ class TraceWriter:
                 and may need :func:`~capevo.runtime.traces.recover`.
             Invalid: a kept record did not encode; it is left out and the file is finished.
         """
-        self._queue.stop()
+        self._stopping.set()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join()
         with self._lock:
             if self._closed:
                 return
             self._closed = True
-            self._queue.closed = True
             error: CapevoError | None = self._error
             try:
                 if error is None:
-                    try:
-                        self._encode_pending_locked()
-                    except Invalid as exc:
-                        error = exc
+                    self._encode_kept_locked()
                     self._mcap.finish()
                     self._file.flush()
                     if self.fsync_on_flush:

@@ -1,6 +1,6 @@
 """Child process for the SIGKILL tests: writes env steps until the parent kills it.
 
-Usage: python _crash_child.py PATH MODE FLUSH_INTERVAL_S N BATCH
+Usage: python _crash_child.py PATH MODE FLUSH_INTERVAL_S N
 
 Modes (each reports on stdout, one line per report, and never exits by itself):
 - ``explicit``: write N steps, call ``flush()``, print N, keep writing.
@@ -18,7 +18,7 @@ from capevo.runtime.traces import EnvStep, TraceMetadata, TraceWriter
 
 
 def main() -> None:
-    path, mode, interval, n, batch = sys.argv[1], sys.argv[2], float(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
+    path, mode, interval, n = sys.argv[1], sys.argv[2], float(sys.argv[3]), int(sys.argv[4])
     meta = TraceMetadata(
         run_id="crash",
         task="Lift",
@@ -28,7 +28,7 @@ def main() -> None:
         seeds=(0,),
     )
     # A huge chunk_size: only the time-based or explicit flush may put data on disk.
-    w = TraceWriter(path, meta, chunk_size=1 << 30, flush_interval_s=interval, batch=batch)
+    w = TraceWriter(path, meta, chunk_size=1 << 30, flush_interval_s=interval)
 
     def step(i: int) -> None:
         w.write_env_step(

@@ -19,19 +19,13 @@ from mcap.reader import make_reader
 
 from capevo.runtime.traces import EnvStep, TraceReader, recover
 from capevo.runtime.traces.scan import has_footer
-from capevo.runtime.traces.writer import RUNTIME_BATCH
 
 CHILD = Path(__file__).with_name("_crash_child.py")
 
 
-# Each crash test runs with records encoded at once and with the runtime's batching, where
-# records wait unencoded for their batch or the timer.
-BATCHES = pytest.mark.parametrize("batch", [1, RUNTIME_BATCH], ids=["unbatched", "batched"])
-
-
-def start_child(path: Path, mode: str, interval: float, n: int = 0, batch: int = 1) -> subprocess.Popen[str]:
+def start_child(path: Path, mode: str, interval: float, n: int = 0) -> subprocess.Popen[str]:
     return subprocess.Popen(
-        [sys.executable, str(CHILD), str(path), mode, str(interval), str(n), str(batch)],
+        [sys.executable, str(CHILD), str(path), mode, str(interval), str(n)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -72,10 +66,9 @@ def recovered_steps(src: Path, tmp_path: Path) -> list[int]:
 
 
 @pytest.mark.timeout(60)
-@BATCHES
-def test_sigkill_after_explicit_flush_loses_nothing_flushed(tmp_path: Path, batch: int) -> None:
+def test_sigkill_after_explicit_flush_loses_nothing_flushed(tmp_path: Path) -> None:
     path = tmp_path / "run.mcap"
-    child = start_child(path, "explicit", interval=3600.0, n=300, batch=batch)
+    child = start_child(path, "explicit", interval=3600.0, n=300)
     try:
         flushed = int(read_line(child))
     finally:
@@ -85,11 +78,10 @@ def test_sigkill_after_explicit_flush_loses_nothing_flushed(tmp_path: Path, batc
 
 
 @pytest.mark.timeout(60)
-@BATCHES
-def test_sigkill_of_an_idle_writer_keeps_what_the_timer_flushed(tmp_path: Path, batch: int) -> None:
+def test_sigkill_of_an_idle_writer_keeps_what_the_timer_flushed(tmp_path: Path) -> None:
     # Nothing writes after the report: only the background flush can put the steps on disk.
     path = tmp_path / "run.mcap"
-    child = start_child(path, "idle", interval=0.3, n=120, batch=batch)
+    child = start_child(path, "idle", interval=0.3, n=120)
     try:
         written = int(read_line(child))
         deadline = time.monotonic() + 20
@@ -101,13 +93,12 @@ def test_sigkill_of_an_idle_writer_keeps_what_the_timer_flushed(tmp_path: Path, 
 
 
 @pytest.mark.timeout(60)
-@BATCHES
-def test_sigkill_mid_run_loses_at_most_the_last_interval(tmp_path: Path, batch: int) -> None:
+def test_sigkill_mid_run_loses_at_most_the_last_interval(tmp_path: Path) -> None:
     # The child reports (count, its own monotonic clock). Every step written more than
     # 2 x interval before the child's last report must survive the kill.
     interval = 0.5
     path = tmp_path / "run.mcap"
-    child = start_child(path, "continuous", interval=interval, batch=batch)
+    child = start_child(path, "continuous", interval=interval)
     reports: list[tuple[int, float]] = []
     try:
         while True:

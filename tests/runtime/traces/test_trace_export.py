@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _trace_helpers import make_env_step, make_metadata, one_of_each, write_records, write_trace
+from _trace_helpers import make_env_step, make_metadata, one_of_each, same_floats, write_records, write_trace
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -24,6 +24,7 @@ from capevo.runtime.traces import (
     parse_episodes,
     summarize,
 )
+from capevo.runtime.traces.export import format_vector
 
 
 def episode(ep: int, n: int, *, ecm: str = "reach", obs_dim: int = 5) -> list[EnvStep]:
@@ -257,3 +258,12 @@ def test_summary_json_has_no_nan(tmp_path: Path) -> None:
     path = write_trace(tmp_path / "run.mcap", [bad])
     text = json.dumps(summarize(path).to_dict(), allow_nan=False)
     assert '"total_reward": null' in text
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(width=32), max_size=40))
+def test_format_vector_names_each_float32_uniquely(values: list[float]) -> None:
+    parsed = json.loads(f"[{format_vector(values)}]", parse_constant=lambda c: pytest.fail(c))
+    expected = [v if math.isfinite(v) else float("nan") for v in values]
+    got = [float("nan") if v is None else float(np.float32(v)) for v in parsed]
+    assert same_floats(got, expected)

@@ -15,7 +15,6 @@ from mcap.reader import make_reader
 from capevo.errors import Conflict, Corrupt, ErrorCode, Invalid
 from capevo.runtime.traces import (
     EnvStep,
-    EpisodeSummary,
     MemoryTraceSink,
     PlanStep,
     TraceReader,
@@ -25,9 +24,6 @@ from capevo.runtime.traces import (
 )
 from capevo.runtime.traces.records import MESSAGE_ENCODING, SCHEMA_ENCODING
 from capevo.runtime.traces.scan import McapScan, has_footer
-
-# Every test here runs with the writer's C parts and with their Python versions (conftest.py).
-pytestmark = pytest.mark.usefixtures("writer_parts")
 
 
 def test_round_trip_of_every_record_type(tmp_path: Path) -> None:
@@ -98,9 +94,9 @@ def test_compressions_and_small_chunks(tmp_path: Path, compression: str) -> None
     assert list(TraceReader(path).env_steps()) == steps
 
 
-def test_header_metadata_and_channels_are_on_disk_at_once(tmp_path: Path) -> None:
+def test_header_and_metadata_are_on_disk_at_once_and_channels_with_the_first_chunk(tmp_path: Path) -> None:
     # Writer invariant 1.
-    from mcap.records import Channel, Schema
+    from mcap.records import Channel, Header, Schema
 
     path = tmp_path / "run.mcap"
     w = TraceWriter(path, make_metadata(), background_flush=False)
@@ -108,6 +104,9 @@ def test_header_metadata_and_channels_are_on_disk_at_once(tmp_path: Path) -> Non
         reader = TraceReader(path, allow_incomplete=True)
         assert reader.metadata() == make_metadata()
         assert not reader.complete
+        assert isinstance(next(iter(McapScan(path))), Header)
+        w.write_env_step(make_env_step())
+        w.flush()
         records = list(McapScan(path))
         assert sorted(r.topic for r in records if isinstance(r, Channel)) == sorted(topics())
         assert all(r.encoding == "jsonschema" for r in records if isinstance(r, Schema))
@@ -219,8 +218,6 @@ def test_wrong_record_type_is_invalid(tmp_path: Path) -> None:
         ({"chunk_size": 1.5}, "chunk_size must be a positive integer"),
         ({"flush_interval_s": 0}, "flush_interval_s must be a positive number"),
         ({"compression": "brotli"}, "unknown trace compression 'brotli'; valid: lz4, zstd, none"),
-        ({"batch": 0}, "batch must be a positive integer"),
-        ({"batch": True}, "batch must be a positive integer"),
     ],
 )
 def test_bad_writer_config_is_invalid(tmp_path: Path, kw: dict[str, object], text: str) -> None:
@@ -316,70 +313,91 @@ def test_memory_sink_rejects_what_the_writer_rejects(tmp_path: Path) -> None:
     # Sink invariant 1: same errors as the real writer.
     import dataclasses
 
+    # The writer refuses a record that does not encode when it encodes it (at the latest, the
+    # next flush); the sink at once.
     bad = dataclasses.replace(make_env_step(), obs=("x",))  # type: ignore[arg-type]
     sink = MemoryTraceSink()
-    with TraceWriter(tmp_path / "run.mcap", make_metadata()) as w:
+    path = tmp_path / "run.mcap"
+    with TraceWriter(path, make_metadata()) as w:
         for target in (sink, w):
             with pytest.raises(Invalid) as exc:
                 target.write_env_step(bad)
+                target.flush()
             assert "EnvStep does not encode as JSON" in exc.value.message
             with pytest.raises(Invalid) as exc:
                 target.write_episode_summary(make_env_step())  # type: ignore[arg-type]
             assert exc.value.message == "write_episode_summary takes a EpisodeSummary, got EnvStep"
-    assert sink.records == []
+    assert sink.records == [] and list(TraceReader(path).records()) == []
     sink.close()
     with pytest.raises(Conflict) as exc:
         sink.write_plan_step(PlanStep(episode=0, step=0, ecm="a", version=1))
     assert exc.value.code is ErrorCode.CONFLICT
 
 
-# -- batching (writer invariant 4 with batch > 1) ---------------------------------------------
+# -- writer invariant 4 ----------------------------------------------------------------------
 
 
-def test_batched_records_keep_order_write_times_and_sequences(tmp_path: Path) -> None:
+def test_records_keep_order_write_times_and_sequences(tmp_path: Path) -> None:
     records = one_of_each(0) + one_of_each(1)
-    kept = [r for r in records if not isinstance(r, EpisodeSummary)]  # a summary flushes
     windows: list[tuple[int, int]] = []
     path = tmp_path / "run.mcap"
-    with TraceWriter(path, make_metadata(), batch=64, background_flush=False, flush_interval_s=3600) as w:
-        for r in kept:
+    with TraceWriter(path, make_metadata(), background_flush=False, flush_interval_s=3600) as w:
+        for r in records:
             before = time.time_ns()
             write_records(w, [r])
             windows.append((before, time.time_ns()))
             time.sleep(0.002)
-        assert w.messages_written == 0  # all kept, none encoded yet
-        w.flush()
-        assert w.messages_written == len(kept)
-    assert list(TraceReader(path).records()) == kept
+        assert w.messages_written == len(records)
+    assert list(TraceReader(path).records()) == records
     with path.open("rb") as f:
         messages = [
             (m.log_time, m.channel_id, m.sequence) for _, _, m in make_reader(f).iter_messages(log_time_order=False)
         ]
     for (log_time, _, _), (before, after) in zip(messages, windows, strict=True):
-        assert before <= log_time <= after  # stamped by the write call, not by the encoding
+        assert before <= log_time <= after  # stamped by the write call
     by_channel: dict[int, list[int]] = {}
     for _, channel, sequence in messages:
         by_channel.setdefault(channel, []).append(sequence)
     assert all(seqs == list(range(len(seqs))) for seqs in by_channel.values())
 
 
-def test_a_bad_record_in_a_batch_is_dropped_by_the_call_that_encodes_it(tmp_path: Path) -> None:
+def test_a_record_that_does_not_encode_is_left_out_by_the_call_that_encodes_it(tmp_path: Path) -> None:
     bad = dataclasses.replace(make_env_step(0, 1), obs=("x",))  # type: ignore[arg-type]
     path = tmp_path / "run.mcap"
-    with TraceWriter(path, make_metadata(), batch=3, background_flush=False) as w:
+    with TraceWriter(path, make_metadata(), background_flush=False, flush_interval_s=3600) as w:
         w.write_env_step(make_env_step(0, 0))
-        w.write_env_step(bad)  # kept: its batch is not full
+        w.write_env_step(bad)  # kept, not yet encoded
+        w.write_env_step(make_env_step(0, 2))
+        assert w.messages_written == 3
         with pytest.raises(Invalid, match="EnvStep does not encode as JSON"):
-            w.write_env_step(make_env_step(0, 2))
-        assert w.messages_written == 2
-        w.write_env_step(make_env_step(0, 3))
-    assert [s.step for s in TraceReader(path).env_steps()] == [0, 2, 3]
+            w.flush()
+        assert w.messages_written == 2 and count_messages(path) == 2  # the others are in the file
+        w.flush()  # raised once
+    assert [s.step for s in TraceReader(path).env_steps()] == [0, 2]
+    with path.open("rb") as f:
+        sequences = [m.sequence for _, _, m in make_reader(f).iter_messages(log_time_order=False)]
+    assert sequences == [0, 1]  # the refused record took no sequence number
+
+
+def test_a_full_batch_of_kept_records_is_encoded_by_the_write_that_fills_it(tmp_path: Path) -> None:
+    from capevo.runtime.traces.writer import KEPT_RECORDS
+
+    bad = dataclasses.replace(make_env_step(0, 0), obs=("x",))  # type: ignore[arg-type]
+    path = tmp_path / "run.mcap"
+    with TraceWriter(path, make_metadata(), background_flush=False, flush_interval_s=3600) as w:
+        w.write_env_step(bad)
+        for i in range(1, KEPT_RECORDS - 1):
+            w.write_env_step(make_env_step(0, i, obs_dim=2))
+        with pytest.raises(Invalid, match="EnvStep does not encode as JSON"):
+            w.write_env_step(make_env_step(0, KEPT_RECORDS - 1, obs_dim=2))
+        assert w.messages_written == KEPT_RECORDS - 1
+    assert [s.step for s in TraceReader(path).env_steps()] == list(range(1, KEPT_RECORDS))
 
 
 def test_close_finishes_the_file_before_raising_for_a_kept_bad_record(tmp_path: Path) -> None:
     bad = dataclasses.replace(make_env_step(0, 1), next_obs=(None,))  # type: ignore[arg-type]
     path = tmp_path / "run.mcap"
-    w = TraceWriter(path, make_metadata(), batch=64, background_flush=False)
+    w = TraceWriter(path, make_metadata(), background_flush=False)
     w.write_env_step(make_env_step(0, 0))
     w.write_env_step(bad)
     with pytest.raises(Invalid, match="EnvStep does not encode as JSON"):
@@ -390,10 +408,10 @@ def test_close_finishes_the_file_before_raising_for_a_kept_bad_record(tmp_path: 
 
 
 def test_the_background_thread_encodes_an_idle_writers_records(tmp_path: Path) -> None:
-    # An idle batched writer's kept records reach the file by the timer; a bad one among them
-    # is reported by the owner's next call.
+    # An idle writer's kept records reach the file by the timer; a bad one among them is
+    # reported by the owner's next call.
     path = tmp_path / "run.mcap"
-    with TraceWriter(path, make_metadata(), batch=64, flush_interval_s=0.1) as w:
+    with TraceWriter(path, make_metadata(), flush_interval_s=0.1) as w:
         for i in range(5):
             w.write_env_step(make_env_step(0, i))
         w.write_env_step(dataclasses.replace(make_env_step(0, 5), action=("x",)))  # type: ignore[arg-type]
@@ -414,14 +432,13 @@ def test_a_write_the_os_refuses_ends_the_writer_with_unavailable(tmp_path: Path)
 
     from capevo.errors import Unavailable
 
-    w = TraceWriter(tmp_path / "run.mcap", make_metadata(), batch=2, flush_interval_s=3600, background_flush=False)
+    w = TraceWriter(tmp_path / "run.mcap", make_metadata(), flush_interval_s=3600, background_flush=False)
     w.write_env_step(make_env_step(0, 0))
     os.close(w._file.fileno())
     with pytest.raises(Unavailable, match="failed") as first:
-        w.write_env_step(make_env_step(0, 1))  # fills the batch; the chunk is small, so flush
         w.flush()
     with pytest.raises(Unavailable) as later:
-        w.write_env_step_row((0, 2, "reach", 1, (), (), 0.0, (), False, False, False, ()))
+        w.write_env_step(make_env_step(0, 1))
     assert later.value is first.value
     with pytest.raises(Unavailable):
         w.close()
