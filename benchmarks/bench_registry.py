@@ -59,7 +59,8 @@ MIB = 1 << 20
 TARGETS = {"resolve_p50_ms": 0.5, "resolve_p99_ms": 2.0, "promote_p50_ms": 5.0}
 
 
-def start_server(root: Path, port: int) -> tuple[subprocess.Popen[str], str]:
+def start_server(root: Path, port: int, *, config: Path | None = None) -> tuple[subprocess.Popen[str], str]:
+    """``capevo registry serve`` on loopback ``port`` (users and roles from ``config``, if given)."""
     endpoint = f"tcp/127.0.0.1:{port}"
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     proc = subprocess.Popen(
@@ -77,6 +78,7 @@ def start_server(root: Path, port: int) -> tuple[subprocess.Popen[str], str]:
             "--json",
             "--log-level",
             "WARNING",
+            *(["--config", str(config)] if config is not None else []),
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,

@@ -462,6 +462,42 @@ class VerifyReport:
         )
 
 
+class Auth(str, enum.Enum):
+    """How the registry knows who made a change; kept in the audit event as ``data["auth"]``.
+
+    An event without ``auth`` was made in-process (:class:`~capevo.registry.LocalRegistry`),
+    on the word of whoever could open the registry directory.
+    """
+
+    USER = "user"
+    """``actor`` is the user Zenoh authenticated (usrpwd) on a secured registry."""
+    OPEN = "open"
+    """``actor`` is the name a client of an open registry claimed; nothing checked it."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Attribution:
+    """Who one mutation is recorded against (``actor``, ``created_by``), and how that is known.
+
+    ``on_behalf_of`` is a name an operator gave for the change (a gate, a monitor), kept
+    beside the authenticated ``actor`` and never instead of it. Both extras go into the
+    audit event's ``data``, so events written before they existed hash and verify unchanged.
+    """
+
+    actor: str
+    auth: Auth | None = None
+    on_behalf_of: str | None = None
+
+    def audit_data(self) -> dict[str, str]:
+        """The entries this attribution adds to its audit event's ``data``."""
+        out: dict[str, str] = {}
+        if self.auth is not None:
+            out["auth"] = self.auth.value
+        if self.on_behalf_of is not None:
+            out["on_behalf_of"] = self.on_behalf_of
+        return out
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Mutation:
     """What one committed mutation produced: the record after the change and its audit event."""

@@ -25,9 +25,11 @@ class Registry(Protocol):
 
     ``version=None`` in reads means the active version. Mutations return the record as it
     is after the change; ``actor`` names who made it in the audit history (the
-    implementation's default actor when None). Over Zenoh the actor is self-declared:
-    authorisation is by Zenoh user, which access control enforces. Every method raises only
-    :class:`capevo.errors.CapevoError` subclasses.
+    implementation's default actor when None). On a secured Zenoh registry the recorded actor
+    is the Zenoh-authenticated user whatever ``actor`` says; an operator's differing
+    ``actor`` is kept beside it as ``on_behalf_of``, anyone else's is dropped. On an open
+    registry ``actor`` is recorded as claimed, marked ``auth: open``. Every method raises
+    only :class:`capevo.errors.CapevoError` subclasses.
     """
 
     def list_ecms(self) -> list[EcmSummary]: ...

@@ -105,8 +105,10 @@ class Client:
         namespace: Key prefix the registry serves.
         user, password: Zenoh usrpwd credentials; both or neither.
         timeout: Seconds to wait for a reply (publishes get extra time per MB).
-        actor: Recorded in the audit log for this client's mutations unless a call passes
-            ``actor=``; defaults to ``user`` or the OS user.
+        actor: Sent with this client's mutations unless a call passes ``actor=``; defaults
+            to ``user`` or the OS user. A secured registry records ``user`` as the actor
+            whatever this says (an operator's differing actor is kept as ``on_behalf_of``);
+            an open one records it as claimed.
         artifact_timeout: Seconds to wait for an artifact download.
 
     Raises:
@@ -226,9 +228,15 @@ class Client:
         sample = self._query(key, parameters=params or None)
         return decode_reply(sample.payload.to_bytes(), build, what=what)
 
+    def _cmd_key(self, op: str) -> str:
+        # A secured registry serves commands only on this user's own key, which its access
+        # control grants to this user alone; that is how it knows who asked.
+        secured = self._user is not None and self.info().get("secured") is True
+        return self._keys.cmd(op, self._user if secured else None)
+
     def _command(self, op: str, **fields: Any) -> EcmVersion:
         body = encode_command(op, **fields)
-        sample = self._query(self._keys.cmd(op), payload=body)
+        sample = self._query(self._cmd_key(op), payload=body)
         return decode_reply(sample.payload.to_bytes(), EcmVersion.from_dict, what=op)
 
     # --- registry info and liveliness -------------------------------------------------
@@ -326,7 +334,7 @@ class Client:
             )
         header = encode_command("publish", name=name, spec=spec, actor=self._who(actor))
         sample = self._query(
-            self._keys.cmd("publish"),
+            self._cmd_key("publish"),
             payload=data,
             attachment=header,
             timeout=self._timeout + len(data) * SECONDS_PER_BYTE,

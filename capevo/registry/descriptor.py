@@ -19,6 +19,8 @@ Invariants:
 2. Every rejection is an :class:`Invalid` whose message starts with the dotted path of the
    offending field (``interface.inputs[0].shape``) and whose ``details["field"]`` is that path.
 3. Parsing never raises anything but :class:`Invalid` for any input text.
+4. Integers are JSON integers: ``parent: 1.0`` or ``shape: [3.0]`` is refused, as is any
+   string holding a lone UTF-16 surrogate.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from capevo.records import (
     Provenance,
     PublishSpec,
 )
+from capevo.records.text import check_unicode
 
 MAX_DESCRIPTOR_BYTES = 256 * 1024
 
@@ -112,7 +115,12 @@ SCHEMA: Mapping[str, Any] = {
         },
     },
 }
-_VALIDATOR = jsonschema.Draft202012Validator(SCHEMA)
+# JSON Schema counts 1.0 as an integer; a version or a shape written 1.0 is not canonical and is
+# refused like a key chunk "01" (see capevo.registry.keys), never silently truncated.
+_STRICT_TYPES = jsonschema.Draft202012Validator.TYPE_CHECKER.redefine(
+    "integer", lambda _checker, value: isinstance(value, int) and not isinstance(value, bool)
+)
+_VALIDATOR = jsonschema.validators.extend(jsonschema.Draft202012Validator, type_checker=_STRICT_TYPES)(SCHEMA)
 
 
 def _path(parts: Any) -> str:
@@ -130,6 +138,8 @@ def validate_document(doc: object) -> dict[str, Any]:
     """
     if not isinstance(doc, dict):
         raise Invalid("<document>: a descriptor must be a mapping", details={"field": "<document>"})
+    for key, value in doc.items():
+        check_unicode(value, str(key) if isinstance(key, str) else "<key>")
     errors = sorted(_VALIDATOR.iter_errors(doc), key=lambda e: (len(e.absolute_path), list(map(str, e.absolute_path))))
     if errors:
         err = jsonschema.exceptions.best_match(errors) or errors[0]
@@ -175,8 +185,7 @@ def spec_from_document(doc: object) -> PublishSpec:
         ),
         interface=Interface.from_dict(d.get("interface") or {}),
         media_type=d.get("media_type"),
-        # JSON Schema counts 1.0 as an integer; the record must hold a real int.
-        parent=int(d["parent"]) if d.get("parent") is not None else None,
+        parent=d.get("parent"),
         origin=Origin(d.get("origin", Origin.MANUAL.value)),
         provenance=Provenance.from_dict(d.get("provenance")),
     )

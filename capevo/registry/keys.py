@@ -13,18 +13,24 @@ Key space, under a namespace ``<ns>`` (default ``capevo``)::
     <ns>/set[?revision=R]             CapabilitySet (now, or at revision R)
     <ns>/verify                       VerifyReport (read-only integrity check)
     <ns>/info                         limits and settings a client needs (JSON object)
-    <ns>/cmd/<op>                     mutations: publish promote rollback deprecate reject gate
+    <ns>/cmd/<op>                     mutations of an open registry: publish promote rollback
+                                      deprecate reject gate
+    <ns>/cmd/<op>/@<user>             mutations of a secured registry, by Zenoh-authenticated <user>
     <ns>/events/<name>                committed changes, published after each commit
     <ns>/alive/registry               liveliness token of a running registry
 
 Invariants:
 1. ``parse_read_key(ns, build(...))`` returns the route the builder meant, for every
    builder in :class:`Keys` that addresses a queryable.
-2. ``parse_read_key`` and ``parse_cmd_key`` raise only :class:`Invalid`; a key with a
+2. ``parse_read_key`` and ``parse_cmd`` raise only :class:`Invalid`; a key with a
    wildcard, a bad ECM name, a non-canonical version number or an unknown word is refused,
    never guessed at.
 3. Every key :class:`Keys` builds is a valid, wildcard-free Zenoh key expression (except
    ``events("*")``, the one deliberate wildcard for subscribers).
+4. ``parse_cmd(build.cmd(op, user)) == CommandRoute(op=op, user=user)``. The user chunk is
+   a Zenoh *verbatim* chunk (``@<user>``): no wildcard (``*``, ``**``) in a query, a
+   queryable or an access-control rule ever matches it, so only a rule naming that exact
+   user grants it, and a name or an ECM can never be mistaken for it.
 """
 
 from __future__ import annotations
@@ -40,12 +46,29 @@ NAMESPACE_PATTERN = re.compile(r"[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*")
 MAX_NAMESPACE_LENGTH = 128
 # 18 digits keeps a version inside a signed 64-bit SQLite integer.
 MAX_VERSION_DIGITS = 18
+# What a registry user may be called; Zenoh's usrpwd dictionary splits its lines at ':'.
+USER_PATTERN = re.compile(r"[A-Za-z0-9._@-]{1,64}")
+USER_CHUNK_PREFIX = "@"
 
 COMMANDS: tuple[str, ...] = ("publish", "promote", "rollback", "deprecate", "reject", "gate")
 READ_ENDPOINTS: tuple[str, ...] = ("list", "ecm", "version", "artifact", "history", "set", "verify", "info")
 ACTIVE = "active"
 ARTIFACT = "artifact"
 HISTORY = "history"
+
+
+def validate_user(user: object, field: str = "user") -> str:
+    """Return ``user`` if it is a valid registry user name (1-64 of letters, digits, ``._@-``).
+
+    Raises:
+        Invalid: naming ``field``.
+    """
+    if not isinstance(user, str) or not USER_PATTERN.fullmatch(user):
+        raise Invalid(
+            f"{field}: user name must be 1-64 of letters, digits, '.', '_', '@', '-', got {user!r}",
+            details={"field": field},
+        )
+    return user
 
 
 def validate_namespace(namespace: object) -> str:
@@ -77,6 +100,17 @@ class Route:
     endpoint: str
     name: str | None = None
     version: int | None = None
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CommandRoute:
+    """What a command key names: the command and, on a secured registry, who sent it.
+
+    ``user`` is None on the open form ``<ns>/cmd/<op>``.
+    """
+
+    op: str
+    user: str | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,10 +174,16 @@ class Keys:
         """Key expressions of every read queryable the server declares."""
         return (self.ecm_tree, self.capability_set(), self.verify(), self.history_all(), self.info())
 
-    def cmd(self, op: str) -> str:
+    def cmd(self, op: str, user: str | None = None) -> str:
+        """``<ns>/cmd/<op>``, or ``<ns>/cmd/<op>/@<user>`` for a secured registry's ``user``.
+
+        Raises:
+            Invalid: unknown command or bad user name.
+        """
         if op not in COMMANDS:
             raise Invalid(f"unknown command {op!r}; valid commands: {', '.join(COMMANDS)}", details={"field": "op"})
-        return f"{self.namespace}/cmd/{op}"
+        key = f"{self.namespace}/cmd/{op}"
+        return key if user is None else f"{key}/{USER_CHUNK_PREFIX}{validate_user(user)}"
 
     def events(self, name: str = "*") -> str:
         """Key of ``name``'s change events; ``"*"`` subscribes to every ECM."""
@@ -185,22 +225,31 @@ class Keys:
             return Route(endpoint="artifact", name=name, version=version)
         raise _unknown_key(key)
 
-    def parse_cmd_key(self, key: str) -> str:
-        """The command a ``<ns>/cmd/<op>`` key names.
+    def parse_cmd(self, key: str) -> CommandRoute:
+        """The command (and user) a ``<ns>/cmd/<op>`` or ``<ns>/cmd/<op>/@<user>`` key names.
 
         Raises:
-            Invalid: wildcard, key outside ``<ns>/cmd``, unknown command.
+            Invalid: wildcard, key outside ``<ns>/cmd``, unknown command, bad user chunk.
         """
         rest = _strip_namespace(self.namespace, key)
         parts = rest.split("/")
-        if len(parts) != 2 or parts[0] != "cmd":
+        if len(parts) not in (2, 3) or parts[0] != "cmd":
             raise _unknown_key(key)
         if parts[1] not in COMMANDS:
             raise Invalid(
                 f"unknown command {parts[1]!r}; valid commands: {', '.join(COMMANDS)}",
                 details={"field": "key", "key": key},
             )
-        return parts[1]
+        if len(parts) == 2:
+            return CommandRoute(op=parts[1])
+        chunk = parts[2]
+        if not chunk.startswith(USER_CHUNK_PREFIX):
+            raise _unknown_key(key)
+        return CommandRoute(op=parts[1], user=validate_user(chunk[len(USER_CHUNK_PREFIX) :], "key"))
+
+    def parse_cmd_key(self, key: str) -> str:
+        """The command a command key names (see :meth:`parse_cmd`). Raises Invalid."""
+        return self.parse_cmd(key).op
 
 
 def _strip_namespace(namespace: str, key: str) -> str:

@@ -19,6 +19,10 @@ Invariants:
 5. ``verify`` reports every break of the audit chain, every disagreement between the
    stored state and a replay of the audit history, and every missing or corrupt blob; an
    intact registry yields no problems.
+6. Opening a registry removes the temporary blob files of writers that no longer run (a
+   publish killed mid-write), never a live writer's.
+7. A mutation is recorded against ``actor``; an :class:`Attribution` (what the Zenoh service
+   passes) also puts how the actor is known, and any ``on_behalf_of``, into the audit event.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from capevo.errors import Corrupt, Invalid, NotFound, TooLarge, Unavailable
 from capevo.records import (
     Action,
     ArtifactRef,
+    Attribution,
     AuditEvent,
     CapabilitySet,
     EcmDetail,
@@ -155,6 +160,9 @@ class LocalRegistry:
         except OSError as exc:
             raise Unavailable(f"cannot create registry directory {self._root}: {exc}") from exc
         self._blobs = _blobs.BlobStore(self._root / BLOB_DIRNAME)
+        swept = self._blobs.sweep_temp(writer_gone=True)
+        if swept:
+            log.info("removed %d temporary blob file(s) left by killed writers under %s", swept, self._blobs.root)
         self._store = _sqlite.SqliteStore(self._root / DB_FILENAME, busy_timeout_s=busy_timeout_s)
         self._listeners: list[EventListener] = list(listeners)
         self._listeners_lock = threading.Lock()
@@ -195,10 +203,13 @@ class LocalRegistry:
         if self._closed:
             raise Unavailable(f"the registry at {self._root} is closed")
 
-    def _who(self, actor: str | None) -> str:
+    def _who(self, actor: str | Attribution | None) -> Attribution:
         if actor is None:
-            return self._actor
-        return _sqlite.validate_text(actor, "actor", _sqlite.MAX_ACTOR_CHARS, allow_empty=False)
+            return Attribution(actor=self._actor)
+        if isinstance(actor, Attribution):
+            _sqlite.validate_text(actor.actor, "actor", _sqlite.MAX_ACTOR_CHARS, allow_empty=False)
+            return actor
+        return Attribution(actor=_sqlite.validate_text(actor, "actor", _sqlite.MAX_ACTOR_CHARS, allow_empty=False))
 
     def _mutate(self, commit: Callable[[], Mutation]) -> EcmVersion:
         # Holding one lock from commit through notification hands listeners this
@@ -291,7 +302,9 @@ class LocalRegistry:
         return self._store.capability_set(revision)
 
     # --- mutations --------------------------------------------------------------------
-    def publish(self, name: str, artifact: bytes, spec: PublishSpec, *, actor: str | None = None) -> EcmVersion:
+    def publish(
+        self, name: str, artifact: bytes, spec: PublishSpec, *, actor: str | Attribution | None = None
+    ) -> EcmVersion:
         """Store ``artifact`` and add it as the next candidate version of ``name``.
 
         Returns:
@@ -325,7 +338,7 @@ class LocalRegistry:
         *,
         expected_active: int | None = None,
         reason: str = "",
-        actor: str | None = None,
+        actor: str | Attribution | None = None,
     ) -> EcmVersion:
         """Make candidate ``version`` active; the previous active version becomes superseded.
 
@@ -352,7 +365,7 @@ class LocalRegistry:
         *,
         expected_active: int | None = None,
         reason: str = "",
-        actor: str | None = None,
+        actor: str | Attribution | None = None,
     ) -> EcmVersion:
         """Re-activate superseded version ``to`` (default: the one active before the current one).
 
@@ -368,7 +381,9 @@ class LocalRegistry:
             )
         )
 
-    def deprecate(self, name: str, version: int, *, reason: str = "", actor: str | None = None) -> EcmVersion:
+    def deprecate(
+        self, name: str, version: int, *, reason: str = "", actor: str | Attribution | None = None
+    ) -> EcmVersion:
         """Retire a version that is not active.
 
         Raises:
@@ -379,7 +394,9 @@ class LocalRegistry:
             lambda: self._store.set_state(name, version, Action.DEPRECATE.value, actor=self._who(actor), reason=reason)
         )
 
-    def reject(self, name: str, version: int, *, reason: str = "", actor: str | None = None) -> EcmVersion:
+    def reject(
+        self, name: str, version: int, *, reason: str = "", actor: str | Attribution | None = None
+    ) -> EcmVersion:
         """Mark a candidate as rejected by its gate.
 
         Raises:
@@ -397,7 +414,7 @@ class LocalRegistry:
         evidence: Mapping[str, Any],
         *,
         reason: str = "",
-        actor: str | None = None,
+        actor: str | Attribution | None = None,
     ) -> EcmVersion:
         """Attach gate evidence (a JSON object with finite numbers) to a candidate.
 

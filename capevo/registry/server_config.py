@@ -23,14 +23,27 @@ rules, subjects (by username) and policies with ``default_permission: deny``. A 
 missing password cannot open a session at all; a user whose role lacks a command has that
 query dropped by the router before the registry ever sees it.
 
+Commands are bound to the authenticated user by the key they arrive on: user ``alice``
+sends ``<ns>/cmd/<op>/@alice`` (a Zenoh verbatim chunk, which no wildcard matches), and
+only alice is granted that key, only for the commands her roles allow. The registry takes
+the audit actor from the key, never from the request body.
+
+Trusted nodes (``trusted_nodes``) are other routers, such as a zenohd the registry joins.
+Traffic through them carries the node's identity, not the identity of whoever sent it, so
+a node may hold only roles without commands (``reader``, ``runtime``); its users read
+through it, and log in to the registry itself to change anything.
+
 Invariants:
 1. Every rejection is an :class:`Invalid` whose message starts with the dotted path of the
    offending field (``users.alice.roles[0]``); parsing raises nothing else for any text.
-2. ``access_control_for`` grants each role exactly the commands listed in its :class:`Role`;
-   every role can read, subscribe to events and check liveliness; nothing else is allowed.
+2. ``access_control_for`` grants each user exactly the commands its roles list (see
+   :class:`Role`); every role can read, subscribe to events and check liveliness; nothing
+   else is allowed.
 3. No users configured means no ``access_control`` and no dictionary (the registry is open).
 4. The dictionary file is created with mode 0600 in a directory only its owner can enter,
    and passwords never appear in ``repr`` or error messages.
+5. Every command rule names one user's own keys ``<ns>/cmd/<op>/@<user>``; no subject is
+   granted another user's command key, and no trusted node is granted any command key.
 """
 
 from __future__ import annotations
@@ -47,10 +60,9 @@ from typing import Any
 import yaml
 
 from capevo.errors import Invalid
-from capevo.registry.keys import COMMANDS, DEFAULT_NAMESPACE, validate_namespace
+from capevo.registry.keys import COMMANDS, DEFAULT_NAMESPACE, USER_PATTERN, Keys, validate_namespace
 from capevo.registry.zconfig import DEFAULT_LISTEN, split_endpoints
 
-USER_PATTERN = re.compile(r"[A-Za-z0-9._@-]{1,64}")
 ZID_PATTERN = re.compile(r"[0-9a-f]{1,32}")
 MAX_PASSWORD_CHARS = 1024
 MAX_CONFIG_BYTES = 1024 * 1024
@@ -65,6 +77,9 @@ class Role:
     description: str
     serves_runtime: bool = False
     """May serve ``<ns>/runtime/**``: runtime workers' evaluate/adopted queryables and liveliness."""
+    vouches: bool = False
+    """May publish ``origin: manual`` (code the runtime trusts to run outside the sandbox) and
+    name an ``on_behalf_of`` beside itself in the audit trail."""
 
 
 ROLES: dict[str, Role] = {}
@@ -103,7 +118,14 @@ register_role(
         name="learner", commands=frozenset({"publish", "gate"}), description="reader + publish candidates, record gates"
     )
 )
-register_role(Role(name="operator", commands=frozenset(COMMANDS), description="every command"))
+register_role(
+    Role(
+        name="operator",
+        commands=frozenset(COMMANDS),
+        description="every command; publishes trusted (origin: manual) code; may act on behalf of a named actor",
+        vouches=True,
+    )
+)
 register_role(
     Role(
         name="runtime",
@@ -150,6 +172,14 @@ class ServerConfig:
     def secured(self) -> bool:
         """True when Zenoh authentication and access control are on."""
         return bool(self.users)
+
+    def commands_of(self, user: str) -> frozenset[str]:
+        """The commands ``user``'s roles allow (none for an unknown user)."""
+        return frozenset(op for u in self.users if u.name == user for r in u.roles for op in ROLES[r].commands)
+
+    def vouches(self, user: str) -> bool:
+        """Whether one of ``user``'s roles vouches (see :attr:`Role.vouches`)."""
+        return any(ROLES[r].vouches for u in self.users if u.name == user for r in u.roles)
 
 
 _TOP_FIELDS = frozenset(
@@ -263,10 +293,13 @@ def access_control_for(config: ServerConfig) -> dict[str, Any] | None:
       under ``<ns>/**`` (what a reader must receive);
     * ``capevo-runtime-serve``: ``declare_queryable``, ``liveliness_token``, ``reply`` and
       ``query`` on ``<ns>/runtime/**``, for roles that serve runtime workers;
-    * ``capevo-cmd-<op>``: ingress ``query`` on ``<ns>/cmd/<op>``, one per command.
+    * ``capevo-cmd-<user>``: ingress ``query``, and egress ``reply`` and
+      ``declare_queryable``, on ``<ns>/cmd/<op>/@<user>`` for each command the user's roles
+      allow; one rule, one subject and one policy per user with any command.
 
     Each role gets a subject listing its users (and one listing its trusted node zids) and
-    a policy tying it to the read rules plus the rules of its commands.
+    a policy tying it to the read rules (and the runtime rule for roles serving runtime
+    workers).
     """
     if not config.secured:
         return None
@@ -315,18 +348,30 @@ def access_control_for(config: ServerConfig) -> dict[str, Any] | None:
             "key_exprs": [f"{ns}/runtime/**"],
         }
     )
-    rules += [
-        {
-            "id": f"capevo-cmd-{op}",
-            "permission": "allow",
-            "flows": ["ingress"],
-            "messages": ["query"],
-            "key_exprs": [f"{ns}/cmd/{op}"],
-        }
-        for op in COMMANDS
-    ]
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
+    keys = Keys(ns)
+    for user in config.users:
+        allowed = config.commands_of(user.name)
+        if not allowed:
+            continue
+        own_keys = [keys.cmd(op, user.name) for op in COMMANDS if op in allowed]
+        # The registry replies (egress) on the key the query came in on; ``<ns>/**`` in the
+        # read rules does not cover it, because ``**`` never matches a verbatim chunk.
+        rules.append(
+            {"id": f"capevo-cmd-{user.name}-in", **_ALLOW_IN_QUERY, "key_exprs": own_keys},
+        )
+        rules.append(
+            {"id": f"capevo-cmd-{user.name}-out", **_ALLOW_OUT_REPLY, "key_exprs": own_keys},
+        )
+        subjects.append({"id": f"capevo-user-{user.name}", "usernames": [user.name]})
+        policies.append(
+            {
+                "id": f"capevo-cmd-{user.name}",
+                "rules": [f"capevo-cmd-{user.name}-in", f"capevo-cmd-{user.name}-out"],
+                "subjects": [f"capevo-user-{user.name}"],
+            }
+        )
     for role_name in sorted(ROLES):
         role = ROLES[role_name]
         subject_ids = []
@@ -339,9 +384,7 @@ def access_control_for(config: ServerConfig) -> dict[str, Any] | None:
             subjects.append({"id": f"capevo-nodes-{role_name}", "zids": zids})
             subject_ids.append(f"capevo-nodes-{role_name}")
         if subject_ids:
-            role_rules = ["capevo-read-in", "capevo-read-out"] + [
-                f"capevo-cmd-{op}" for op in COMMANDS if op in role.commands
-            ]
+            role_rules = ["capevo-read-in", "capevo-read-out"]
             if role.serves_runtime:
                 role_rules.append("capevo-runtime-serve")
             policies.append({"id": f"capevo-role-{role_name}", "rules": role_rules, "subjects": subject_ids})
@@ -352,6 +395,14 @@ def access_control_for(config: ServerConfig) -> dict[str, Any] | None:
         "subjects": subjects,
         "policies": policies,
     }
+
+
+_ALLOW_IN_QUERY: dict[str, Any] = {"permission": "allow", "flows": ["ingress"], "messages": ["query"]}
+_ALLOW_OUT_REPLY: dict[str, Any] = {
+    "permission": "allow",
+    "flows": ["egress"],
+    "messages": ["reply", "declare_queryable"],
+}
 
 
 def write_dictionary(config: ServerConfig, directory: Path | None = None) -> Path:
@@ -481,4 +532,13 @@ def _node(index: int, entry: object) -> NodeEntry:
         raise _at(f"{field}.zid", f"must be a Zenoh id (1-32 lowercase hex digits), got {zid!r}")
     if "roles" not in d:
         raise _at(f"{field}.roles", "missing")
-    return NodeEntry(zid=zid, roles=_roles(d["roles"], f"{field}.roles"))
+    roles = _roles(d["roles"], f"{field}.roles")
+    for i, name in enumerate(roles):
+        if ROLES[name].commands:
+            raise _at(
+                f"{field}.roles[{i}]",
+                f"role {name!r} runs commands, and a node relays other people's traffic: the registry could not "
+                "tell who sent a command through it. Give the node reader or runtime, and let its users log in "
+                "to the registry to change anything",
+            )
+    return NodeEntry(zid=zid, roles=roles)

@@ -4,9 +4,18 @@ Run it with ``python -m capevo.registry.service --root DIR [--listen EP]... [--c
 [--namespace NS] [--config FILE]``; it prints one ``READY {json}`` line on stdout once it
 serves, and shuts down cleanly on SIGTERM or SIGINT.
 
-Queries arrive on Zenoh callback threads and are handed to a bounded worker pool, so a slow
-64 MB publish does not hold up reads. Each query gets exactly one reply: the answer, or an
-error reply carrying :meth:`CapevoError.to_payload`.
+Queries arrive on Zenoh callback threads and are handed to bounded worker pools, so a slow
+64 MB publish does not hold up reads. Heavy reads (``verify``, which re-hashes every blob,
+and the whole audit chain) get their own small lane: a flood of them is refused ``busy``
+there and cannot take the slots that resolves and commands need. Each query gets exactly
+one reply: the answer, or an error reply carrying :meth:`CapevoError.to_payload`.
+
+Who made a change is Zenoh's word, not the request's: a secured registry serves commands
+only on ``<ns>/cmd/<op>/@<user>``, which access control grants to ``<user>`` alone, and
+records that user as the actor (:class:`~capevo.records.Auth` ``user``). A body ``actor``
+that differs is kept as ``on_behalf_of`` for operators and dropped for everyone else. An
+open registry records the claimed actor, marked ``auth: open``. Only an operator may
+publish ``origin: manual``, the origin the runtime trusts to run outside its sandbox.
 
 Invariants:
 1. Every query the server receives gets exactly one reply (success or error) unless the
@@ -19,6 +28,12 @@ Invariants:
    declared after the queryables, undeclared before them.
 5. With users configured, Zenoh's usrpwd + access control are on; without, the server logs
    that it runs open.
+6. On a secured registry every mutation's actor is the authenticated user its key names;
+   nothing in the request body can change it, and a publish of ``origin: manual`` by a user
+   whose roles do not vouch (see :class:`~capevo.registry.server_config.Role`) is refused
+   ``forbidden`` before anything is written.
+7. A heavy read never occupies an ordinary slot: at most ``heavy_max_in_flight`` of them
+   run or wait at once, and beyond that they are refused ``unavailable`` ("busy").
 """
 
 from __future__ import annotations
@@ -39,9 +54,9 @@ from typing import Any
 
 import zenoh
 
-from capevo.errors import CapevoError, Invalid, TooLarge, Unavailable
-from capevo.records import AuditEvent, EcmVersion
-from capevo.registry.keys import COMMANDS, Keys, Route
+from capevo.errors import CapevoError, Forbidden, Invalid, TooLarge, Unavailable
+from capevo.records import Attribution, AuditEvent, Auth, EcmVersion, Origin
+from capevo.registry.keys import COMMANDS, CommandRoute, Keys, Route
 from capevo.registry.local import DEFAULT_MAX_ARTIFACT_BYTES, LocalRegistry
 from capevo.registry.server_config import ServerConfig, access_control_for, load_server_config, write_dictionary
 from capevo.registry.wire import (
@@ -59,9 +74,12 @@ from capevo.shutdown import stop_on_signals
 
 log = logging.getLogger("capevo.registry.service")
 
-PROTOCOL_VERSION = 1
+# 2: a secured registry takes commands on <ns>/cmd/<op>/@<user> only.
+PROTOCOL_VERSION = 2
 DEFAULT_WORKERS = 8
 DEFAULT_MAX_IN_FLIGHT = 64
+DEFAULT_HEAVY_WORKERS = 1
+DEFAULT_HEAVY_MAX_IN_FLIGHT = 4
 # The actor recorded when a remote request names none.
 REMOTE_ACTOR = "remote"
 READY_PREFIX = "READY "
@@ -104,16 +122,20 @@ class Answer:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Context:
-    """What a handler may use: the registry and the server's limits."""
+    """What a handler may use: the registry, the server's limits and its users' roles."""
 
     registry: LocalRegistry
     keys: Keys
     max_artifact_bytes: int
-    secured: bool
+    config: ServerConfig
+
+    @property
+    def secured(self) -> bool:
+        return self.config.secured
 
 
 ReadHandler = Callable[[Context, Route, dict[str, int]], Answer]
-CommandHandler = Callable[[LocalRegistry, dict[str, Any], bytes], EcmVersion]
+CommandHandler = Callable[[LocalRegistry, dict[str, Any], bytes, Attribution], EcmVersion]
 READ_HANDLERS: dict[str, ReadHandler] = {}
 COMMAND_HANDLERS: dict[str, CommandHandler] = {}
 
@@ -201,35 +223,82 @@ def handle_info(ctx: Context, route: Route, params: dict[str, int]) -> Answer:
 
 
 @command_handler("publish")
-def handle_publish(reg: LocalRegistry, f: dict[str, Any], artifact: bytes) -> EcmVersion:
-    return reg.publish(f["name"], artifact, f["spec"], actor=f["actor"])
+def handle_publish(reg: LocalRegistry, f: dict[str, Any], artifact: bytes, who: Attribution) -> EcmVersion:
+    return reg.publish(f["name"], artifact, f["spec"], actor=who)
 
 
 @command_handler("promote")
-def handle_promote(reg: LocalRegistry, f: dict[str, Any], artifact: bytes) -> EcmVersion:
-    return reg.promote(
-        f["name"], f["version"], expected_active=f["expected_active"], reason=f["reason"], actor=f["actor"]
-    )
+def handle_promote(reg: LocalRegistry, f: dict[str, Any], artifact: bytes, who: Attribution) -> EcmVersion:
+    return reg.promote(f["name"], f["version"], expected_active=f["expected_active"], reason=f["reason"], actor=who)
 
 
 @command_handler("rollback")
-def handle_rollback(reg: LocalRegistry, f: dict[str, Any], artifact: bytes) -> EcmVersion:
-    return reg.rollback(f["name"], f["to"], expected_active=f["expected_active"], reason=f["reason"], actor=f["actor"])
+def handle_rollback(reg: LocalRegistry, f: dict[str, Any], artifact: bytes, who: Attribution) -> EcmVersion:
+    return reg.rollback(f["name"], f["to"], expected_active=f["expected_active"], reason=f["reason"], actor=who)
 
 
 @command_handler("deprecate")
-def handle_deprecate(reg: LocalRegistry, f: dict[str, Any], artifact: bytes) -> EcmVersion:
-    return reg.deprecate(f["name"], f["version"], reason=f["reason"], actor=f["actor"])
+def handle_deprecate(reg: LocalRegistry, f: dict[str, Any], artifact: bytes, who: Attribution) -> EcmVersion:
+    return reg.deprecate(f["name"], f["version"], reason=f["reason"], actor=who)
 
 
 @command_handler("reject")
-def handle_reject(reg: LocalRegistry, f: dict[str, Any], artifact: bytes) -> EcmVersion:
-    return reg.reject(f["name"], f["version"], reason=f["reason"], actor=f["actor"])
+def handle_reject(reg: LocalRegistry, f: dict[str, Any], artifact: bytes, who: Attribution) -> EcmVersion:
+    return reg.reject(f["name"], f["version"], reason=f["reason"], actor=who)
 
 
 @command_handler("gate")
-def handle_gate(reg: LocalRegistry, f: dict[str, Any], artifact: bytes) -> EcmVersion:
-    return reg.record_gate(f["name"], f["version"], f["evidence"], reason=f["reason"], actor=f["actor"])
+def handle_gate(reg: LocalRegistry, f: dict[str, Any], artifact: bytes, who: Attribution) -> EcmVersion:
+    return reg.record_gate(f["name"], f["version"], f["evidence"], reason=f["reason"], actor=who)
+
+
+# --- who is asking -------------------------------------------------------------------------
+
+
+def attribute(config: ServerConfig, route: CommandRoute, claimed: str | None) -> Attribution:
+    """Who a command is recorded against: the user its key names, never the body's ``actor``.
+
+    Args:
+        config: The server's users and roles.
+        route: The parsed command key.
+        claimed: The request's ``actor`` field.
+
+    Raises:
+        Forbidden: a secured registry got a command without a user, or from a user whose
+            roles do not allow it (access control should have dropped it already).
+        Invalid: an open registry got a per-user key.
+    """
+    if not config.secured:
+        if route.user is not None:
+            raise Invalid(
+                f"this registry is open: send {route.op} on <ns>/cmd/{route.op}, without a user chunk",
+                details={"field": "key"},
+            )
+        return Attribution(actor=claimed or REMOTE_ACTOR, auth=Auth.OPEN)
+    if route.user is None or route.op not in config.commands_of(route.user):
+        who = "no user" if route.user is None else f"user {route.user!r}"
+        raise Forbidden(f"{route.op}: {who} may not run it on this secured registry", details={"user": route.user})
+    vouched = claimed if claimed not in (None, route.user) and config.vouches(route.user) else None
+    return Attribution(actor=route.user, auth=Auth.USER, on_behalf_of=vouched)
+
+
+def check_origin(config: ServerConfig, who: Attribution, origin: Origin) -> None:
+    """Refuse ``origin: manual`` from a secured registry's user whose roles do not vouch.
+
+    ``manual`` is what :class:`capevo.runtime.ecm.trust.TrustPolicy` runs in-process, with
+    no sandbox; it is granted by the registry, never declared by a learner.
+
+    Raises:
+        Forbidden: naming the user and the origins they may use.
+    """
+    if origin is not Origin.MANUAL or not config.secured or config.vouches(who.actor):
+        return
+    others = ", ".join(o.value for o in Origin if o is not Origin.MANUAL)
+    raise Forbidden(
+        f"publish: origin 'manual' marks code the runtime trusts to run outside its sandbox; only an operator "
+        f"may publish it, and user {who.actor!r} is not one (publish as {others})",
+        details={"field": "spec.origin", "user": who.actor},
+    )
 
 
 # --- request decoding ----------------------------------------------------------------------
@@ -270,7 +339,8 @@ def answer_command(ctx: Context, query: zenoh.Query) -> Answer:
         CapevoError: whatever the registry raises (Conflict, NotFound, ...).
     """
     key = str(query.key_expr)
-    op = ctx.keys.parse_cmd_key(key)
+    route = ctx.keys.parse_cmd(key)
+    op = route.op
     read_parameters(f"cmd/{op}", list(query.parameters))
     size = 0 if query.payload is None else len(query.payload)
     if op == "publish":
@@ -296,7 +366,10 @@ def answer_command(ctx: Context, query: zenoh.Query) -> Answer:
             raise TooLarge(f"{op} request: {size} bytes; the limit is {MAX_JSON_BYTES}", details={"size": size})
         fields = decode_command(op, _payload_bytes(query))
         artifact = b""
-    record = COMMAND_HANDLERS[op](ctx.registry, fields, artifact)
+    who = attribute(ctx.config, route, fields["actor"])
+    if op == "publish":
+        check_origin(ctx.config, who, fields["spec"].origin)
+    record = COMMAND_HANDLERS[op](ctx.registry, fields, artifact, who)
     return _json(record.to_dict())
 
 
@@ -319,35 +392,60 @@ class EventPublisher:
         )
 
 
-class _Dispatcher:
-    """Hands queries from Zenoh's callback threads to a bounded worker pool."""
+def is_heavy_read(keys: Keys, key: str) -> bool:
+    """Whether a read key asks for work that grows with the whole registry (``verify``, the
+    whole audit chain); a key that does not parse is not heavy (its handler refuses it)."""
+    try:
+        route = keys.parse_read_key(key)
+    except Invalid:
+        return False
+    return route.endpoint == "verify" or (route.endpoint == "history" and route.name is None)
 
-    def __init__(self, ctx: Context, *, workers: int, max_in_flight: int) -> None:
+
+class _Lane:
+    """A worker pool with a bounded number of queries running or waiting in it."""
+
+    def __init__(self, what: str, *, workers: int, max_in_flight: int) -> None:
+        self.what = what
+        self.pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=f"capevo-registry-{what}")
+        self.slots = threading.BoundedSemaphore(max_in_flight)
+        self.max_in_flight = max_in_flight
+
+
+class _Dispatcher:
+    """Hands queries from Zenoh's callback threads to the ordinary or the heavy lane."""
+
+    def __init__(
+        self, ctx: Context, *, workers: int, max_in_flight: int, heavy_workers: int, heavy_max_in_flight: int
+    ) -> None:
         self._ctx = ctx
-        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="capevo-registry")
-        self._slots = threading.BoundedSemaphore(max_in_flight)
-        self._max_in_flight = max_in_flight
+        self._ordinary = _Lane("requests", workers=workers, max_in_flight=max_in_flight)
+        self._heavy = _Lane(
+            "heavy reads (verify, whole history)", workers=heavy_workers, max_in_flight=heavy_max_in_flight
+        )
 
     def on_read(self, query: zenoh.Query) -> None:
-        self._submit(query, answer_read)
+        heavy = is_heavy_read(self._ctx.keys, str(query.key_expr))
+        self._submit(self._heavy if heavy else self._ordinary, query, answer_read)
 
     def on_command(self, query: zenoh.Query) -> None:
-        self._submit(query, answer_command)
+        self._submit(self._ordinary, query, answer_command)
 
     def shutdown(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=False)
+        for lane in (self._ordinary, self._heavy):
+            lane.pool.shutdown(wait=True, cancel_futures=False)
 
-    def _submit(self, query: zenoh.Query, answer: Callable[[Context, zenoh.Query], Answer]) -> None:
-        if not self._slots.acquire(blocking=False):
-            _reply_once(query, Unavailable(f"registry busy: {self._max_in_flight} requests in flight; retry shortly"))
+    def _submit(self, lane: _Lane, query: zenoh.Query, answer: Callable[[Context, zenoh.Query], Answer]) -> None:
+        if not lane.slots.acquire(blocking=False):
+            _reply_once(query, Unavailable(f"registry busy: {lane.max_in_flight} {lane.what} in flight; retry shortly"))
             return
         try:
-            self._pool.submit(self._run, query, answer)
+            lane.pool.submit(self._run, lane, query, answer)
         except RuntimeError:  # pool already shut down
-            self._slots.release()
+            lane.slots.release()
             _reply_once(query, Unavailable("registry is shutting down"))
 
-    def _run(self, query: zenoh.Query, answer: Callable[[Context, zenoh.Query], Answer]) -> None:
+    def _run(self, lane: _Lane, query: zenoh.Query, answer: Callable[[Context, zenoh.Query], Answer]) -> None:
         try:
             try:
                 result: Answer | CapevoError = answer(self._ctx, query)
@@ -359,7 +457,7 @@ class _Dispatcher:
                 result = CapevoError("internal error in the registry; see its log")
             _reply_once(query, result)
         finally:
-            self._slots.release()
+            lane.slots.release()
 
 
 def _describe(query: zenoh.Query) -> str:
@@ -381,6 +479,17 @@ def _reply_once(query: zenoh.Query, result: Answer | CapevoError) -> None:
                 query.reply(query.key_expr, result.payload, encoding=result.encoding, attachment=result.attachment)
     except zenoh.ZError as exc:
         log.warning("could not reply to %s: %s", _describe(query), exc)
+
+
+def command_keys(config: ServerConfig, keys: Keys) -> list[str]:
+    """The command keys the server serves: every user's own (secured), or ``<ns>/cmd/**`` (open).
+
+    A verbatim ``@<user>`` chunk matches no wildcard, so a secured server declares each
+    key it serves exactly.
+    """
+    if not config.secured:
+        return [keys.cmd_tree]
+    return [keys.cmd(op, u.name) for u in config.users for op in COMMANDS if op in config.commands_of(u.name)]
 
 
 def _notify_ready(ready: Callable[[ServeInfo], Any] | threading.Event | None, info: ServeInfo) -> None:
@@ -414,6 +523,8 @@ def serve(
     max_artifact_bytes: int | None = None,
     workers: int = DEFAULT_WORKERS,
     max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
+    heavy_workers: int = DEFAULT_HEAVY_WORKERS,
+    heavy_max_in_flight: int = DEFAULT_HEAVY_MAX_IN_FLIGHT,
     handle_signals: bool = True,
 ) -> None:
     """Serve the registry at ``root`` over Zenoh until ``stop`` is set or SIGTERM/SIGINT arrives.
@@ -433,6 +544,8 @@ def serve(
         max_artifact_bytes: Largest artifact accepted.
         workers: Threads answering queries.
         max_in_flight: Queries accepted at once; more get an ``unavailable`` "busy" reply.
+        heavy_workers: Threads answering heavy reads (``verify``, the whole history).
+        heavy_max_in_flight: Heavy reads accepted at once, apart from ``max_in_flight``.
         handle_signals: Install SIGTERM/SIGINT handlers (main thread only).
 
     Raises:
@@ -478,14 +591,21 @@ def serve(
             root, actor=REMOTE_ACTOR, max_artifact_bytes=limit, listeners=[EventPublisher(session, keys)]
         )
         stack.callback(registry.close)
-        ctx = Context(registry=registry, keys=keys, max_artifact_bytes=limit, secured=secured)
-        dispatcher = _Dispatcher(ctx, workers=workers, max_in_flight=max_in_flight)
+        ctx = Context(registry=registry, keys=keys, max_artifact_bytes=limit, config=cfg)
+        dispatcher = _Dispatcher(
+            ctx,
+            workers=workers,
+            max_in_flight=max_in_flight,
+            heavy_workers=heavy_workers,
+            heavy_max_in_flight=heavy_max_in_flight,
+        )
         stack.callback(dispatcher.shutdown)
         for key_expr in keys.read_roots():
             queryable = session.declare_queryable(key_expr, dispatcher.on_read)
             stack.callback(queryable.undeclare)
-        commands = session.declare_queryable(keys.cmd_tree, dispatcher.on_command)
-        stack.callback(commands.undeclare)
+        for key_expr in command_keys(cfg, keys):
+            commands = session.declare_queryable(key_expr, dispatcher.on_command)
+            stack.callback(commands.undeclare)
         token = session.liveliness().declare_token(keys.alive())
         stack.callback(token.undeclare)
         stack.enter_context(stop_on_signals(stop, enabled=handle_signals, what="registry"))

@@ -6,7 +6,8 @@ Wire format (all JSON is UTF-8, compact, no NaN/Infinity):
   endpoints reply with a JSON array. Artifact replies carry the raw bytes (encoding
   ``application/octet-stream``) and a JSON attachment ``{name, version, sha256, size,
   media_type}`` so the client can check the bytes and learn which version "active" was.
-* Commands: a query on ``<ns>/cmd/<op>``. For ``publish`` the query *attachment* is the JSON
+* Commands: a query on ``<ns>/cmd/<op>/@<user>`` (secured registry; ``<ns>/cmd/<op>`` when
+  open, see :mod:`capevo.registry.keys`). For ``publish`` the query *attachment* is the JSON
   header ``{"name", "spec": PublishSpec.to_dict(), "actor"}`` and the query *payload* is the
   artifact bytes. For every other op the payload is one JSON object (fields in
   :data:`COMMAND_FIELDS`). Unknown fields are refused.
@@ -18,7 +19,8 @@ Wire format (all JSON is UTF-8, compact, no NaN/Infinity):
 Invariants:
 1. ``decode_command(op, encode_command(op, **f)) == f`` for valid fields ``f`` (with the
    spec as a :class:`PublishSpec`); the client and the server run the same field checks.
-2. Decoding untrusted bytes raises only :class:`Invalid` or :class:`TooLarge`, for any input.
+2. Decoding untrusted bytes raises only :class:`Invalid` or :class:`TooLarge`, for any input;
+   a decoded document holds no lone UTF-16 surrogate.
 3. ``decode_event(encode_event(e, r)) == (e, r)``; reply decoders raise only
    :class:`CapevoError` (a malformed reply is the registry's fault, code ``internal``).
 """
@@ -34,6 +36,7 @@ from typing import Any, TypeVar
 from capevo.errors import CapevoError, Invalid, TooLarge
 from capevo.records import AuditEvent, EcmVersion, PublishSpec
 from capevo.records.names import validate_name, validate_version
+from capevo.records.text import check_unicode
 from capevo.registry.descriptor import spec_from_document
 from capevo.storage.sqlite import MAX_ACTOR_CHARS, MAX_REASON_CHARS, normalize_evidence, validate_text
 
@@ -72,18 +75,26 @@ def loads(data: bytes | None, *, what: str, limit: int = MAX_JSON_BYTES) -> Any:
 
     Raises:
         TooLarge: more than ``limit`` bytes.
-        Invalid: empty, not UTF-8, not JSON, NaN/Infinity, or nested too deep.
+        Invalid: empty, not UTF-8, not JSON, NaN/Infinity, nested too deep, or a string
+            holding a lone surrogate (JSON's ``"\\ud800"`` escape), naming its field.
     """
     if not data:
         raise Invalid(f"{what}: empty body; expected a JSON document", details={"field": "<body>"})
     if len(data) > limit:
         raise TooLarge(f"{what}: {len(data)} bytes; the limit is {limit}", details={"size": len(data), "limit": limit})
     try:
-        return json.loads(data.decode("utf-8"), parse_constant=_refuse_constant, parse_float=_finite_float)
+        doc = json.loads(data.decode("utf-8"), parse_constant=_refuse_constant, parse_float=_finite_float)
     except UnicodeDecodeError as exc:
         raise Invalid(f"{what}: not UTF-8 ({exc.reason} at byte {exc.start})", details={"field": "<body>"}) from None
     except (ValueError, RecursionError) as exc:
         raise Invalid(f"{what}: not valid JSON: {str(exc)[:200]}", details={"field": "<body>"}) from None
+    if isinstance(doc, dict):
+        for key, value in doc.items():
+            check_unicode(key, "<key>")
+            check_unicode(value, key)
+    else:
+        check_unicode(doc, "<body>")
+    return doc
 
 
 # --- field checks shared by client and server ---------------------------------------------

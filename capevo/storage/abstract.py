@@ -18,6 +18,7 @@ from typing import Any
 
 from capevo.records import (
     ArtifactRef,
+    Attribution,
     AuditEvent,
     CapabilitySet,
     EcmDetail,
@@ -29,7 +30,12 @@ from capevo.records import (
 
 
 class AbstractStore(abc.ABC):
-    """Metadata and history of every ECM. Implementations must be safe to call from many threads."""
+    """Metadata and history of every ECM. Implementations must be safe to call from many threads.
+
+    Every mutation takes ``actor``: a name, or an :class:`Attribution` whose ``actor`` is
+    recorded as the event's actor (and a new version's ``created_by``) and whose
+    :meth:`~Attribution.audit_data` is added to the event's ``data``.
+    """
 
     # --- ECMs -------------------------------------------------------------------------
     @abc.abstractmethod
@@ -42,7 +48,9 @@ class AbstractStore(abc.ABC):
 
     # --- versions ---------------------------------------------------------------------
     @abc.abstractmethod
-    def create_version(self, name: str, spec: PublishSpec, artifact: ArtifactRef, *, actor: str) -> Mutation:
+    def create_version(
+        self, name: str, spec: PublishSpec, artifact: ArtifactRef, *, actor: str | Attribution
+    ) -> Mutation:
         """Add the next version (max + 1, or 0) as a candidate and log ``publish``.
 
         Raises:
@@ -59,12 +67,14 @@ class AbstractStore(abc.ABC):
 
     @abc.abstractmethod
     def record_gate(
-        self, name: str, version: int, evidence: Mapping[str, Any], *, actor: str, reason: str = ""
+        self, name: str, version: int, evidence: Mapping[str, Any], *, actor: str | Attribution, reason: str = ""
     ) -> Mutation:
         """Store gate evidence on a candidate and log ``gate``. Raises NotFound, IllegalTransition."""
 
     @abc.abstractmethod
-    def set_state(self, name: str, version: int, action: str, *, actor: str, reason: str = "") -> Mutation:
+    def set_state(
+        self, name: str, version: int, action: str, *, actor: str | Attribution, reason: str = ""
+    ) -> Mutation:
         """Apply ``reject`` or ``deprecate`` to one version and log it."""
 
     @abc.abstractmethod
@@ -75,7 +85,7 @@ class AbstractStore(abc.ABC):
         action: str,
         *,
         expected_active: int | None = None,
-        actor: str,
+        actor: str | Attribution,
         reason: str = "",
     ) -> Mutation:
         """Point ``name``'s active pointer at ``version`` (``promote`` or ``rollback``).

@@ -15,8 +15,9 @@ Invariants:
 4. ``put`` is idempotent: storing the same bytes twice yields the same address and one
    file; a present but corrupt copy is replaced by the good bytes.
 5. Temporary files (``.tmp-*``) are never reported as blobs.
-6. :meth:`BlobStore.sweep_temp` removes a temporary file only when the process that wrote
-   it (its name carries the pid) is gone, or when nobody touched it for ``older_than_s``.
+6. :meth:`BlobStore.sweep_temp` removes a temporary file only when nobody touched it for
+   ``older_than_s`` or, with ``writer_gone=True``, when the process that wrote it (its name
+   carries the pid) no longer runs on this host.
 """
 
 from __future__ import annotations
@@ -309,14 +310,13 @@ class BlobStore:
             return f"blob {sha256}: content hashes to {actual} (corrupt or tampered)"
         return None
 
-    def sweep_temp(self, *, older_than_s: float = 3600.0) -> int:
+    def sweep_temp(self, *, older_than_s: float = 3600.0, writer_gone: bool = False) -> int:
         """Delete temporary files a killed writer left behind.
 
-        A file goes when its writer's pid (part of its name) names no live process on this
-        host, or when it is older than ``older_than_s`` whatever its name says.
-
         Args:
-            older_than_s: Files untouched for this long go even if their pid is alive (reused).
+            older_than_s: Files untouched for this long go; a live writer's file is younger.
+            writer_gone: Also remove younger files whose writer's pid (part of the name) names
+                no live process on this host: what a start-up right after SIGKILL finds.
 
         Returns:
             How many files were removed.
@@ -325,7 +325,7 @@ class BlobStore:
         removed = 0
         for tmp in self._root.glob(f"*/{_TMP_PREFIX}*"):
             with contextlib.suppress(FileNotFoundError):
-                if not _writer_alive(tmp.name) or tmp.stat().st_mtime < cutoff:
+                if (writer_gone and not _writer_alive(tmp.name)) or tmp.stat().st_mtime < cutoff:
                     tmp.unlink()
                     removed += 1
         return removed

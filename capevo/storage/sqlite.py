@@ -27,6 +27,8 @@ Invariants:
    :class:`Conflict` naming both versions and writes nothing.
 6. A mutation that returned has been fsynced (WAL + ``synchronous=FULL``).
 7. No :mod:`sqlite3` exception escapes; every error is a :class:`CapevoError`.
+8. A mutation's :class:`Attribution` extras (``auth``, ``on_behalf_of``) are stored only in
+   its event's ``data``; an event without them hashes exactly as before they existed.
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ from capevo.errors import (
 from capevo.records import (
     Action,
     ArtifactRef,
+    Attribution,
     AuditEvent,
     CapabilitySet,
     Descriptor,
@@ -74,6 +77,7 @@ from capevo.records import (
 from capevo.records.audit import GENESIS, canonical_json, event_hash
 from capevo.records.lifecycle import GATEABLE, check_transition
 from capevo.records.names import validate_name, validate_version
+from capevo.records.text import check_unicode
 from capevo.storage.abstract import AbstractStore
 
 SCHEMA_VERSION = 1
@@ -166,7 +170,10 @@ def _check_json(value: object, path: str, depth: int = 0) -> None:
     # Stricter than json.dumps: int keys, NaN and infinity would not read back equal.
     if depth > 64:
         raise Invalid(f"{path}: nested too deeply", details={"field": path})
-    if value is None or isinstance(value, (str, bool, int)):
+    if isinstance(value, str):
+        check_unicode(value, path)
+        return
+    if value is None or isinstance(value, (bool, int)):
         return
     if isinstance(value, float):
         if not math.isfinite(value):
@@ -176,6 +183,7 @@ def _check_json(value: object, path: str, depth: int = 0) -> None:
         for k, v in value.items():
             if not isinstance(k, str):
                 raise Invalid(f"{path}: keys must be strings, got {k!r}", details={"field": path})
+            check_unicode(k, f"{path}.<key>")
             _check_json(v, f"{path}.{k}", depth + 1)
         return
     if isinstance(value, (list, tuple)):
@@ -189,10 +197,11 @@ def validate_text(value: object, field: str, limit: int, *, allow_empty: bool = 
     """Return ``value`` if it is a string of at most ``limit`` characters.
 
     Raises:
-        Invalid: wrong type, too long, or empty when ``allow_empty`` is false.
+        Invalid: wrong type, too long, empty when ``allow_empty`` is false, or a lone surrogate.
     """
     if not isinstance(value, str):
         raise Invalid(f"{field} must be a string, got {type(value).__name__}", details={"field": field})
+    check_unicode(value, field)
     if len(value) > limit:
         raise Invalid(f"{field} is {len(value)} characters; the limit is {limit}", details={"field": field})
     if not allow_empty and not value:
@@ -421,7 +430,7 @@ class SqliteStore(AbstractStore):
         version: int | None,
         from_state: State | None,
         to_state: State | None,
-        actor: str,
+        actor: Attribution,
         reason: str,
         at: float,
         from_version: int | None = None,
@@ -440,10 +449,10 @@ class SqliteStore(AbstractStore):
             to_state=to_state,
             from_version=from_version,
             to_version=to_version,
-            actor=actor,
+            actor=actor.actor,
             reason=reason,
             at=at,
-            data=json.loads(canonical_json(dict(data or {}))),
+            data=json.loads(canonical_json({**(data or {}), **actor.audit_data()})),
             revision=revision,
             prev_hash=prev,
             hash="",
@@ -461,10 +470,14 @@ class SqliteStore(AbstractStore):
         return event
 
     @staticmethod
-    def _check_common(name: str, actor: str, reason: str) -> None:
+    def _check_common(name: str, actor: str | Attribution, reason: str) -> Attribution:
         validate_name(name)
-        validate_text(actor, "actor", MAX_ACTOR_CHARS, allow_empty=False)
+        who = actor if isinstance(actor, Attribution) else Attribution(actor=actor)
+        validate_text(who.actor, "actor", MAX_ACTOR_CHARS, allow_empty=False)
+        if who.on_behalf_of is not None:
+            validate_text(who.on_behalf_of, "on_behalf_of", MAX_ACTOR_CHARS, allow_empty=False)
         validate_text(reason, "reason", MAX_REASON_CHARS)
+        return who
 
     # --- ECMs -------------------------------------------------------------------------
     def list_ecms(self) -> list[EcmSummary]:
@@ -488,8 +501,10 @@ class SqliteStore(AbstractStore):
         return EcmDetail(name=name, active_version=active, versions=tuple(self._version_from_row(r) for r in rows))
 
     # --- versions ---------------------------------------------------------------------
-    def create_version(self, name: str, spec: PublishSpec, artifact: ArtifactRef, *, actor: str) -> Mutation:
-        self._check_common(name, actor, "")
+    def create_version(
+        self, name: str, spec: PublishSpec, artifact: ArtifactRef, *, actor: str | Attribution
+    ) -> Mutation:
+        who = self._check_common(name, actor, "")
         if not isinstance(spec, PublishSpec):
             raise Invalid(f"spec must be a PublishSpec, got {type(spec).__name__}", details={"field": "spec"})
         if not isinstance(artifact, ArtifactRef):
@@ -537,7 +552,7 @@ class SqliteStore(AbstractStore):
                     spec.origin.value,
                     provenance,
                     now,
-                    actor,
+                    who.actor,
                 ),
             )
             event = self._append_event(
@@ -547,7 +562,7 @@ class SqliteStore(AbstractStore):
                 version=version,
                 from_state=None,
                 to_state=State.CANDIDATE,
-                actor=actor,
+                actor=who,
                 reason="",
                 at=now,
                 data={
@@ -577,9 +592,9 @@ class SqliteStore(AbstractStore):
             return self._fetch_version(c, name, active)
 
     def record_gate(
-        self, name: str, version: int, evidence: Mapping[str, Any], *, actor: str, reason: str = ""
+        self, name: str, version: int, evidence: Mapping[str, Any], *, actor: str | Attribution, reason: str = ""
     ) -> Mutation:
-        self._check_common(name, actor, reason)
+        who = self._check_common(name, actor, reason)
         validate_version(version)
         stored = normalize_evidence(evidence)
         with self._write("record_gate") as c:
@@ -601,7 +616,7 @@ class SqliteStore(AbstractStore):
                 version=version,
                 from_state=current.state,
                 to_state=current.state,
-                actor=actor,
+                actor=who,
                 reason=reason,
                 at=time.time(),
                 data={"evidence": stored},
@@ -609,9 +624,11 @@ class SqliteStore(AbstractStore):
             record = self._fetch_version(c, name, version)
         return Mutation(record=record, event=event)
 
-    def set_state(self, name: str, version: int, action: str, *, actor: str, reason: str = "") -> Mutation:
+    def set_state(
+        self, name: str, version: int, action: str, *, actor: str | Attribution, reason: str = ""
+    ) -> Mutation:
         act = _action(action, _STATE_ACTIONS, "set_state")
-        self._check_common(name, actor, reason)
+        who = self._check_common(name, actor, reason)
         validate_version(version)
         with self._write(act.value) as c:
             current = self._fetch_version(c, name, version)
@@ -624,7 +641,7 @@ class SqliteStore(AbstractStore):
                 version=version,
                 from_state=current.state,
                 to_state=to_state,
-                actor=actor,
+                actor=who,
                 reason=reason,
                 at=time.time(),
             )
@@ -638,11 +655,11 @@ class SqliteStore(AbstractStore):
         action: str,
         *,
         expected_active: int | None = None,
-        actor: str,
+        actor: str | Attribution,
         reason: str = "",
     ) -> Mutation:
         act = _action(action, _ACTIVE_ACTIONS, "move_active")
-        self._check_common(name, actor, reason)
+        who = self._check_common(name, actor, reason)
         if version is None and act is Action.PROMOTE:
             raise Invalid("promote needs a version", details={"field": "version"})
         if version is not None:
@@ -678,7 +695,7 @@ class SqliteStore(AbstractStore):
                 to_state=to_state,
                 from_version=current,
                 to_version=target,
-                actor=actor,
+                actor=who,
                 reason=reason,
                 at=at,
                 revision=revision,

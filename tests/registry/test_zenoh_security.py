@@ -21,7 +21,8 @@ from capevo.registry.descriptor import parse_publish_spec
 
 pytestmark = pytest.mark.zenoh
 
-SPEC = parse_publish_spec("kind: code\ndescription: secured test skill\n")
+# A learner may not publish origin manual (see test_zenoh_hardening), so these specs are learned.
+SPEC = parse_publish_spec("kind: code\ndescription: secured test skill\norigin: llm\n")
 CONFIG = """
 users:
   rita: {password: "rita pass:1", roles: [reader]}
@@ -112,7 +113,7 @@ def test_reader_is_refused_every_mutation_and_nothing_changes(clients: dict[str,
     reader = clients["reader"]
     before = (reader.get_ecm(name), reader.history(name), reader.capability_set())
     err = _forbidden(reader.promote, name, 0)
-    assert err.message.startswith("capevo/cmd/promote: the registry is up but did not answer")
+    assert err.message.startswith("capevo/cmd/promote/@rita: the registry is up but did not answer")
     assert "user 'rita'" in err.message
     _forbidden(reader.publish, name, b"v1", SPEC)
     _forbidden(reader.record_gate, name, 0, {"ok": True})
@@ -125,7 +126,8 @@ def test_reader_is_refused_every_mutation_and_nothing_changes(clients: dict[str,
 def test_learner_publishes_and_gates_but_cannot_move_pointers(clients: dict[str, Client]) -> None:
     name = unique_name("learn")
     learner = clients["learner"]
-    assert learner.publish(name, b"v0", SPEC, actor="sac-1").created_by == "sac-1"
+    # The audit actor is the authenticated user; a learner's claimed actor is not recorded.
+    assert learner.publish(name, b"v0", SPEC, actor="sac-1").created_by == "lena"
     assert learner.record_gate(name, 0, {"success_rate": 0.9}).gate_evidence == {"success_rate": 0.9}
     _forbidden(learner.promote, name, 0)
     _forbidden(learner.reject, name, 0)

@@ -56,7 +56,7 @@ def test_client_is_a_registry_and_sees_the_server_alive(client: Client) -> None:
     assert isinstance(client, Registry)
     assert client.is_registry_alive()
     info = client.info()
-    assert (info["protocol"], info["namespace"], info["max_artifact_bytes"]) == (1, "capevo", 256 * MB)
+    assert (info["protocol"], info["namespace"], info["max_artifact_bytes"]) == (2, "capevo", 256 * MB)
 
 
 def test_every_commit_is_published_as_an_event(client: Client) -> None:
