@@ -24,16 +24,17 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import zenoh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from procs import ServerProcess, start_server
 from zenoh_fixtures import raw_query, raw_session, unique_name
 
 from capevo.errors import CapevoError, ErrorCode, Forbidden, Invalid
-from capevo.records import Action, Auth, Descriptor, Kind, Origin, PublishSpec
+from capevo.records import Action, Attribution, Auth, Descriptor, Kind, Origin, PublishSpec
 from capevo.registry.client import Client
 from capevo.registry.descriptor import parse_publish_spec, spec_from_document
-from capevo.registry.keys import Keys
+from capevo.registry.keys import COMMANDS, CommandRoute, Keys
 from capevo.registry.local import LocalRegistry
 from capevo.registry.server_config import access_control_for, parse_server_config
 from capevo.registry.wire import loads
@@ -379,3 +380,43 @@ def test_float_parent_over_zenoh_is_invalid(tmp_path: Path, free_port: int) -> N
     finally:
         session.close()
         assert server.stop() == 0, server.log_text()
+
+
+# --- the per-user command key and what an attribution records ---------------------------------------
+
+USERS = st.from_regex(r"[A-Za-z0-9._@-]{1,64}", fullmatch=True)
+
+
+@settings(max_examples=300)
+@given(op=st.sampled_from(COMMANDS), user=st.none() | USERS)
+def test_command_keys_round_trip_with_their_user(op: str, user: str | None) -> None:  # keys invariant 4
+    keys = Keys("lab/robot-1")
+    key = keys.cmd(op, user)
+    assert keys.parse_cmd(key) == CommandRoute(op=op, user=user)
+    assert zenoh.KeyExpr(key) == zenoh.KeyExpr(key)  # a valid key expression
+    if user is not None:
+        assert not zenoh.KeyExpr(f"lab/robot-1/cmd/{op}/*").intersects(zenoh.KeyExpr(key))
+        assert not zenoh.KeyExpr("lab/robot-1/**").intersects(zenoh.KeyExpr(key))
+
+
+@pytest.mark.parametrize(
+    "key",
+    ["capevo/cmd/publish/alice", "capevo/cmd/publish/@", "capevo/cmd/publish/@a b", "capevo/cmd/publish/@a/b"],
+)
+def test_bad_user_chunks_are_invalid(key: str) -> None:
+    with pytest.raises(Invalid):
+        Keys().parse_cmd(key)
+
+
+def test_attribution_extras_go_into_the_event_data_and_the_chain_verifies(tmp_path: Path) -> None:
+    # storage invariant 8, local invariant 7
+    with LocalRegistry(tmp_path / "reg", actor="local") as reg:
+        reg.publish("reach", b"v0", LEARNED)
+        reg.promote("reach", 0, actor=Attribution(actor="olga", auth=Auth.USER, on_behalf_of="evolve-gate"))
+        reg.publish("reach", b"v1", LEARNED, actor=Attribution(actor="claimer", auth=Auth.OPEN))
+        plain, vouched, claimed = reg.history("reach")
+        assert (plain.actor, "auth" in plain.data, "on_behalf_of" in plain.data) == ("local", False, False)
+        assert (vouched.actor, vouched.data) == ("olga", {"auth": "user", "on_behalf_of": "evolve-gate"})
+        assert (claimed.actor, claimed.data["auth"]) == ("claimer", "open")
+        assert reg.get_version("reach", 1).created_by == "claimer"
+        assert reg.verify().ok
