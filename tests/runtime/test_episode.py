@@ -36,7 +36,7 @@ from capevo.runtime.capabilities import LoadedCapabilitySet
 from capevo.runtime.episode import END_PLAN_ECM, make_governor, run_episode, run_episode_detailed
 from capevo.runtime.governance import Phi
 from capevo.runtime.policy import Decision, DecisionContext, StepEnd
-from capevo.runtime.tasks import TaskEnv, make_task
+from capevo.runtime.tasks import TaskEnv, make_task, task_spec
 from capevo.runtime.traces import MemoryTraceSink, Outcome, TraceMetadata, TraceReader, TraceWriter
 
 pytestmark = pytest.mark.slow
@@ -357,8 +357,8 @@ def test_exhausted_step_budget_hands_back_to_the_policy(
 
 def test_the_env_senses_proximity_only_when_its_envelope_reads_it(env: TaskEnv) -> None:
     env.reset(seed=0)
-    make_governor(env, Phi.for_task("T1"))
-    assert env.sense_proximity and Phi.for_task("T1").reads_proximity
+    make_governor(env, Phi.for_task(task_spec("T1")))
+    assert env.sense_proximity and Phi.for_task(task_spec("T1")).reads_proximity
     for _ in range(12):  # down towards the bin floor, into the sensor's reach of the scene
         env.step([0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0])
     assert any(arm.near for arm in env.robot_state().arms)  # type: ignore[attr-defined]
