@@ -105,8 +105,8 @@ def _pushes(action: Any, key_state: Any, offsets: list[int], frames: Any, limit2
 def run_job(task: str, enforce: bool, episodes: int, horizon: int, phi_kind: str = "task") -> dict[str, Any]:
     """One task in one governance mode; runs in a worker process."""
     logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
+    from capevo.records import Descriptor, Interface, IOSpec, Kind, PublishSpec
     from capevo.registry.local import LocalRegistry
-    from capevo.registry.records import Descriptor, Interface, IOSpec, Kind, PublishSpec
     from capevo.runtime.capabilities import LoadedCapabilitySet
     from capevo.runtime.ecm import with_params
     from capevo.runtime.episode import make_governor, run_episode_detailed

@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, save_results, summarize_ms, time_calls
 
 from capevo.errors import Timeout
-from capevo.registry.records import Interface, IOSpec, Origin
+from capevo.records import Interface, IOSpec, Origin
 from capevo.runtime.ecm import EcmInvoker, load_code, load_neural
 from capevo.runtime.sandbox import SandboxedSkill
 

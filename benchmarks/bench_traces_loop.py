@@ -44,8 +44,8 @@ from _common import markdown_table, save_results
 from capevo.agent.identity import IdentityMemory
 from capevo.agent.policy import DecompositionPolicy
 from capevo.learner.skills import seed_registry
+from capevo.records import CapabilitySet
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import CapabilitySet
 from capevo.runtime.capabilities import LoadedCapabilitySet
 from capevo.runtime.episode import make_governor, run_episode
 from capevo.runtime.governance import Phi

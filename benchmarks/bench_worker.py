@@ -63,9 +63,8 @@ from capevo.registry.local import LocalRegistry
 from capevo.runtime.capabilities import LoadedCapabilitySet
 from capevo.runtime.episode import make_governor, run_episode
 from capevo.runtime.governance import Phi
-from capevo.runtime.tasks import lean_stepping, make_task
-from capevo.runtime.traces import RUNTIME_BATCH, MemoryTraceSink, TraceMetadata, TraceWriter
-from capevo.runtime.traces.sink import WRITE_METHODS
+from capevo.runtime.tasks import lean_stepping, make_task, task_spec
+from capevo.runtime.traces import MemoryTraceSink, TraceMetadata, TraceWriter
 
 TARGET_OVERHEAD_PCT = 3.0
 CLOCKS = ("wall", "cpu")
@@ -102,7 +101,7 @@ class _TimedSink:
     """A TraceSink that forwards to ``inner``, clocking every write."""
 
     def __init__(self, inner: Any, timed: _Timed) -> None:
-        for name in (m for m in WRITE_METHODS if m != "write_episode_summary"):  # that one is clocked below
+        for name in ("write_plan_step", "write_invocation", "write_intervention", "write_env_step"):
             setattr(self, name, timed.wrap(getattr(inner, name), "trace writes"))
         self.write_episode_summary = timed.wrap(inner.write_episode_summary, "trace: episode summary + flush")
         self.flush, self.close = inner.flush, inner.close
@@ -145,7 +144,7 @@ def component_breakdown(
     env.step = timed.wrap(env.step, "TaskEnv.step (robosuite step inside)")
     steps = 0
     try:
-        with TraceWriter(tmp / "breakdown.mcap", metadata, batch=RUNTIME_BATCH) as writer:
+        with TraceWriter(tmp / "breakdown.mcap", metadata) as writer:
             sink = _TimedSink(writer, timed)
             tcaps, tgov = _TimedCaps(caps, timed), _TimedGovernor(governor, timed)
             t0, c0 = time.perf_counter(), time.thread_time()
@@ -227,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
     shapes = {k: tuple(v.shape) for k, v in env.obs_dict.items()}
     caps = LoadedCapabilitySet(registry, args.task, observation_shapes=shapes)
     policy = DecompositionPolicy(identity=IdentityMemory.default())
-    phi = Phi.default() if args.phi == "paper" else Phi.for_task(args.task)
+    phi = Phi.default() if args.phi == "paper" else Phi.for_task(task_spec(args.task))
     governor = make_governor(env, phi)
     seeds = list(range(args.seeds))
 
@@ -329,7 +328,7 @@ def main(argv: list[str] | None = None) -> int:
     loads: list[float] = []
     for r in range(args.rounds):
         round_total = {v: [0.0, 0.0] for v in names + inside}
-        with TraceWriter(tmp / f"worker-{r}.mcap", metadata(f"bench-{r}"), batch=RUNTIME_BATCH) as writer:
+        with TraceWriter(tmp / f"worker-{r}.mcap", metadata(f"bench-{r}")) as writer:
             for i, seed in enumerate(seeds):
                 k = (r + i) % len(runners)
                 for runner in runners[k:] + runners[:k]:

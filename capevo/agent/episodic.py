@@ -36,7 +36,7 @@ from types import MappingProxyType
 from typing import Any
 
 from capevo.errors import CapevoError, Conflict, Corrupt, Invalid, NotFound
-from capevo.registry.audit import canonical_json
+from capevo.records.audit import canonical_json
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.storage.blobs import append_synced, fsync_dir
 

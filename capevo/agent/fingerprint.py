@@ -2,7 +2,7 @@
 
 ``identity_hash = sha256(canonical_json({"policy": {"type": <π_A class name>, "parameters":
 <θ record>}, "identity": <M_id document>}))`` with canonical JSON = sorted keys, no spaces,
-UTF-8, NaN refused (:func:`capevo.registry.audit.canonical_json`). Episodic memory is not part
+UTF-8, NaN refused (:func:`capevo.records.audit.canonical_json`). Episodic memory is not part
 of it: the agent remembers more every episode without becoming someone else.
 
 Invariants:
@@ -22,7 +22,7 @@ from typing import Any
 
 from capevo.agent.base import AgentPolicy
 from capevo.agent.identity import IdentityMemory
-from capevo.registry.audit import canonical_json
+from capevo.records.audit import canonical_json
 
 
 def policy_document(policy: AgentPolicy) -> dict[str, Any]:

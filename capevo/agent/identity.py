@@ -39,7 +39,7 @@ import jsonschema
 import yaml
 
 from capevo.errors import Invalid
-from capevo.registry.names import validate_name
+from capevo.records.names import validate_name
 
 FORMAT_VERSION = 1
 MAX_IDENTITY_BYTES = 1024 * 1024

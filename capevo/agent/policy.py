@@ -45,8 +45,8 @@ from typing import Any
 
 from capevo.agent.identity import IdentityMemory
 from capevo.errors import Invalid
+from capevo.records import Descriptor, EcmVersion, Predicate
 from capevo.registry.predicates import missing_signals, predicate_holds
-from capevo.registry.records import Descriptor, EcmVersion, Predicate
 from capevo.runtime.policy import Decision, DecisionContext, StepEnd
 
 ALL_DONE = "all steps done"

@@ -34,9 +34,9 @@ from capevo.cli import (
     registry_session,
 )
 from capevo.errors import CapevoError, Corrupt, Invalid
+from capevo.records import AuditEvent, CapabilitySet, EcmDetail, EcmSummary, EcmVersion, IOSpec, State
+from capevo.records.names import validate_name
 from capevo.registry.descriptor import parse_publish_spec
-from capevo.registry.names import validate_name
-from capevo.registry.records import AuditEvent, CapabilitySet, EcmDetail, EcmSummary, EcmVersion, IOSpec, State
 from capevo.storage.blobs import fsync_dir
 
 # Above this size publish/pull show a spinner on a terminal.

@@ -29,7 +29,7 @@ from capevo.cli import (
     registry_session,
 )
 from capevo.errors import ErrorCode
-from capevo.registry.records import VerifyReport
+from capevo.records import VerifyReport
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 

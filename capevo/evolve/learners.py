@@ -40,8 +40,8 @@ from capevo.errors import Invalid
 from capevo.evolve.config import EvolveConfig
 from capevo.evolve.progress import ProgressSink
 from capevo.learner.base import Candidate, LearnRequest
+from capevo.records import EcmVersion, Kind, State
 from capevo.registry.api import Registry
-from capevo.registry.records import EcmVersion, Kind, State
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.gate import SeedPlan
 from capevo.runtime.tasks import Perturbations, task_spec

@@ -70,8 +70,8 @@ from capevo.evolve.learners import Proposal, Updater, UpdateRequest, waiting_can
 from capevo.evolve.metrics import ChainUpdate, GateSummary, IterationMetrics, MetricsLog, outcome_stats
 from capevo.evolve.progress import ProgressSink, RecordingProgress
 from capevo.evolve.state import Journal, RunManifest, load_manifest, save_manifest
+from capevo.records import EcmVersion, State
 from capevo.registry.api import Registry
-from capevo.registry.records import EcmVersion, State
 from capevo.runtime.evaluation import EpisodeOutcome, Evaluator
 from capevo.runtime.gate import Gate, SeedPlan
 from capevo.runtime.monitor import DegradationMonitor

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from capevo.evolve.metrics import IterationMetrics, OutcomeStats
-from capevo.registry.records import Action, AuditEvent
+from capevo.records import Action, AuditEvent
 
 DPI = 120
 _DECISION_STYLE = {

@@ -26,8 +26,8 @@ from typing import Any
 from capevo.errors import CapevoError, NotFound
 from capevo.evolve.metrics import IterationMetrics, OutcomeStats, outcome_stats, read_metrics, write_atomically
 from capevo.evolve.state import RunManifest, load_manifest
+from capevo.records import AuditEvent, EcmVersion, Kind
 from capevo.registry.api import Registry
-from capevo.registry.records import AuditEvent, EcmVersion, Kind
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.tasks import task_spec
 

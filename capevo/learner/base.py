@@ -31,8 +31,8 @@ from typing import Any, Protocol, runtime_checkable
 
 from capevo.errors import Invalid
 from capevo.learner.experience import EpisodeEnd, episode_ends, progress
+from capevo.records import EcmVersion, Kind, Origin, PublishSpec
 from capevo.registry.api import Registry
-from capevo.registry.records import EcmVersion, Kind, Origin, PublishSpec
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.tasks import task_spec
 

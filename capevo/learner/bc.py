@@ -50,8 +50,8 @@ from capevo.errors import Invalid
 from capevo.learner.base import Candidate, LearnRequest, config_hash
 from capevo.learner.ecm_env import EcmEnv, EcmEnvConfig, EcmTarget, make_ecm_env, target_for
 from capevo.learner.neural_seed import NEURAL_MEDIA_TYPE, model_bytes, offline_sac, sac_policy_kwargs, warm_start
+from capevo.records import IOSpec, Kind, Origin, Provenance, PublishSpec
 from capevo.registry.api import Registry
-from capevo.registry.records import IOSpec, Kind, Origin, Provenance, PublishSpec
 from capevo.runtime.ecm.marshal import spec_size
 from capevo.runtime.tasks import TaskSpec, task_spec
 

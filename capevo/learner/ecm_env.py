@@ -48,9 +48,9 @@ import gymnasium as gym
 import numpy as np
 
 from capevo.errors import Invalid, NotFound
+from capevo.records import Descriptor, EcmVersion, Interface, IOSpec, Kind, Predicate
 from capevo.registry.api import Registry
 from capevo.registry.predicates import predicate_holds
-from capevo.registry.records import Descriptor, EcmVersion, Interface, IOSpec, Kind, Predicate
 from capevo.runtime.ecm.marshal import flatten_inputs, marshal_inputs, spec_size
 from capevo.runtime.tasks import Perturbations, TaskEnv, TaskSpec, make_task, task_spec
 from capevo.runtime.tasks.spec import EcmStep

@@ -25,7 +25,7 @@ from capevo.learner.base import Candidate, LearnRequest, config_hash
 from capevo.learner.experience import trace_paths
 from capevo.learner.search import CemSearch, candidate_spec
 from capevo.learner.synthesis import LlmSynthesis
-from capevo.registry.records import Origin, Provenance
+from capevo.records import Origin, Provenance
 
 log = logging.getLogger(__name__)
 

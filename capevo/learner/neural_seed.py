@@ -5,7 +5,7 @@ A neural ECM's artifact is the zip ``model.save()`` of a stable-baselines3 SAC m
 its observation is the ECM's interface inputs concatenated in interface order (float32), its
 action the task's action vector in [-1, 1]. :func:`seed_policy` makes version 0 of a neural
 ECM: a randomly initialised SAC policy (seeded, so reproducible) with a
-:class:`~capevo.registry.records.PublishSpec` of kind ``neural`` whose descriptor is the task
+:class:`~capevo.records.PublishSpec` of kind ``neural`` whose descriptor is the task
 step's and whose interface is the built-in one (:func:`capevo.learner.ecm_env.default_interface`).
 
 Invariants:
@@ -33,8 +33,7 @@ import gymnasium as gym
 import numpy as np
 
 from capevo.errors import Invalid
-from capevo.registry.api import Registry
-from capevo.registry.records import (
+from capevo.records import (
     DEFAULT_MEDIA_TYPES,
     Descriptor,
     EcmVersion,
@@ -44,6 +43,7 @@ from capevo.registry.records import (
     Provenance,
     PublishSpec,
 )
+from capevo.registry.api import Registry
 from capevo.runtime.ecm.marshal import spec_size
 from capevo.runtime.tasks import task_spec
 

@@ -54,8 +54,8 @@ from capevo.learner.bc import (
 from capevo.learner.ecm_env import EcmEnv, EcmEnvConfig, EcmTarget, make_ecm_env, target_for
 from capevo.learner.neural_seed import new_sac, sac_policy_kwargs, warm_start
 from capevo.learner.reward import RewardShaping, ShapedReward
+from capevo.records import Kind, Origin, Provenance
 from capevo.registry.api import Registry
-from capevo.registry.records import Kind, Origin, Provenance
 from capevo.runtime.tasks import task_spec
 
 log = logging.getLogger(__name__)

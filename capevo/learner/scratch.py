@@ -29,9 +29,9 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 from capevo.errors import Invalid
+from capevo.records import EcmVersion, Origin, PublishSpec
 from capevo.registry.api import Registry
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import EcmVersion, Origin, PublishSpec
 from capevo.runtime.evaluation import EpisodeOutcome, Evaluator
 from capevo.runtime.tasks import task_spec
 

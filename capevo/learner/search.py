@@ -58,7 +58,7 @@ import numpy as np
 from capevo.errors import Invalid
 from capevo.learner.base import Candidate, CandidateEvaluator, LearnRequest, Score, config_hash, score_outcomes
 from capevo.learner.experience import EpisodeEnd, episode_ends, handover_rate, pick_ecm_to_update, trace_paths
-from capevo.registry.records import Origin, Provenance, PublishSpec
+from capevo.records import Origin, Provenance, PublishSpec
 from capevo.runtime.ecm.code import read_params, with_params
 
 log = logging.getLogger(__name__)

@@ -43,7 +43,7 @@ from capevo.learner.base import Candidate, CandidateEvaluator, Learner, LearnReq
 from capevo.learner.chat import Chat
 from capevo.learner.experience import EpisodeEnd, episode_ends, failure_summary, trace_paths
 from capevo.learner.search import candidate_spec
-from capevo.registry.records import Interface, IOSpec, Origin, Predicate, Provenance
+from capevo.records import Interface, IOSpec, Origin, Predicate, Provenance
 from capevo.runtime.ecm.code import read_params
 from capevo.runtime.ecm.marshal import output_size
 from capevo.runtime.sandbox import SandboxConfig, SandboxedSkill, validate_source

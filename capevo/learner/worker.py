@@ -59,8 +59,8 @@ from capevo.learner.base import Candidate, LearnRequest
 from capevo.learner.bc import default_learner_id
 from capevo.learner.presets import Preset, make_preset
 from capevo.learner.trigger import TriggerConfig, UpdateTrigger
+from capevo.records import AuditEvent, EcmVersion, Kind
 from capevo.registry.api import Registry
-from capevo.registry.records import AuditEvent, EcmVersion, Kind
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.gate import SeedPlan
 from capevo.runtime.tasks import Perturbations, task_spec

@@ -41,9 +41,9 @@ from types import MappingProxyType
 from typing import Any
 
 from capevo.errors import CapevoError, Invalid, NotFound, Timeout, Unavailable, check_choice
+from capevo.records import CapabilitySet, EcmVersion, Interface, Kind, State
 from capevo.registry.api import Registry
 from capevo.registry.predicates import missing_signals
-from capevo.registry.records import CapabilitySet, EcmVersion, Interface, Kind, State
 from capevo.runtime.artifact_cache import ArtifactStore, MemoryArtifactCache
 from capevo.runtime.ecm import (
     EcmInvoker,

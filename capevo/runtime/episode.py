@@ -57,8 +57,8 @@ from typing import Any, ParamSpec, Protocol
 import numpy as np
 
 from capevo.errors import CapevoError, Invalid
+from capevo.records import EcmVersion
 from capevo.registry.predicates import predicate_holds
-from capevo.registry.records import EcmVersion
 from capevo.runtime.ecm import FAILURES, EcmInvoker, Status, StepResult
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.governance import Governor, Phi, hold_action, unsafe_reasons

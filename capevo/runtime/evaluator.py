@@ -29,8 +29,8 @@ from pathlib import Path
 from typing import Any
 
 from capevo.errors import Invalid, Unavailable
+from capevo.records import CapabilitySet
 from capevo.registry.api import Registry
-from capevo.registry.records import CapabilitySet
 from capevo.runtime.artifact_cache import ArtifactStore, MemoryArtifactCache
 from capevo.runtime.capabilities import DEFAULT_RECOVERY, LoadedCapabilitySet
 from capevo.runtime.ecm import LoadOptions

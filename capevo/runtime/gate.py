@@ -84,7 +84,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 from capevo.errors import Conflict, IllegalTransition, Invalid, NotFound, check_choice
-from capevo.registry.records import CapabilitySet, EcmVersion, State
+from capevo.records import CapabilitySet, EcmVersion, State
 from capevo.runtime.evaluation import EpisodeOutcome, Evaluator
 from capevo.runtime.gate_stats import (
     PairedStats,

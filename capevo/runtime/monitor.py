@@ -53,7 +53,7 @@ from typing import Any, Protocol, runtime_checkable
 from scipy import stats as sps
 
 from capevo.errors import CapevoError, IllegalTransition, Invalid, NotFound, check_choice
-from capevo.registry.records import Action, AuditEvent, EcmVersion, State
+from capevo.records import Action, AuditEvent, EcmVersion, State
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.gate import EVIDENCE_SCHEMA
 from capevo.runtime.gate_stats import check_alpha, wilson_interval

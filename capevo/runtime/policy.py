@@ -14,7 +14,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
-from capevo.registry.records import EcmVersion
+from capevo.records import EcmVersion
 
 
 class StepEnd(str, enum.Enum):

@@ -68,8 +68,8 @@ from capevo.errors import (
     Unavailable,
     error_from_payload,
 )
+from capevo.records import Action, AuditEvent, EcmVersion, State
 from capevo.registry.keys import DEFAULT_NAMESPACE, Keys, validate_namespace
-from capevo.registry.records import Action, AuditEvent, EcmVersion, State
 from capevo.runtime.artifact_cache import ArtifactCache, ArtifactStore, MemoryArtifactCache
 from capevo.runtime.capabilities import DEFAULT_RECOVERY, LoadedCapabilitySet, check_recovery_mode
 from capevo.runtime.episode import (

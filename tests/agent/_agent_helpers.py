@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from capevo.registry.records import (
+from capevo.records import (
     ArtifactRef,
     Condition,
     Descriptor,

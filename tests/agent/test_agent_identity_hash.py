@@ -35,7 +35,7 @@ from capevo.agent import (
 )
 from capevo.agent.fingerprint import changed_paths
 from capevo.errors import ErrorCode, IdentityViolation, Invalid
-from capevo.registry.audit import canonical_json
+from capevo.records.audit import canonical_json
 from capevo.runtime.policy import DecisionPolicy
 
 

@@ -30,7 +30,7 @@ from capevo.agent import (
 )
 from capevo.agent.llm import build_messages
 from capevo.errors import ErrorCode, Invalid, Timeout, Unavailable
-from capevo.registry.records import Descriptor
+from capevo.records import Descriptor
 from capevo.runtime.policy import Decision, DecisionPolicy, StepEnd
 
 

@@ -27,8 +27,8 @@ from hypothesis import strategies as st
 
 from capevo.agent import ALL_DONE, DecompositionPolicy, IdentityMemory, PolicyParameters
 from capevo.errors import ErrorCode, Invalid
+from capevo.records import Descriptor
 from capevo.registry.predicates import predicate_holds
-from capevo.registry.records import Descriptor
 from capevo.runtime.policy import Decision, DecisionPolicy, StepEnd
 from capevo.runtime.tasks import task_spec
 

@@ -34,8 +34,8 @@ from capevo.evolve.loop import EvolutionLoop, ensure_v0
 from capevo.evolve.progress import ProgressSink, RecordingProgress
 from capevo.evolve.state import RunManifest
 from capevo.learner.base import Candidate
+from capevo.records import CapabilitySet, Origin, Provenance, PublishSpec
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import CapabilitySet, Origin, Provenance, PublishSpec
 from capevo.runtime.ecm.code import read_params, with_params
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.gate import GateConfig, SeedPlan

@@ -25,7 +25,7 @@ from capevo.evolve.config import EvolveConfig, make_config
 from capevo.evolve.loop import UPSTREAM_BELOW
 from capevo.evolve.metrics import read_metrics
 from capevo.evolve.state import Journal
-from capevo.registry.records import State
+from capevo.records import State
 
 REACH, GRASP, LIFT = NAMES
 

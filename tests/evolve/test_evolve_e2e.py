@@ -17,8 +17,8 @@ from capevo.agent.episodic import EpisodicMemory
 from capevo.evolve.metrics import read_metrics
 from capevo.evolve.progress import RecordingProgress
 from capevo.evolve.run import EvolveOptions, run_evolution
+from capevo.records import Action, State
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Action, State
 from capevo.runtime.traces import TraceReader
 
 pytestmark = pytest.mark.slow

@@ -16,8 +16,8 @@ from evolve_support import NAMES, evolve_command, kill, run_cli, wait_for
 
 from capevo.agent import read_episodes
 from capevo.evolve.metrics import read_metrics
+from capevo.records import Action, State
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Action, State
 
 pytestmark = pytest.mark.slow
 

@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 from evolve_support import Child, evolve_command, wait_for
 
+from capevo.records import Action, Origin, State
 from capevo.registry.client import Client
-from capevo.registry.records import Action, Origin, State
 from capevo.runtime.traces import TraceReader
 
 pytestmark = [pytest.mark.slow, pytest.mark.zenoh]

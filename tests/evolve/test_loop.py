@@ -34,8 +34,8 @@ from capevo.evolve.loop import ensure_v0, task_capability_set
 from capevo.evolve.metrics import read_metrics
 from capevo.evolve.progress import RecordingProgress
 from capevo.evolve.state import Journal
+from capevo.records import Action, Origin, State
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Action, Origin, State
 from capevo.runtime.monitor import MonitorConfig
 
 
@@ -332,7 +332,7 @@ def test_a_waiting_candidate_is_gated_instead_of_learning(tmp_path: Path) -> Non
 
 
 def _spec_of(record):  # type: ignore[no-untyped-def]
-    from capevo.registry.records import PublishSpec
+    from capevo.records import PublishSpec
 
     return PublishSpec(kind=record.kind, descriptor=record.descriptor, interface=record.interface)
 

@@ -23,7 +23,7 @@ from capevo.evolve.learners import (
     waiting_candidates,
 )
 from capevo.evolve.progress import RecordingProgress, RichProgress
-from capevo.registry.records import EcmVersion
+from capevo.records import EcmVersion
 
 
 def _drive(progress: RichProgress) -> None:
@@ -92,7 +92,7 @@ def test_remote_candidates_wait_then_hand_over_a_published_one(tmp_path: Path) -
     assert waiting.propose(request, progress) is None  # nobody published within the timeout
     assert any("capevo learner serve --ecm pick.reach" in c[1]["text"] for c in progress.calls)
     parent = registry.get_version("pick.lift")
-    from capevo.registry.records import PublishSpec
+    from capevo.records import PublishSpec
 
     spec = PublishSpec(kind=parent.kind, descriptor=parent.descriptor, interface=parent.interface, parent=0)
     published = registry.publish("pick.lift", registry.get_artifact("pick.lift", 0) + b"\n", spec, actor="rl-1")

@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
-from capevo.registry.records import Origin
+from capevo.records import Origin
 from capevo.runtime.ecm.code import read_params
 from capevo.runtime.evaluation import EpisodeOutcome
 

@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 from procs import LOOPBACK
 
+from capevo.records import CapabilitySet
 from capevo.registry.predicates import predicate_holds
-from capevo.registry.records import CapabilitySet
 from capevo.runtime.ecm.marshal import flatten_inputs, marshal_inputs
 from capevo.runtime.tasks import Perturbations, make_task, task_spec
 from capevo.runtime.tasks.scripted import REFERENCES

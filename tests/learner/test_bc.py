@@ -31,8 +31,8 @@ from capevo.learner.bc import (
 from capevo.learner.ecm_env import EcmEnv, EcmEnvConfig, make_ecm_env, target_for
 from capevo.learner.neural_seed import model_bytes, offline_sac, policy_state
 from capevo.learner.skills import seed_registry
+from capevo.records import Kind, Origin
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Kind, Origin
 from capevo.runtime.ecm import NeuralPolicy
 from capevo.runtime.tasks import Perturbations, task_spec
 from capevo.runtime.tasks.scripted import REFERENCES

@@ -10,7 +10,7 @@ from capevo.learner.hybrid import HybridLearner
 from capevo.learner.search import CemSearch
 from capevo.learner.skills import seed_source
 from capevo.learner.synthesis import LlmSynthesis
-from capevo.registry.records import Origin
+from capevo.records import Origin
 from capevo.runtime.ecm.code import read_params
 
 

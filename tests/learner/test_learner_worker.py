@@ -34,8 +34,8 @@ from neural_support import (
 from procs import free_tcp_port
 
 from capevo.learner.neural_seed import seed_policy
+from capevo.records import Kind, Origin, State
 from capevo.registry.client import Client
-from capevo.registry.records import Kind, Origin, State
 
 pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
 

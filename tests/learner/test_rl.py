@@ -42,9 +42,9 @@ from capevo.learner.neural_seed import (
 from capevo.learner.presets import make_preset, preset_names
 from capevo.learner.reward import RewardShaping, ShapedReward
 from capevo.learner.rl import SacConfig, SacLearner, build_sac, train_sac
+from capevo.records import Kind, Origin, State
 from capevo.registry.local import LocalRegistry
 from capevo.registry.predicates import predicate_holds
-from capevo.registry.records import Kind, Origin, State
 from capevo.runtime.ecm import NeuralPolicy
 from capevo.runtime.ecm.neural import load_sb3_policy
 from capevo.runtime.tasks import Perturbations

@@ -30,7 +30,7 @@ from capevo.learner.experience import (
 from capevo.learner.scratch import ScratchRegistryEvaluator
 from capevo.learner.search import RANGE_UNITS, CemConfig, CemSearch, ParamRange, cem_preset, param_space, read_ranges
 from capevo.learner.skills import seed_source
-from capevo.registry.records import CapabilitySet, Origin
+from capevo.records import CapabilitySet, Origin
 from capevo.runtime.ecm.code import read_params
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.evaluator import LocalEvaluator

@@ -20,8 +20,8 @@ from capevo.learner.skills import (
     seed_specs,
     skill_tasks,
 )
+from capevo.records import Kind, Origin, State
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Kind, Origin, State
 from capevo.runtime.ecm.code import CodeSkill, read_params, with_params
 from capevo.runtime.evaluator import LocalEvaluator
 from capevo.runtime.sandbox import validate_source

@@ -17,7 +17,7 @@ from capevo.learner.chat import Chat, ChatConfig
 from capevo.learner.search import CemSearch
 from capevo.learner.skills import seed_source
 from capevo.learner.synthesis import LlmSynthesis, build_messages, check_source, extract_code
-from capevo.registry.records import Origin
+from capevo.records import Origin
 from capevo.runtime.ecm.code import read_params, with_params
 
 

@@ -20,8 +20,8 @@ from typing import Any
 from mcap.reader import make_reader
 from procs import kill, terminate
 
+from capevo.records import EcmVersion, Interface, IOSpec, Kind, Origin, PublishSpec
 from capevo.registry.api import Registry
-from capevo.registry.records import EcmVersion, Interface, IOSpec, Kind, Origin, PublishSpec
 from capevo.runtime.tasks import task_spec
 
 PICK = task_spec("T1")

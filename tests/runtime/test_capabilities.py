@@ -15,8 +15,8 @@ import pytest
 from runtime_support import ACTION, CAN, EEF, LIFT, PICK, publish, publish_pick, skill_spec
 
 from capevo.errors import Corrupt, Invalid, NotFound
+from capevo.records import Condition, Interface, IOSpec, Kind, Predicate
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Condition, Interface, IOSpec, Kind, Predicate
 from capevo.runtime.artifact_cache import ArtifactCache
 from capevo.runtime.capabilities import LoadedCapabilitySet, check_plan
 from capevo.runtime.ecm import Fallback, Retry, SafeAbort

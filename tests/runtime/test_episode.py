@@ -30,8 +30,8 @@ from runtime_support import (
 from capevo.agent.identity import IdentityMemory
 from capevo.agent.policy import DecompositionPolicy
 from capevo.errors import Invalid
+from capevo.records import Origin
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Origin
 from capevo.runtime.capabilities import LoadedCapabilitySet
 from capevo.runtime.episode import END_PLAN_ECM, make_governor, run_episode, run_episode_detailed
 from capevo.runtime.governance import Phi

@@ -19,8 +19,8 @@ from capevo.agent.fingerprint import identity_hash
 from capevo.agent.identity import IdentityMemory
 from capevo.agent.policy import DecompositionPolicy
 from capevo.errors import Invalid, NotFound
+from capevo.records import Origin
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Origin
 from capevo.runtime.evaluation import EpisodeOutcome, Evaluator
 from capevo.runtime.evaluator import LocalEvaluator
 from capevo.runtime.governance import Phi

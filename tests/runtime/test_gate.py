@@ -19,8 +19,8 @@ from hypothesis import strategies as st
 from runtime_support import REACH, skill_spec
 
 from capevo.errors import Conflict, ErrorCode, IllegalTransition, Invalid
+from capevo.records import Action, State
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Action, State
 from capevo.runtime.evaluation import EpisodeOutcome, Evaluator
 from capevo.runtime.gate import (
     EVIDENCE_SCHEMA,

@@ -28,8 +28,8 @@ import pytest
 from runtime_support import GRASP, LIFT, REACH, skill_spec
 
 from capevo.agent import DecompositionPolicy, IdentityMemory
+from capevo.records import Action, Kind, Origin, PublishSpec, State
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Action, Kind, Origin, PublishSpec, State
 from capevo.runtime.ecm.code import with_params
 from capevo.runtime.evaluator import LocalEvaluator
 from capevo.runtime.gate import Gate, GateConfig, GateDecision, SeedPlan

@@ -18,8 +18,8 @@ from runtime_support import REACH, skill_spec
 from scipy import stats as sps
 
 from capevo.errors import ErrorCode, IllegalTransition, Invalid
+from capevo.records import Action, State
 from capevo.registry.local import LocalRegistry
-from capevo.registry.records import Action, State
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.gate import FakeEvaluator, Gate, GateConfig, SeedPlan
 from capevo.runtime.gate_stats import wilson_interval

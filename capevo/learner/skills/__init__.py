@@ -28,8 +28,8 @@ from collections.abc import Callable, Sequence
 from capevo.errors import Invalid
 from capevo.learner.skills import nut_assembly, peg_in_hole, pick_place, stack
 from capevo.learner.skills._lib import OBS_SHAPES, PRELUDE, SkillTemplate, publish_spec, render
+from capevo.records import EcmVersion, PublishSpec
 from capevo.registry.api import Registry
-from capevo.registry.records import EcmVersion, PublishSpec
 from capevo.runtime.tasks import task_spec
 from capevo.runtime.tasks.spec import TaskSpec
 

@@ -22,7 +22,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from capevo.errors import Invalid
-from capevo.registry.records import Interface, IOSpec, Kind, Origin, Provenance, PublishSpec
+from capevo.records import Interface, IOSpec, Kind, Origin, Provenance, PublishSpec
 from capevo.runtime.tasks.spec import EcmStep, TaskSpec
 
 PRELUDE = '''

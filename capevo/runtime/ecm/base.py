@@ -14,7 +14,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from capevo.registry.records import Interface, Kind, Origin
+from capevo.records import Interface, Kind, Origin
 from capevo.runtime.sandbox.client import SkillStep
 
 

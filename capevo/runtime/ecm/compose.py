@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from capevo.errors import Invalid
-from capevo.registry.records import EcmVersion, IOSpec
+from capevo.records import EcmVersion, IOSpec
 
 
 def _label(v: EcmVersion) -> str:

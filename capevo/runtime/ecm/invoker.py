@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from capevo.errors import Invalid, Timeout
-from capevo.registry.records import Kind
+from capevo.records import Kind
 from capevo.runtime.ecm.base import LoadedEcm
 from capevo.runtime.ecm.marshal import clip_to_bounds, marshal_inputs, output_size
 from capevo.runtime.ecm.outcome import FAILURES, Outcome, Status, StepResult

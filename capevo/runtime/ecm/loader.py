@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from capevo.errors import Corrupt, Invalid
-from capevo.registry.records import EcmVersion, Interface, Kind, Origin
+from capevo.records import EcmVersion, Interface, Kind, Origin
 from capevo.runtime.ecm.base import LoadedEcm
 from capevo.runtime.ecm.code import CodeSkill
 from capevo.runtime.ecm.neural import NeuralPolicy

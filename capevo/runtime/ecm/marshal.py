@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from capevo.errors import Invalid
-from capevo.registry.records import IOSpec
+from capevo.records import IOSpec
 
 _NUMERIC_KINDS = frozenset("biuf")
 

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from capevo.errors import Invalid
-from capevo.registry.records import IOSpec
+from capevo.records import IOSpec
 from capevo.runtime.ecm.marshal import flatten_inputs, output_size, spec_size
 from capevo.runtime.sandbox.client import SkillStep
 

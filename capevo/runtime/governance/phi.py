@@ -50,7 +50,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 
 from capevo.errors import Invalid
-from capevo.registry.audit import canonical_json
+from capevo.records.audit import canonical_json
 from capevo.runtime.governance import (  # noqa: F401 - registers the built-in kinds
     box,
     cap,

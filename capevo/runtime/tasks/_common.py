@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from capevo.registry.records import Predicate
+from capevo.records import Predicate
 from capevo.runtime.tasks.base import Movable
 from capevo.runtime.tasks.spec import EcmStep, SignalSpec, cond, pred
 

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from capevo.registry.records import Predicate
+from capevo.records import Predicate
 from capevo.runtime.state import ActionLayout, ArmActionLayout
 from capevo.runtime.tasks import _common as c
 from capevo.runtime.tasks.base import JITTER_TRIES, PENETRATION_LIMIT, TaskEnv

@@ -8,7 +8,7 @@ Predicates are evaluated with :func:`capevo.registry.predicates.predicate_holds`
 Invariants:
 1. Every :class:`Condition` in a task's decomposition names a signal the task declares.
 2. Every ECM name in a decomposition is a valid registry slug
-   (:func:`capevo.registry.names.validate_name`) and starts with ``<task name>.``.
+   (:func:`capevo.records.names.validate_name`) and starts with ``<task name>.``.
 3. Every observation key an :class:`EcmStep` needs is one of the task's observation keys.
 """
 
@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from capevo.errors import Invalid, check_choice
-from capevo.registry.records import COMPARISON_OPS, Condition, Descriptor, Predicate
+from capevo.records import COMPARISON_OPS, Condition, Descriptor, Predicate
 from capevo.runtime.state import ActionLayout
 
 
@@ -90,7 +90,7 @@ def cond(signal: str, op: str, value: float) -> Condition:
     """Shorthand for a :class:`Condition`; refuses unknown operators.
 
     Raises:
-        Invalid: ``op`` is not one of :data:`capevo.registry.records.COMPARISON_OPS`.
+        Invalid: ``op`` is not one of :data:`capevo.records.COMPARISON_OPS`.
     """
     check_choice(op, COMPARISON_OPS, what="comparison", field="op")
     return Condition(signal=signal, op=op, value=float(value))
@@ -107,7 +107,7 @@ def spec_problems(spec: TaskSpec) -> list[str]:
     Returns:
         One human-readable line per problem.
     """
-    from capevo.registry.names import validate_name
+    from capevo.records.names import validate_name
 
     problems: list[str] = []
     known = set(spec.signal_names)

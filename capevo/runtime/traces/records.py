@@ -38,7 +38,7 @@ import numpy as np
 import numpy.typing as npt
 
 from capevo.errors import Conflict, Corrupt, Invalid
-from capevo.registry.records import CapabilitySet
+from capevo.records import CapabilitySet
 
 TRACE_FORMAT = "1"
 """Version of the trace layout (topics, schemas, metadata names); bump on incompatible change."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import hashlib
 
-from capevo.registry.records import (
+from capevo.records import (
     DEFAULT_MEDIA_TYPES,
     ArtifactRef,
     Descriptor,

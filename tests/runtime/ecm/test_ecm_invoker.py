@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from capevo.errors import ErrorCode, Invalid
-from capevo.registry.records import Interface, IOSpec, Kind, Origin
+from capevo.records import Interface, IOSpec, Kind, Origin
 from capevo.runtime.ecm import (
     EcmInvoker,
     Fallback,

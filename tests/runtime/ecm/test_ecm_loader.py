@@ -7,7 +7,7 @@ import pytest
 from ecm_helpers import PENDULUM_INTERFACE, make_record
 
 from capevo.errors import Corrupt, ErrorCode, Invalid, SandboxViolation
-from capevo.registry.records import Kind, Origin
+from capevo.records import Kind, Origin
 from capevo.runtime.ecm import (
     SANDBOX_EVERYTHING,
     CodeSkill,

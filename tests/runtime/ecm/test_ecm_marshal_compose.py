@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from capevo.errors import ErrorCode, Invalid
-from capevo.registry.records import Interface, IOSpec
+from capevo.records import Interface, IOSpec
 from capevo.runtime.ecm import check_composition, clip_to_bounds, flatten_inputs, marshal_inputs, output_size
 
 SPECS = (IOSpec(name="eef_pos", shape=(3,)), IOSpec(name="gripper", shape=(2,), dtype="float64"))

@@ -16,7 +16,7 @@ import pytest
 from ecm_helpers import PENDULUM_INTERFACE
 
 from capevo.errors import ErrorCode, Invalid
-from capevo.registry.records import Interface, IOSpec
+from capevo.records import Interface, IOSpec
 from capevo.runtime.ecm import EcmInvoker, NeuralPolicy, Status, load_neural, load_sb3_policy
 from capevo.runtime.state import ActionLayout
 

@@ -11,10 +11,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from capevo.errors import Conflict, ErrorCode, Invalid
+from capevo.records import COMPARISON_OPS, Predicate
+from capevo.records.names import validate_name
 from capevo.registry.descriptor import spec_from_document
-from capevo.registry.names import validate_name
 from capevo.registry.predicates import predicate_holds
-from capevo.registry.records import COMPARISON_OPS, Predicate
 from capevo.runtime.state import SINGLE_PANDA
 from capevo.runtime.tasks import (
     RESERVED_ENV_KWARGS,

@@ -13,7 +13,7 @@ from __future__ import annotations
 import sys
 import time
 
-from capevo.registry.records import CapabilitySet
+from capevo.records import CapabilitySet
 from capevo.runtime.traces import EnvStep, TraceMetadata, TraceWriter
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capevo.registry.records import CapabilitySet
+from capevo.records import CapabilitySet
 from capevo.runtime.traces import (
     EcmInvocation,
     EnvStep,

@@ -12,7 +12,7 @@ import pytest
 from _trace_helpers import make_env_step, make_metadata, one_of_each
 
 from capevo.errors import Conflict, Corrupt, ErrorCode, Invalid
-from capevo.registry.records import CapabilitySet
+from capevo.records import CapabilitySet
 from capevo.runtime.traces import codec
 from capevo.runtime.traces import records as rec
 from capevo.runtime.traces.records import (
