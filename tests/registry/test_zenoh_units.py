@@ -378,7 +378,7 @@ def test_config_parsing_raises_only_invalid(doc: Any) -> None:  # server_config 
         parse_server_config(yaml.safe_dump(doc), env={})
 
 
-def test_access_control_grants_each_role_exactly_its_commands() -> None:  # server_config invariant 2
+def test_access_control_grants_each_user_exactly_its_roles_commands() -> None:  # server_config invariants 2, 5
     cfg = parse_server_config(EXAMPLE.replace("password_file: dash.pw", "password: d"), env={"LEARNER_PW": "x"})
     acl = access_control_for(cfg)
     assert acl is not None and acl["enabled"] is True and acl["default_permission"] == "deny"
@@ -386,25 +386,25 @@ def test_access_control_grants_each_role_exactly_its_commands() -> None:  # serv
     subjects = {s["id"]: s for s in acl["subjects"]}
     granted: dict[str, set[str]] = {}
     for policy in acl["policies"]:
-        users = {u for sid in policy["subjects"] for u in subjects[sid].get("usernames", [])}
-        zids = {z for sid in policy["subjects"] for z in subjects[sid].get("zids", [])}
-        ops = {rules[r]["key_exprs"][0].rsplit("/", 1)[1] for r in policy["rules"] if r.startswith("capevo-cmd-")}
-        assert {"capevo-read-in", "capevo-read-out"} <= set(policy["rules"])
-        for who in users | zids:
-            granted.setdefault(who, set()).update(ops)
+        who = {
+            w for sid in policy["subjects"] for w in subjects[sid].get("usernames", []) + subjects[sid].get("zids", [])
+        }
+        if policy["id"].startswith("capevo-role-"):
+            assert {"capevo-read-in", "capevo-read-out"} <= set(policy["rules"])
+        for name in who:
+            granted.setdefault(name, set())
+        for rule in (rules[r] for r in policy["rules"]):
+            if rule["flows"] == ["ingress"] and "query" in rule["messages"]:
+                for name in who:
+                    granted[name] |= {k for k in rule["key_exprs"] if "/cmd/" in k}
+    keys = Keys("lab/robot-1")
     assert granted == {
-        "alice": set(COMMANDS),
-        "learner-1": {"publish", "gate"},
+        "alice": {keys.cmd(op, "alice") for op in COMMANDS},
+        "learner-1": {keys.cmd("publish", "learner-1"), keys.cmd("gate", "learner-1")},
         "dash": set(),
         "1f2e3d4c5b6a7980": set(),
     }
-    for op in COMMANDS:
-        rule = rules[f"capevo-cmd-{op}"]
-        assert (rule["flows"], rule["messages"], rule["key_exprs"]) == (
-            ["ingress"],
-            ["query"],
-            [f"lab/robot-1/cmd/{op}"],
-        )
+    assert keys.cmd("gate", "learner-1") == "lab/robot-1/cmd/gate/@learner-1"
     router_config(listen=["tcp/127.0.0.1:7447"], access_control=acl)  # Zenoh accepts it
 
 
