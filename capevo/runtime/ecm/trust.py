@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from capevo.errors import Invalid
-from capevo.registry.records import Kind, Origin
+from capevo.records import Kind, Origin
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
