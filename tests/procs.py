@@ -176,7 +176,7 @@ def start_server(
                 text=True,
                 env={**os.environ, **(env or {})},
             )
-        info = _wait_ready(proc, ready_timeout)
+        info = wait_ready(proc, ready_timeout)
         if info is not None:
             return ServerProcess(proc=proc, root=root, port=p, namespace=namespace, info=info, log_path=log_path)
         if proc.poll() is None:
@@ -186,7 +186,7 @@ def start_server(
     raise RuntimeError(f"registry server did not start:\n{last_error}")
 
 
-def _wait_ready(proc: subprocess.Popen[str], timeout: float) -> dict[str, Any] | None:
+def wait_ready(proc: subprocess.Popen[str], timeout: float) -> dict[str, Any] | None:
     from capevo.registry.service import READY_PREFIX
 
     assert proc.stdout is not None

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from procs import LOOPBACK
+from procs import LOOPBACK, wait_ready
 
 from capevo.records import CapabilitySet
 from capevo.registry.predicates import predicate_holds
@@ -32,7 +32,6 @@ from capevo.runtime.tasks.scripted import REFERENCES
 from capevo.runtime.traces import EnvStep, EpisodeSummary, TraceMetadata, TraceWriter
 
 REPO = Path(__file__).resolve().parents[2]
-READY_PREFIX = "READY "
 
 
 def subprocess_env() -> dict[str, str]:
@@ -185,18 +184,8 @@ def start_registry(root: Path, port: int, *, timeout: float = 60.0) -> Proc:
             env=subprocess_env(),
             cwd=REPO,
         )
-    assert proc.stdout is not None
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        ready, _, _ = select.select([proc.stdout], [], [], 0.2)
-        if ready:
-            line = proc.stdout.readline()
-            if line.startswith(READY_PREFIX):
-                return Proc(proc=proc, log_path=log_path)
-            if not line and proc.poll() is not None:
-                break
-        elif proc.poll() is not None:
-            break
+    if wait_ready(proc, timeout) is not None:
+        return Proc(proc=proc, log_path=log_path)
     proc.kill()
     proc.wait()
     raise RuntimeError(f"registry did not start:\n{log_path.read_text(errors='replace')}")
