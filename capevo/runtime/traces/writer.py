@@ -50,7 +50,7 @@ from typing import Any, BinaryIO
 
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
-from capevo.errors import CapevoError, Conflict, Invalid, Unavailable
+from capevo.errors import CapevoError, Conflict, Invalid, Unavailable, check_choice
 from capevo.runtime.traces import codec
 from capevo.runtime.traces.records import (
     MESSAGE_ENCODING,
@@ -85,12 +85,7 @@ def check_compression(name: object) -> str:
     Raises:
         Invalid: anything else (field ``compression``).
     """
-    if not isinstance(name, str) or name not in COMPRESSIONS:
-        raise Invalid(
-            f"unknown trace compression {name!r}; valid: {', '.join(COMPRESSIONS)}",
-            details={"field": "compression"},
-        )
-    return name
+    return check_choice(name, tuple(COMPRESSIONS), what="trace compression", field="compression")
 
 
 DEFAULT_CHUNK_SIZE = 256 * 1024
