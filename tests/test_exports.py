@@ -16,7 +16,12 @@ PUBLIC = {
     "capevo.storage": {"AbstractStore", "BlobStore", "SqliteStore"},
     "capevo.runtime": {
         "ActionLayout", "ArmActionLayout", "ArmState", "Decision", "DecisionContext", "DecisionPolicy",
-        "EpisodeOutcome", "Evaluator", "RobotState", "StepEnd",
+        "EpisodeOutcome", "Evaluator", "RobotState", "SafetyLimits", "SafetyMonitor", "SafetyVerdict", "StepEnd",
+    },
+    "capevo.records": {
+        "Action", "ArtifactRef", "Attribution", "AuditEvent", "Auth", "COMPARISON_OPS", "CapabilitySet", "Condition",
+        "DEFAULT_MEDIA_TYPES", "Descriptor", "EcmDetail", "EcmSummary", "EcmVersion", "IOSpec", "Interface", "Kind",
+        "Mutation", "Origin", "Predicate", "Provenance", "PublishSpec", "State", "VerifyReport",
     },
     "capevo.agent": {
         "ALL_DONE", "AgentPolicy", "Belief", "ChatClient", "DecompositionPolicy", "EpisodeRecord", "EpisodicLog",

@@ -504,3 +504,30 @@ class Mutation:
 
     record: EcmVersion
     event: AuditEvent
+
+
+__all__ = [
+    "COMPARISON_OPS",
+    "DEFAULT_MEDIA_TYPES",
+    "Action",
+    "ArtifactRef",
+    "Attribution",
+    "AuditEvent",
+    "Auth",
+    "CapabilitySet",
+    "Condition",
+    "Descriptor",
+    "EcmDetail",
+    "EcmSummary",
+    "EcmVersion",
+    "IOSpec",
+    "Interface",
+    "Kind",
+    "Mutation",
+    "Origin",
+    "Predicate",
+    "Provenance",
+    "PublishSpec",
+    "State",
+    "VerifyReport",
+]

@@ -12,6 +12,7 @@ from capevo._lazy import lazy_getattr
 if TYPE_CHECKING:
     from capevo.runtime.evaluation import EpisodeOutcome, Evaluator
     from capevo.runtime.policy import Decision, DecisionContext, DecisionPolicy, StepEnd
+    from capevo.runtime.safety_monitor import SafetyLimits, SafetyMonitor, SafetyVerdict
     from capevo.runtime.state import ActionLayout, ArmActionLayout, ArmState, RobotState
 
 _HOMES = {
@@ -25,6 +26,9 @@ _HOMES = {
     "ArmActionLayout": "capevo.runtime.state",
     "ArmState": "capevo.runtime.state",
     "RobotState": "capevo.runtime.state",
+    "SafetyLimits": "capevo.runtime.safety_monitor",
+    "SafetyMonitor": "capevo.runtime.safety_monitor",
+    "SafetyVerdict": "capevo.runtime.safety_monitor",
 }
 __all__ = [
     "ActionLayout",
@@ -36,6 +40,9 @@ __all__ = [
     "EpisodeOutcome",
     "Evaluator",
     "RobotState",
+    "SafetyLimits",
+    "SafetyMonitor",
+    "SafetyVerdict",
     "StepEnd",
 ]
 __getattr__ = lazy_getattr(__name__, _HOMES)
