@@ -70,6 +70,9 @@ EventCallback = Callable[[AuditEvent, EcmVersion], Any]
 # Seconds added to a publish's timeout per byte of artifact: a slow link must not time out a 64 MB push.
 SECONDS_PER_BYTE = 1.0 / (4 * 2**20)
 _ZENOH_TIMEOUT_REPLY = b"Timeout"
+# Version replies this client keeps decoded. Resolves repeat: most replies are bytes it has
+# decoded before, and decoding is most of a resolve's client-side CPU (issue 21).
+DECODED_VERSIONS_KEPT = 256
 
 
 class EventSubscription:
@@ -153,6 +156,7 @@ class Client:
         self._lock = threading.Lock()
         self._subscriptions: list[EventSubscription] = []
         self._info: dict[str, Any] | None = None
+        self._decoded: dict[bytes, EcmVersion] = {}
         self._closed = False
 
     # --- plumbing ---------------------------------------------------------------------
@@ -271,7 +275,18 @@ class Client:
         validate_name(name)
         if version is not None:
             validate_version(version)
-        return self._read(self._keys.version(name, version), EcmVersion.from_dict, what="version")
+        return self._decode_version(self._query(self._keys.version(name, version)).payload.to_bytes())
+
+    def _decode_version(self, data: bytes) -> EcmVersion:
+        # Records are frozen, so equal reply bytes may share one record; a full memo is
+        # dropped whole rather than tracked, since it refills from the next replies.
+        record = self._decoded.get(data)
+        if record is None:
+            record = decode_reply(data, EcmVersion.from_dict, what="version")
+            if len(self._decoded) >= DECODED_VERSIONS_KEPT:
+                self._decoded.clear()
+            self._decoded[data] = record
+        return record
 
     def get_artifact(self, name: str, version: int | None = None) -> bytes:
         """Artifact bytes of a version (the active one when None), checked against their sha256.

@@ -4,8 +4,11 @@ Run it with ``python -m capevo.registry.service --root DIR [--listen EP]... [--c
 [--namespace NS] [--config FILE]``; it prints one ``READY {json}`` line on stdout once it
 serves, and shuts down cleanly on SIGTERM or SIGINT.
 
-Queries arrive on Zenoh callback threads and are handed to bounded worker pools, so a slow
-64 MB publish does not hold up reads. Heavy reads (``verify``, which re-hashes every blob,
+The hot reads (a version or ``active``, the ECM list, the current capability set) are
+answered on the Zenoh callback thread that received them, from the in-memory
+:class:`~capevo.registry.read_cache.ReadCache`: no thread hop, no transaction, no encoding,
+and nothing that waits for a write. Every other query is handed to a bounded worker pool,
+so a slow 64 MB publish does not hold up reads. Heavy reads (``verify``, which re-hashes every blob,
 and the whole audit chain) get their own small lane: a flood of them is refused ``busy``
 there and cannot take the slots that resolves and commands need. Each query gets exactly
 one reply: the answer, or an error reply carrying :meth:`CapevoError.to_payload`.
@@ -34,6 +37,11 @@ Invariants:
    ``forbidden`` before anything is written.
 7. A heavy read never occupies an ordinary slot: at most ``heavy_max_in_flight`` of them
    run or wait at once, and beyond that they are refused ``unavailable`` ("busy").
+8. A read answered from memory replies the same bytes the SQLite path would, for a state
+   that includes every commit acknowledged before the query arrived, of this server or any
+   other process writing the root. What memory does not hold (errors included) goes the
+   SQLite path. The cache catches up after each commit before the commit's event is
+   published and before the command is answered.
 """
 
 from __future__ import annotations
@@ -57,7 +65,8 @@ import zenoh
 from capevo.errors import CapevoError, Forbidden, Invalid, TooLarge, Unavailable
 from capevo.records import Attribution, AuditEvent, Auth, EcmVersion, Origin
 from capevo.registry.keys import COMMANDS, CommandRoute, Keys, Route
-from capevo.registry.local import DEFAULT_MAX_ARTIFACT_BYTES, LocalRegistry
+from capevo.registry.local import DB_FILENAME, DEFAULT_MAX_ARTIFACT_BYTES, LocalRegistry
+from capevo.registry.read_cache import MEMORY_ENDPOINTS, ReadCache
 from capevo.registry.server_config import ServerConfig, access_control_for, load_server_config, write_dictionary
 from capevo.registry.wire import (
     JSON_ENCODING,
@@ -413,20 +422,57 @@ class _Lane:
 
 
 class _Dispatcher:
-    """Hands queries from Zenoh's callback threads to the ordinary or the heavy lane."""
+    """Answers hot reads from memory on Zenoh's callback threads and hands every other query
+    to the ordinary or the heavy lane."""
 
     def __init__(
-        self, ctx: Context, *, workers: int, max_in_flight: int, heavy_workers: int, heavy_max_in_flight: int
+        self,
+        ctx: Context,
+        cache: ReadCache,
+        *,
+        workers: int,
+        max_in_flight: int,
+        heavy_workers: int,
+        heavy_max_in_flight: int,
     ) -> None:
         self._ctx = ctx
+        self._cache = cache
         self._ordinary = _Lane("requests", workers=workers, max_in_flight=max_in_flight)
         self._heavy = _Lane(
             "heavy reads (verify, whole history)", workers=heavy_workers, max_in_flight=heavy_max_in_flight
         )
 
     def on_read(self, query: zenoh.Query) -> None:
-        heavy = is_heavy_read(self._ctx.keys, str(query.key_expr))
+        key = str(query.key_expr)
+        payload = self._from_memory(key, query)
+        if payload is not None:
+            _reply_once(query, Answer(payload=payload))
+            return
+        heavy = is_heavy_read(self._ctx.keys, key)
         self._submit(self._heavy if heavy else self._ordinary, query, answer_read)
+
+    def _from_memory(self, key: str, query: zenoh.Query) -> bytes | None:
+        """The reply of a well-formed hot read, from the read cache; None sends it the SQLite way.
+
+        Runs on a Zenoh callback thread, so it must never block: it parses the key, asks
+        SQLite's ``data_version`` on the cache's own connection (a reader, which in WAL mode
+        never waits for a writer) and looks the bytes up. A malformed query, a miss or a
+        failing cache returns None, and the lane's handler answers it, errors included.
+        """
+        try:
+            route = self._ctx.keys.parse_read_key(key)
+            if route.endpoint not in MEMORY_ENDPOINTS or query.attachment is not None:
+                return None
+            if query.payload is not None and len(query.payload) > 0:
+                return None
+            params = read_parameters(route.endpoint, list(query.parameters))
+            return self._cache.current().reply(route, params)
+        except Invalid:
+            return None
+        except Exception:
+            # Invariant 1: the SQLite path still answers; the cache's failure is only logged.
+            log.exception("read cache failed on %s; answering from SQLite", key)
+            return None
 
     def on_command(self, query: zenoh.Query) -> None:
         self._submit(self._ordinary, query, answer_command)
@@ -587,13 +633,18 @@ def serve(
         except zenoh.ZError as exc:
             raise Unavailable(f"cannot open the registry's Zenoh session on {', '.join(listen_eps)}: {exc}") from None
         stack.callback(session.close)
-        registry = LocalRegistry(
-            root, actor=REMOTE_ACTOR, max_artifact_bytes=limit, listeners=[EventPublisher(session, keys)]
-        )
+        registry = LocalRegistry(root, actor=REMOTE_ACTOR, max_artifact_bytes=limit)
         stack.callback(registry.close)
+        cache = ReadCache(registry.root / DB_FILENAME)
+        stack.callback(cache.close)
+        # The cache catches up before the event goes out, so a subscriber that resolves on
+        # an event finds the change; both run before the command's reply (invariant 8).
+        registry.add_listener(cache)
+        registry.add_listener(EventPublisher(session, keys))
         ctx = Context(registry=registry, keys=keys, max_artifact_bytes=limit, config=cfg)
         dispatcher = _Dispatcher(
             ctx,
+            cache,
             workers=workers,
             max_in_flight=max_in_flight,
             heavy_workers=heavy_workers,

@@ -29,6 +29,9 @@ Invariants:
 7. No :mod:`sqlite3` exception escapes; every error is a :class:`CapevoError`.
 8. A mutation's :class:`Attribution` extras (``auth``, ``on_behalf_of``) are stored only in
    its event's ``data``; an event without them hashes exactly as before they existed.
+9. ``changes_since(seq)`` reads one snapshot: every version an audit event after ``seq``
+   created or moved, the active pointer of every ECM such an event names, the chain tip,
+   the revision and this connection's ``PRAGMA data_version``, all as of the same commit.
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ import sqlite3
 import threading
 import time
 from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -145,6 +149,25 @@ CREATE INDEX pointer_moves_by_name ON pointer_moves (name, revision);
 
 _ACTIVE_ACTIONS = frozenset({Action.PROMOTE, Action.ROLLBACK})
 _STATE_ACTIONS = frozenset({Action.REJECT, Action.DEPRECATE})
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class StoreChanges:
+    """What the audit events after some ``seq`` changed, read in one snapshot (:meth:`SqliteStore.changes_since`).
+
+    Attributes:
+        data_version: This connection's ``PRAGMA data_version`` in that snapshot.
+        seq: The chain tip: the last event's ``seq`` (0 for an empty registry).
+        revision: The registry revision (0 before the first pointer move).
+        versions: Every version those events created or moved, as stored now.
+        active: The active pointer of every ECM those events name.
+    """
+
+    data_version: int
+    seq: int
+    revision: int
+    versions: tuple[EcmVersion, ...]
+    active: Mapping[str, int | None]
 
 
 def normalize_evidence(evidence: object) -> dict[str, Any]:
@@ -758,6 +781,57 @@ class SqliteStore(AbstractStore):
                 self._fetch_active_pointer(c, name)  # NotFound for an unknown ECM
                 rows = c.execute("SELECT * FROM events WHERE name = ? ORDER BY seq", (name,)).fetchall()
         return [self._event_from_row(r) for r in rows]
+
+    # --- change tracking ------------------------------------------------------------
+    def data_version(self) -> int:
+        """SQLite's ``PRAGMA data_version`` on this connection.
+
+        It changes whenever another connection, of this process or any other, commits to the
+        file, and costs microseconds: the cheap "has anything changed?" of a read cache.
+        """
+        with self._lock:
+            conn = self._require_open()
+            try:
+                return int(conn.execute("PRAGMA data_version").fetchone()[0])
+            except sqlite3.Error as exc:
+                raise self._translate(exc, "data_version") from exc
+
+    def changes_since(self, seq: int) -> StoreChanges:
+        """Everything the audit events after ``seq`` changed (``0``: the whole registry).
+
+        Every mutation appends one event in its own transaction, naming the version it
+        created or moved and, for a pointer move, the version the pointer left; so these
+        rows are exactly the ones that differ from the state after event ``seq``.
+
+        Raises:
+            Invalid: ``seq`` is not a non-negative integer.
+        """
+        if isinstance(seq, bool) or not isinstance(seq, int) or seq < 0:
+            raise Invalid(f"seq must be a non-negative integer, got {seq!r}", details={"field": "seq"})
+        with self._read("changes_since") as c:
+            # The pragma starts the read transaction, so it describes the snapshot read below.
+            data_version = int(c.execute("PRAGMA data_version").fetchone()[0])
+            tip = int(c.execute("SELECT COALESCE(MAX(seq), 0) FROM events").fetchone()[0])
+            revision = int(c.execute("SELECT COALESCE(MAX(revision), 0) FROM pointer_moves").fetchone()[0])
+            if tip == seq:
+                return StoreChanges(data_version=data_version, seq=tip, revision=revision, versions=(), active={})
+            rows = c.execute(
+                "SELECT v.* FROM versions v JOIN ("
+                " SELECT name, version AS k FROM events WHERE seq > :seq AND version IS NOT NULL"
+                " UNION SELECT name, from_version AS k FROM events WHERE seq > :seq AND from_version IS NOT NULL"
+                ") changed ON v.name = changed.name AND v.version = changed.k ORDER BY v.name, v.version",
+                {"seq": seq},
+            ).fetchall()
+            pointers = c.execute(
+                "SELECT name, active_version FROM ecms WHERE name IN (SELECT name FROM events WHERE seq > ?)", (seq,)
+            ).fetchall()
+        return StoreChanges(
+            data_version=data_version,
+            seq=tip,
+            revision=revision,
+            versions=tuple(self._version_from_row(r) for r in rows),
+            active={r["name"]: r["active_version"] for r in pointers},
+        )
 
     def artifact_refs(self) -> list[ArtifactRef]:
         with self._read("artifact_refs") as c:
