@@ -81,6 +81,7 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=50)
     ap.add_argument("--versions", type=int, default=5)
     ap.add_argument("--workers", type=int, default=1, help="mlflow server worker processes")
+    ap.add_argument("--out", default="mlflow", help="results name: benchmarks/results/<out>.json")
     args = ap.parse_args()
 
     os.environ.setdefault("MLFLOW_ENABLE_ASYNC_LOGGING", "false")
@@ -152,7 +153,7 @@ def main() -> None:
                     [[k, v["capevo_p50_ms"], v["mlflow_p50_ms"], v["speedup"]] for k, v in ratios.items()],
                 )
             )
-    path = save_results("mlflow", payload)
+    path = save_results(args.out, payload)
     print(f"\nsaved {path}")
 
 
