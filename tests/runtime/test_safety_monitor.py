@@ -15,7 +15,6 @@ Invariants of :mod:`capevo.runtime.safety_monitor` and the tests that observe th
 
 from __future__ import annotations
 
-import logging
 import math
 from collections.abc import Iterator
 
@@ -31,16 +30,6 @@ from capevo.runtime.tasks.scripted import REFERENCES
 pytestmark = pytest.mark.slow
 
 LIMIT = 20.0
-
-
-@pytest.fixture(scope="module")
-def quiet() -> Iterator[None]:
-    """robosuite's per-robot controller warnings off while the module builds environments."""
-    logger = logging.getLogger("robosuite_logs")
-    level = logger.level
-    logger.setLevel(logging.ERROR)
-    yield
-    logger.setLevel(level)
 
 
 def _env(task: str) -> TaskEnv:

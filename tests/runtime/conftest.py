@@ -1,4 +1,4 @@
-"""Fixtures shared by the task tests."""
+"""Fixtures shared by the runtime tests."""
 
 from __future__ import annotations
 
