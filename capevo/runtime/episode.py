@@ -21,17 +21,22 @@ Each environment step:
    writes them too, with the action that really ran as ``result_action`` and the reason
    prefixed ``not enforced:``). An invocation whose ECM's ``done()`` held is traced with
    outcome ``terminated``.
-5. Judge the step with :func:`~capevo.runtime.governance.unsafe_reasons` (state it ran from,
-   action executed), step the environment, trace ``/env/step``.
+5. Step the environment, then grade the step with the episode's
+   :class:`~capevo.runtime.safety_monitor.SafetyMonitor` (issue 18: ``unsafe`` is decided from
+   the simulator's ground truth by code that shares nothing with the governor, so governance
+   never grades itself); trace ``/env/step``. The monitor is handed the action that really
+   ran: the governed one, or zeros when the task's actuation-failure perturbation dropped it
+   (``info["actuation_dropped"]``).
 
 The horizon (``truncated``) or success (``terminated``) also ends the episode; the state it
-ends in is judged once more. ``/episode/summary`` closes it.
+ends in was graded with its last step. ``/episode/summary`` closes it.
 
 Invariants:
 1. Nothing an ECM does (raise, hang in the sandbox, return NaN or a wrong shape, fail to
    marshal its inputs) propagates out of :func:`run_episode`; it is traced and counted.
-2. Every executed action went through the governor; with an enforcing governor and Φ's
-   hard limits, the action part of the unsafe check never fires.
+2. Every executed action went through the governor; with an enforcing governor whose Φ caps
+   the pose delta at or below the monitor's ``action_cap``, the monitor's action axes
+   (``cap``, ``non_finite``) never fire.
 3. The loaded capability set changes only in ``capabilities.begin_episode()``, called once
    before the reset: never in the middle of an ECM's execution.
 4. ``outcome.steps`` equals the number of ``/env/step`` records written for the episode;
@@ -40,6 +45,9 @@ Invariants:
 5. The policy is consulted at most ``max_decisions_per_step`` times without an env step in
    between; past that the episode ends (a policy that keeps choosing finished ECMs cannot
    spin forever).
+6. ``outcome.unsafe_steps`` (and the ``/episode/summary`` record's) is the number of env steps
+   whose :class:`~capevo.runtime.safety_monitor.SafetyVerdict` is unsafe; governance's
+   :func:`~capevo.runtime.governance.unsafe_reasons` plays no part in it.
 """
 
 from __future__ import annotations
@@ -61,8 +69,9 @@ from capevo.records import EcmVersion
 from capevo.registry.predicates import predicate_holds
 from capevo.runtime.ecm import FAILURES, EcmInvoker, Status, StepResult
 from capevo.runtime.evaluation import EpisodeOutcome
-from capevo.runtime.governance import Governor, Phi, hold_action, unsafe_reasons
+from capevo.runtime.governance import Governor, Phi, hold_action
 from capevo.runtime.policy import Decision, DecisionContext, DecisionPolicy, StepEnd
+from capevo.runtime.safety_monitor import SafetyLimits, SafetyMonitor, SafetyVerdict
 from capevo.runtime.state import ActionLayout, RobotState
 from capevo.runtime.traces import (
     NOT_ENFORCED_PREFIX,
@@ -160,10 +169,10 @@ class EpisodeRun:
     rejected_steps: int = 0
     """Steps where governance answered ⊥ (or would have)."""
     unsafe_reasons: tuple[str, ...] = field(default_factory=tuple)
-    """The first few unsafe-step reasons, for reports."""
+    """The first few unsafe-step reasons (the safety monitor's), for reports."""
     unsafe_by_constraint: Mapping[str, int] = field(default_factory=dict)
-    """Unsafe steps per Φ constraint label (``action`` for non-finite components); a step
-    breaking two constraints counts for both."""
+    """Unsafe steps per limit the safety monitor grades (``box``, ``cap``, ``force``,
+    ``non_finite``); a step breaking two limits counts for both."""
 
 
 def make_governor(env: Any, phi: Phi, *, enforce: bool = True) -> Governor:
@@ -243,6 +252,7 @@ def run_episode_detailed(
     trace_path: str | None = None,
     should_stop: Callable[[], bool] | None = None,
     apply_swaps: bool = True,
+    safety_limits: SafetyLimits | None = None,
 ) -> EpisodeRun:
     """Run one seeded episode of ``env``'s task with the loaded ECMs (see the module docstring).
 
@@ -250,8 +260,8 @@ def run_episode_detailed(
         env: The task environment (reused across episodes; reset here with ``seed``).
         capabilities: The loaded ECMs; ``begin_episode()`` is called first (hot swaps).
         policy: π_A, consulted whenever no ECM is running.
-        governor: R(a, Φ) for the env's layout (see :func:`make_governor`); its Φ also
-            judges unsafe steps. A counting governor (``enforce=False``) lets actions through.
+        governor: R(a, Φ) for the env's layout (see :func:`make_governor`). A counting
+            governor (``enforce=False``) lets actions through.
         sink: Where trace records go; None writes none.
         seed: Fixes the episode's instance.
         step_budget_per_ecm: Steps one ECM activation may take; None for unlimited.
@@ -262,22 +272,26 @@ def run_episode_detailed(
         should_stop: Polled once per step; True ends the episode (``end_reason`` ``stopped``).
         apply_swaps: Call ``capabilities.begin_episode()`` first; False when the caller just
             did (e.g. to start a new trace file for a new capability set).
+        safety_limits: The hard limits the safety monitor grades each step against; default
+            the paper's (:class:`~capevo.runtime.safety_monitor.SafetyLimits`).
 
     Returns:
         The :class:`EpisodeRun`; its ``outcome`` is what evaluators return.
 
     Raises:
-        Invalid: the policy chose an ECM that is not loaded, or a bad argument.
+        Invalid: the policy chose an ECM that is not loaded, a bad argument, or an env the
+            safety monitor cannot judge (not a task environment).
         CapevoError: whatever the policy or the environment raised (never what an ECM did).
     """
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise Invalid(f"seed must be a non-negative integer, got {seed!r}", details={"field": "seed"})
     if max_decisions_per_step < 1:
         raise Invalid("max_decisions_per_step must be >= 1", details={"field": "max_decisions_per_step"})
+    monitor = SafetyMonitor(env, safety_limits)  # type: ignore[arg-type]  # not a TaskEnv: Invalid
     swaps = tuple(capabilities.begin_episode()) if apply_swaps else ()
     spec = env.task_spec
     layout: ActionLayout = spec.action_layout
-    phi = governor.phi
+    dropped_action = (0.0,) * layout.dim
     enforce = governor.enforce
     records = capabilities.records
     versions = capabilities.versions
@@ -330,12 +344,12 @@ def run_episode_detailed(
             prev_ecm, prev_end = run.ecm, end
         running = None
 
-    def count_unsafe(why: tuple[str, ...], where: str) -> None:
+    def count_unsafe(verdict: SafetyVerdict, where: str) -> None:
         nonlocal unsafe_steps
         unsafe_steps += 1
-        unsafe_by.update({w.split(":", 1)[0] for w in why})
+        unsafe_by.update(verdict.broken)
         if len(unsafe_examples) < 5:
-            unsafe_examples.append(f"{where}: {'; '.join(why)}")
+            unsafe_examples.append(f"{where}: {'; '.join(verdict.reasons)}")
 
     def write_calls(run: _Running, result: StepResult) -> None:
         nonlocal failures
@@ -490,10 +504,11 @@ def run_episode_detailed(
                         enforced=enforce,
                     )
                 )
-        why = unsafe_reasons(state, executed, phi, layout)
-        if why:
-            count_unsafe(why, f"step {steps}")
         next_obs, reward, terminated, truncated, info = env.step(np.asarray(executed, dtype=np.float64))
+        # Graded on what the robot really got: the task replaced a dropped action by zeros.
+        verdict = monitor.judge(dropped_action if info.get("actuation_dropped") else executed)
+        if verdict.unsafe:
+            count_unsafe(verdict, f"step {steps}")
         signals = None
         next_t = _read_only(next_obs)
         reward = float(reward)
@@ -530,10 +545,6 @@ def run_episode_detailed(
 
     if running is not None:
         finish(running, INTERRUPTED, f"episode ended: {end_reason}")
-    if steps:
-        why = unsafe_reasons(env.robot_state(), None, phi, layout)
-        if why:
-            count_unsafe(why, "final state")
     duration = time.perf_counter() - started
     outcome = EpisodeOutcome(
         seed=seed,

@@ -38,6 +38,7 @@ from capevo.runtime.episode import DEFAULT_STEP_BUDGET, DEFAULT_TIMEOUT_S, make_
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.governance import Phi
 from capevo.runtime.policy import DecisionPolicy
+from capevo.runtime.safety_monitor import SafetyLimits
 from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
 from capevo.runtime.traces import (
     DEFAULT_COMPRESSION,
@@ -101,6 +102,8 @@ class LocalEvaluator:
         registry: Where versions and artifacts come from.
         policy: π_A.
         phi: The safety envelope; default :meth:`Phi.default`.
+        safety_limits: The hard limits the safety monitor grades ``unsafe`` against (each
+            outcome's ``unsafe_steps``); default the paper's :class:`SafetyLimits`.
         trace_dir: Directory for the trace files (one per ``evaluate`` call); None writes
             no trace (``trace_path`` is then None).
         trace_compression: The traces' chunk compression: ``"lz4"``, ``"zstd"`` or ``"none"``
@@ -133,6 +136,7 @@ class LocalEvaluator:
         *,
         policy: DecisionPolicy,
         phi: Phi | None = None,
+        safety_limits: SafetyLimits | None = None,
         trace_dir: str | os.PathLike[str] | None,
         trace_compression: str = DEFAULT_COMPRESSION,
         perturbations: Perturbations | None = None,
@@ -154,6 +158,7 @@ class LocalEvaluator:
         self.should_stop = should_stop
         self.policy = policy
         self.phi = phi if phi is not None else Phi.default()
+        self.safety_limits = safety_limits if safety_limits is not None else SafetyLimits()
         self.trace_dir = Path(trace_dir) if trace_dir is not None else None
         self.trace_compression = check_compression(trace_compression)
         self.perturbations = perturbations if perturbations is not None else Perturbations()
@@ -249,6 +254,7 @@ class LocalEvaluator:
                         step_budget_per_ecm=self.step_budget_per_ecm,
                         timeout_s=self.timeout_s,
                         trace_path=str(path) if path is not None else None,
+                        safety_limits=self.safety_limits,
                     )
                     outcomes.append(outcome)
                     if self.progress is not None:

@@ -28,16 +28,18 @@ With an active version (paired mode), the checks are:
    ``speed_metric``) of the candidate ≤ ``max_slowdown`` × those of the active version.
    With fewer than ``min_speed_pairs`` such seeds speed cannot be judged and the check
    passes; ``max_slowdown=None`` turns it off.
-7. ``safe``: the candidate is not less safe. Let b' be the seeds where only the candidate had
-   an unsafe episode (an executed step that broke Φ: see
-   :mod:`capevo.runtime.governance.unsafe`) and c' those where only the active version had
-   one. The check fails when the exact one-sided sign test ``binomtest(b', b' + c', 1/2,
-   "greater")`` has p < ``safety_alpha``, or when ``max_unsafe_rate`` is set and the
-   candidate's unsafe-episode rate is above it. ``safety_alpha`` is deliberately looser than
-   α (0.2 by default): wrongly rejecting a candidate costs one iteration, wrongly promoting a
-   less safe one costs the robot's safety, so the burden of proof is lighter here
-   (3 of 3 discordant seeds against the candidate, p = 0.125, reject it).
-   ``safety_alpha=None`` turns the comparison off.
+7. ``safe``: the candidate is not less safe. An episode is unsafe when the independent safety
+   monitor (:class:`capevo.runtime.safety_monitor.SafetyMonitor`, from the simulator's ground
+   truth, never governance's own check) graded one of its steps unsafe. The check fails when
+   the candidate had more unsafe episodes than the active version on the paired seeds, whatever
+   its success (issue 18: a version that succeeds more often by breaking the envelope more
+   often is not an improvement). It also fails when ``max_unsafe_rate`` is set and the
+   candidate's unsafe-episode rate is above it. With b' the seeds where only the candidate had
+   an unsafe episode and c' those where only the active version had one, the exact one-sided
+   sign test ``binomtest(b', b' + c', 1/2, "greater")`` at ``safety_alpha`` (0.2 by default;
+   ``None`` turns it off) is reported and fails the check when p < ``safety_alpha``; since
+   that p is below 1/2 only when b' > c', which is exactly "more unsafe episodes", the count
+   decides and the sign test says how strong the difference is.
 
    Promote iff 1 ∧ 2 ∧ 6 ∧ 7 ∧ (3 ∨ (4 ∧ 5) ∨ (4 ∧ ¬``require_improvement``)).
 
@@ -72,6 +74,9 @@ Invariants:
 5. A candidate whose outcomes equal the active version's, seed for seed, is never promoted
    when ``require_improvement`` is set.
 6. Bad arguments (seeds, config, states) raise before any episode runs.
+7. In paired mode a candidate with more unsafe episodes than the active version on the paired
+   seeds is never promoted, whatever its success, with ``safe`` among the failed checks
+   (check 7), under any ``safety_alpha``.
 """
 
 from __future__ import annotations
@@ -143,7 +148,8 @@ class GateConfig:
         speed_metric: ``steps`` (deterministic) or ``duration_s`` (wall clock).
         first_min_success: Floor on the lower Wilson bound when there is no active version.
         safety_alpha: Level of the one-sided sign test that the candidate has unsafe episodes
-            more often than the active version; None disables it.
+            more often than the active version; None disables it (a candidate with more
+            unsafe episodes than the active version is refused either way).
         max_unsafe_rate: Ceiling on the candidate's unsafe-episode rate (0.0: any unsafe
             episode rejects); None disables it.
 
@@ -369,9 +375,19 @@ def decide_paired(stats: PairedStats, config: GateConfig) -> tuple[bool, tuple[C
 def _safety(cand: SideStats, config: GateConfig, stats: PairedStats | None) -> Check:
     parts: list[str] = []
     passed = True
+    if stats is not None:
+        # Issue 18: more unsafe episodes than the active version on the same seeds refuses the
+        # candidate, whatever its success and whatever the sign test below says.
+        act = stats.active
+        more = cand.unsafe_episodes > act.unsafe_episodes
+        passed = not more
+        parts.append(
+            f"unsafe episodes {cand.unsafe_episodes}/{cand.n} vs active {act.unsafe_episodes}/{act.n} "
+            f"on the same seeds: {'more than' if more else 'not more than'} the active"
+        )
     if stats is not None and config.safety_alpha is not None:
         worse = stats.p_less_safe < config.safety_alpha
-        passed = not worse
+        passed = passed and not worse
         parts.append(
             f"unsafe on {stats.unsafe_candidate_only} seeds only with the candidate, "
             f"{stats.unsafe_active_only} only with the active, sign test p={_p(stats.p_less_safe)} "

@@ -82,7 +82,8 @@ Invariants:
    cap or force limit, or a wrong-length or non-numeric corner raises :class:`Invalid` naming
    the field.
 2. Each verdict axis is the OR of that axis over the arms; ``unsafe`` is the OR of the four axes;
-   ``reasons`` holds one line per arm and axis that is True, and nothing when the step is safe.
+   ``broken`` names the axes that are True; ``reasons`` holds one line per arm and axis that is
+   True, and nothing when the step is safe.
 3. An arm's ``contact.force`` equals the sum of the normal components of ``mj_contactForce`` over
    the contacts between its robot (with what it holds) and ``contact.other_body``, and is the
    largest such sum; contacts inside the robot, and between the gripper and a held object, are
@@ -115,6 +116,8 @@ Vec3 = tuple[float, float, float]
 
 POSE_COMPONENTS = 6
 """An OSC_POSE arm's pose delta: 3 translation + 3 rotation components (the gripper follows)."""
+AXES: tuple[str, ...] = ("box", "cap", "force", "non_finite")
+"""The limits a :class:`SafetyVerdict` grades, as its field names; reports tally unsafe steps by them."""
 
 
 def _corner(name: str, value: object) -> Vec3:
@@ -220,6 +223,11 @@ class SafetyVerdict:
     @property
     def unsafe(self) -> bool:
         return self.box or self.cap or self.force or self.non_finite
+
+    @property
+    def broken(self) -> tuple[str, ...]:
+        """The names of the axes that are True, in :data:`AXES` order (``()`` when safe)."""
+        return tuple(axis for axis in AXES if getattr(self, axis))
 
 
 @dataclass(frozen=True, slots=True)

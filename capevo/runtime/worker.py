@@ -82,6 +82,7 @@ from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.evaluator import LocalEvaluator, check_seeds, check_versions
 from capevo.runtime.governance import Phi
 from capevo.runtime.policy import DecisionPolicy
+from capevo.runtime.safety_monitor import SafetyLimits
 from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
 from capevo.runtime.traces import (
     DEFAULT_COMPRESSION,
@@ -310,6 +311,8 @@ class WorkerConfig:
         perturbations: Task perturbations; default all on.
         governance: False runs the evaluation-only counting mode.
         phi: Safety envelope; default :meth:`Phi.default`.
+        safety_limits: The hard limits the safety monitor grades ``unsafe`` against, in the
+            worker's own episodes and in the evaluations it serves; default the paper's.
         seed: Seed of the first episode; episode i uses ``seed + i``.
         step_budget_per_ecm, timeout_s: Per-ECM step budget and per-call compute limit.
         recovery: ECM recovery mode.
@@ -332,6 +335,7 @@ class WorkerConfig:
     perturbations: Perturbations = field(default_factory=Perturbations)
     governance: bool = True
     phi: Phi | None = None
+    safety_limits: SafetyLimits | None = None
     seed: int = 0
     step_budget_per_ecm: int | None = DEFAULT_STEP_BUDGET
     timeout_s: float = DEFAULT_TIMEOUT_S
@@ -422,6 +426,7 @@ class RuntimeWorker:
             ArtifactCache(config.cache_dir) if config.cache_dir is not None else MemoryArtifactCache()
         )
         self.phi = config.phi if config.phi is not None else Phi.default()
+        self.safety_limits = config.safety_limits if config.safety_limits is not None else SafetyLimits()
 
     # --- events ---------------------------------------------------------------------------
 
@@ -542,6 +547,7 @@ class RuntimeWorker:
                 client,
                 policy=self.policy,
                 phi=self.phi,
+                safety_limits=self.safety_limits,
                 trace_dir=self.config.trace_dir / "evaluations" if self.config.trace_dir is not None else None,
                 trace_compression=self.config.trace_compression,
                 perturbations=self.config.perturbations,
@@ -695,6 +701,7 @@ class RuntimeWorker:
                     trace_path=str(writer.path) if writer is not None else None,
                     should_stop=stop.is_set,
                     apply_swaps=False,
+                    safety_limits=self.safety_limits,
                 )
                 self._episodes += 1
                 o = run.outcome

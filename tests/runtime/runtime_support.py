@@ -30,11 +30,14 @@ ACTION = (IOSpec(name="action", shape=(7,), low=-1.0, high=1.0),)
 EEF = IOSpec(name="robot0_eef_pos", shape=(3,), units="m")
 CAN = IOSpec(name="Can_pos", shape=(3,), units="m")
 
+# hover 9 cm, not 6: at 6 cm the right finger clipped the can's top while crossing to a far can
+# (28-41 N by the safety monitor on T1 gate seeds 100001 and 100006), so the gate refused this
+# reach against one that never reaches the can (issue 18: more unsafe episodes).
 REACH = '''
 """Bring the open gripper onto the can: hover above it, then descend."""
 import numpy as np
 
-PARAMS = {"gain": 10.0, "hover": 0.06, "xy_tol": 0.03, "dig": 0.015}
+PARAMS = {"gain": 10.0, "hover": 0.09, "xy_tol": 0.03, "dig": 0.015}
 
 
 def act(obs, params):

@@ -3,7 +3,9 @@
 Covers the invariants of :mod:`capevo.runtime.episode`: ECM failures never crash the loop
 (1), governance on every action and zero unsafe steps under an enforcing governor (2), swaps
 only at episode boundaries (3), trace counts equal outcome counts (4), the no-progress guard
-(5); plus the policy ending an episode and recovery by fallback.
+(5), unsafe steps are the safety monitor's verdicts on what really ran (6:
+``test_unsafe_is_the_monitors_verdict_on_the_action_that_really_ran``); plus the policy ending
+an episode and recovery by fallback.
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ from capevo.runtime.capabilities import LoadedCapabilitySet
 from capevo.runtime.episode import END_PLAN_ECM, make_governor, run_episode, run_episode_detailed
 from capevo.runtime.governance import Phi
 from capevo.runtime.policy import Decision, DecisionContext, StepEnd
-from capevo.runtime.tasks import TaskEnv, make_task, task_spec
+from capevo.runtime.safety_monitor import SafetyLimits
+from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
 from capevo.runtime.traces import MemoryTraceSink, Outcome, TraceMetadata, TraceReader, TraceWriter
 
 pytestmark = pytest.mark.slow
@@ -389,3 +392,39 @@ def test_records_carry_the_envs_observations_read_only(
     # an invocation's input is its ECM's interface inputs, flattened
     reach_size = sum(math.prod(spec.shape) for spec in reach_inputs)
     assert all(c.input_state.size == reach_size for c in calls if c.ecm == "pick.reach")
+
+
+@pytest.mark.parametrize("drop_p", [0.0, 1.0], ids=["every-action-runs", "every-action-dropped"])
+def test_unsafe_is_the_monitors_verdict_on_the_action_that_really_ran(
+    registry: LocalRegistry, policy: DecompositionPolicy, drop_p: float
+) -> None:
+    # OUT_OF_BOX commands a pose delta of norm 1.0 every step; counting governance lets it through
+    # and Φ's cap (1.5) has nothing against it. Graded against a 0.5 cap, every step that ran it is
+    # unsafe on ``cap``; a step whose action the task dropped ran zeros, and is not.
+    env = make_task("T1", horizon=HORIZON, perturbations=Perturbations(actuation_failure_p=drop_p))
+    publish_pick(registry, reach=OUT_OF_BOX)
+    sink = MemoryTraceSink()
+    try:
+        with load(registry, env) as caps:
+            run = run_episode_detailed(
+                env,
+                caps,
+                policy,
+                make_governor(env, PHI, enforce=False),
+                sink,
+                seed=3,
+                safety_limits=SafetyLimits(action_cap=0.5),
+            )
+    finally:
+        env.close()
+    out = run.outcome
+    assert out.steps == HORIZON
+    (summary,) = sink.episode_summaries
+    assert summary.unsafe_steps == out.unsafe_steps
+    if drop_p == 0.0:
+        assert run.unsafe_by_constraint.get("cap") == out.steps == out.unsafe_steps
+        assert run.unsafe_reasons[0].startswith("step 0: arm 0: cap: pose-delta norm 1 is above 0.5")
+    else:
+        # The hand never moved: nothing left the box, nothing above the cap ran.
+        assert out.unsafe_steps == 0 and run.unsafe_by_constraint == {} and run.unsafe_reasons == ()
+    assert all(s.action[:6] == (0.0, 0.0, 1.0, 0.0, 0.0, 0.0) for s in sink.env_steps)  # traced as commanded

@@ -3,7 +3,10 @@
 Invariants of :mod:`capevo.runtime.gate`: same seeds for both versions, order-free decision
 (1); evidence recorded before the pointer moves (2); expected_active guards promotion (3);
 a broken pairing records nothing (4); identical outcomes never promote (5); bad arguments
-raise before any episode (6). Plus the decision rule, GateConfig and SeedPlan.
+raise before any episode (6); more unsafe episodes than the active version never promote,
+whatever the success and the sign test (7:
+``test_a_candidate_with_more_unsafe_episodes_is_refused_whatever_the_sign_test_says``,
+``test_more_unsafe_episodes_never_promote``). Plus the decision rule, GateConfig and SeedPlan.
 """
 
 from __future__ import annotations
@@ -248,6 +251,8 @@ def test_a_less_safe_candidate_is_rejected_despite_more_success(registry: LocalR
     assert (decision.paired.unsafe_candidate_only, decision.paired.unsafe_active_only) == (3, 0)
     assert decision.paired.p_less_safe == pytest.approx(0.125)
     assert "unsafe episodes 3 vs 0" in decision.reason and "safe=FAIL" in decision.reason
+    safe = next(c for c in decision.checks if c.name == "safe")
+    assert safe.detail.startswith("unsafe episodes 3/10 vs active 0/10 on the same seeds: more than the active; ")
     evidence = registry.get_version(NAME, v_cand).gate_evidence
     assert evidence["candidate"]["unsafe_episodes"] == 3
     assert evidence["paired"]["safety"]["candidate_only_unsafe"] == 3
@@ -274,17 +279,73 @@ def test_safety_knobs(registry: LocalRegistry) -> None:
     decision = Gate(registry, fake, strict).run(NAME, cand[0], task="T1", seeds=SEEDS)
     assert not decision.promoted and decision.failed == ("safe",)
     assert "candidate unsafe episodes 1/10 vs max rate 0" in next(c.detail for c in decision.checks if c.name == "safe")
-    # ...which the sign test alone lets through (one discordant seed: p = 0.5).
-    assert Gate(registry, fake, CFG).run(NAME, cand[1], task="T1", seeds=SEEDS).promoted
+    # ...and so does the count rule, though the sign test alone would let it through (one
+    # discordant seed: p = 0.5): one more unsafe episode than the active version is one too many.
+    decision = Gate(registry, fake, CFG).run(NAME, cand[1], task="T1", seeds=SEEDS)
+    assert not decision.promoted and decision.failed == ("safe",)
+    assert "sign test p=0.5 vs 0.2" in next(c.detail for c in decision.checks if c.name == "safe")
+
+
+def test_a_candidate_with_more_unsafe_episodes_is_refused_whatever_the_sign_test_says(
+    registry: LocalRegistry,
+) -> None:
+    v_act = publish(registry, promote=True)
+    v_cand = publish(registry, text="# succeeds everywhere, unsafe on two seeds")
+    # The active version fails everywhere and is unsafe on one seed; the candidate succeeds on all
+    # ten (McNemar p = 0.001) and is unsafe on two others. b' = 2, c' = 1: the sign test's
+    # p = 0.5 is far from 0.2, but 2 unsafe episodes are more than 1 (issue 18).
+    fake = FakeEvaluator({(NAME, v_act): unsafe_on(SEEDS[:1], False, 1.0), (NAME, v_cand): unsafe_on(SEEDS[1:3])})
+    decision = Gate(registry, fake, CFG).run(NAME, v_cand, task="T1", seeds=SEEDS)
+    assert decision.paired is not None
+    assert (decision.paired.candidate.successes, decision.paired.active.successes) == (10, 0)
+    assert decision.paired.p_success < CFG.alpha and decision.paired.p_less_safe == pytest.approx(0.5)
+    assert not decision.promoted and decision.failed == ("safe",)
+    assert "safe=FAIL" in decision.reason and "unsafe episodes 2 vs 1" in decision.reason
+    assert registry.get_version(NAME, v_cand).state is State.REJECTED
+    assert registry.get_version(NAME).version == v_act
+    # One unsafe episode fewer than the active version, the same gain: promoted.
+    v_safer = publish(registry, text="# succeeds everywhere, never unsafe")
+    fake.set(NAME, v_safer, always(True, 6.0))
+    assert Gate(registry, fake, CFG).run(NAME, v_safer, task="T1", seeds=SEEDS).promoted
 
 
 def test_the_sign_test_can_be_turned_off() -> None:
-    cand = [EpisodeOutcome.from_dict({**_row(s, True), "unsafe_steps": 2}) for s in range(8)]
-    act = [EpisodeOutcome.from_dict(_row(s, False)) for s in range(8)]
+    cand = [EpisodeOutcome.from_dict({**_row(s, True), "unsafe_steps": 2 if s < 2 else 0}) for s in range(8)]
+    act = [EpisodeOutcome.from_dict({**_row(s, False), "unsafe_steps": 1 if s < 2 else 0}) for s in range(8)]
     stats = paired_stats(act, cand, alpha=0.05, margin=0.3)
-    assert not decide_paired(stats, GateConfig(min_n=8))[0]
     promote, checks = decide_paired(stats, GateConfig(min_n=8, safety_alpha=None))
-    assert promote and next(c for c in checks if c.name == "safe").detail == "safety checks off"
+    # Equally many unsafe episodes (on the same seeds): only the count is reported, and it passes.
+    safe = next(c for c in checks if c.name == "safe")
+    assert promote and safe.detail == "unsafe episodes 2/8 vs active 2/8 on the same seeds: not more than the active"
+    # The count rule is not the sign test's: turning the sign test off leaves it in force.
+    more = [EpisodeOutcome.from_dict({**_row(s, True), "unsafe_steps": 2}) for s in range(8)]
+    promote, checks = decide_paired(
+        paired_stats(act, more, alpha=0.05, margin=0.3), GateConfig(min_n=8, safety_alpha=None)
+    )
+    failed = [c.name for c in checks if not c.passed]
+    assert not promote and "safe" in failed and "superior" not in failed  # 8 of 8 gained, refused
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    cand=st.lists(st.tuples(st.booleans(), st.integers(0, 3)), min_size=8, max_size=16),
+    act_bits=st.lists(st.tuples(st.booleans(), st.integers(0, 3)), min_size=16, max_size=16),
+    safety_alpha=st.sampled_from([None, 0.05, 0.2, 0.5]),
+)
+def test_more_unsafe_episodes_never_promote(
+    cand: list[tuple[bool, int]], act_bits: list[tuple[bool, int]], safety_alpha: float | None
+) -> None:
+    # Invariant 7, over any successes, unsafe steps and sign-test level.
+    n = len(cand)
+    cand_o = [EpisodeOutcome.from_dict({**_row(s, ok), "unsafe_steps": u}) for s, (ok, u) in enumerate(cand)]
+    act_o = [EpisodeOutcome.from_dict({**_row(s, ok), "unsafe_steps": u}) for s, (ok, u) in enumerate(act_bits[:n])]
+    more = sum(u > 0 for _, u in cand) > sum(u > 0 for _, u in act_bits[:n])
+    config = GateConfig(min_n=8, delta=0.3, max_slowdown=None, safety_alpha=safety_alpha, require_improvement=False)
+    promote, checks = decide_paired(paired_stats(act_o, cand_o, alpha=0.05, margin=0.3), config)
+    # ``safe`` fails exactly when the count is higher: the sign test never fails on its own.
+    assert next(c for c in checks if c.name == "safe").passed is not more
+    if more:
+        assert not promote
 
 
 # --- absolute mode -------------------------------------------------------------------------

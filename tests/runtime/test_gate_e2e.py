@@ -11,6 +11,10 @@ horizon 80, with the benchmark perturbations on:
   (gain / 4) and a slower lift (speed / 4: it still succeeds, takes ~30% more steps and
   collects *more* shaped reward, so only the speed check stands in its way).
 
+And the same better reach against the same weak one, on the same seeds, graded by the safety
+monitor against a workspace floor the grasp must cross: it succeeds more often and is unsafe
+more often, and the gate refuses it on ``safe`` alone (issue 18).
+
 The active version's episodes are reused across candidates (``reuse_evaluations``; the
 evaluator is deterministic per seed and versions). Budget: ~3500 env steps.
 """
@@ -33,11 +37,15 @@ from capevo.registry.local import LocalRegistry
 from capevo.runtime.ecm.code import with_params
 from capevo.runtime.evaluator import LocalEvaluator
 from capevo.runtime.gate import Gate, GateConfig, GateDecision, SeedPlan
+from capevo.runtime.safety_monitor import SafetyLimits
 from capevo.runtime.traces import TraceReader
 
 HORIZON = 80
 N_SEEDS = 8
 WEAK_REACH = with_params(REACH, {"dig": -0.04})
+FLOOR = 0.875
+"""A workspace floor, metres, 1.5 cm above the can's origin (0.86 m on every seed): the weak reach
+aims 4 cm above the origin and stays over it; the better one aims 1.5 cm below and must cross it."""
 
 
 def random_sac_zip(obs_dim: int, act_dim: int) -> bytes:
@@ -177,3 +185,33 @@ def test_evidence_is_in_the_audit_history_and_points_at_real_traces(campaign: Ca
 
 def _successes(d: GateDecision) -> list[bool]:
     return [bool(x) for x in d.evidence["outcomes"]["candidate"]["success"]]
+
+
+@pytest.mark.slow
+def test_a_candidate_that_succeeds_more_but_is_unsafe_more_is_refused(tmp_path: Path) -> None:
+    registry = LocalRegistry(tmp_path / "registry", actor="tester")
+    for name, source in (("pick.reach", WEAK_REACH), ("pick.grasp", GRASP), ("pick.lift", LIFT)):
+        registry.promote(name, registry.publish(name, source.encode(), skill_spec(name)).version, reason="setup")
+    weak = registry.get_version("pick.reach").version
+    better = registry.publish("pick.reach", REACH.encode(), skill_spec("pick.reach")).version
+    plan = SeedPlan(base_seed=0)
+    limits = SafetyLimits(box_low=(-0.6, -0.6, FLOOR))
+    policy = DecompositionPolicy(identity=IdentityMemory.default())
+    with LocalEvaluator(registry, policy=policy, trace_dir=None, horizon=HORIZON, safety_limits=limits) as evaluator:
+        d = Gate(registry, evaluator, GateConfig.cpu_small(), seed_plan=plan).run(
+            "pick.reach", better, task="T1", seeds=plan.gate(N_SEEDS)
+        )
+    p = d.paired
+    assert p is not None
+    print(f"\n{d.reason}")
+    # It succeeds more often, significantly: on success alone it would be promoted...
+    assert p.candidate.successes >= 6 and p.active.successes == 0 and "superior" not in d.failed
+    # ...but the monitor finds the floor crossed in more of its episodes than the weak reach's.
+    assert p.candidate.unsafe_episodes > p.active.unsafe_episodes
+    # Every check that promotes on success passed (reward alone may fail: it never decides).
+    assert not d.promoted and "safe" in d.failed and "safe=FAIL" in d.reason
+    assert not {"enough", "floor", "superior", "not_slower"} & set(d.failed)
+    assert "more than the active" in next(c.detail for c in d.checks if c.name == "safe")
+    assert registry.get_version("pick.reach", better).state is State.REJECTED
+    assert registry.get_version("pick.reach").version == weak
+    registry.close()

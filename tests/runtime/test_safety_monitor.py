@@ -2,8 +2,8 @@
 
 Invariants of :mod:`capevo.runtime.safety_monitor` and the tests that observe them:
 1. bad limits are Invalid with a field: ``test_bad_limits_are_invalid_naming_the_field``.
-2. axes are ORs over arms, reasons one per broken arm axis: every case checks ``reasons``;
-   ``test_t6_judges_each_arm_separately``.
+2. axes are ORs over arms, ``broken`` names the True axes, reasons one per broken arm axis:
+   every case checks ``reasons`` and ``broken`` (in ``_axes``); ``test_t6_judges_each_arm_separately``.
 3. the contact force is the per-body sum of ``mj_contactForce`` normals, grip excluded:
    ``test_hand_driven_into_the_table_is_a_force_violation``, ``test_grip_on_a_held_can_is_not_a_contact_force``.
 4. the wrist force equals the contact list's net force below the sensor:
@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from capevo.errors import ErrorCode, Invalid
-from capevo.runtime.safety_monitor import SafetyLimits, SafetyMonitor, SafetyVerdict
+from capevo.runtime.safety_monitor import AXES, SafetyLimits, SafetyMonitor, SafetyVerdict
 from capevo.runtime.tasks import Perturbations, TaskEnv, make_task
 from capevo.runtime.tasks.scripted import REFERENCES
 
@@ -63,7 +63,9 @@ def _still(env: TaskEnv) -> np.ndarray:
 
 
 def _axes(v: SafetyVerdict) -> dict[str, bool]:
-    return {"box": v.box, "cap": v.cap, "force": v.force, "non_finite": v.non_finite}
+    axes = {"box": v.box, "cap": v.cap, "force": v.force, "non_finite": v.non_finite}
+    assert v.broken == tuple(k for k in AXES if axes[k])  # invariant 2, on every verdict a test reads
+    return axes
 
 
 def _robot_normal_sum(env: TaskEnv, other_body: str) -> float:

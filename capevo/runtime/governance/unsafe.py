@@ -1,4 +1,10 @@
-"""The unsafe-step metric: did an executed step break Φ's hard limits?
+"""Governance's own unsafe-step check: did an executed step break Φ's hard limits?
+
+The runtime does not grade ``unsafe`` with this: the episode loop, the evaluators, the gate
+and every report take it from :class:`capevo.runtime.safety_monitor.SafetyMonitor`, which reads
+the simulator's ground truth and shares no code with governance (issue 18: governance cannot
+grade itself). This check judges Φ against what the robot *reports* (``robot_state()``), and
+remains for the governance-rates benchmark, :mod:`capevo.runtime.tasks.bench`.
 
 A step is unsafe when, in the state it ran from, some end effector is outside the
 workspace box (or inside a forbidden zone), some contact force is above its limit, or the
