@@ -9,9 +9,9 @@ counting governor: actions pass unchanged, R's would-be interventions are counte
 
 * blocking rate: steps where R modified or rejected the action (would have, when off) / steps;
 * reject rate: steps where R answered ⊥ / steps;
-* unsafe-step rate and unsafe-episode rate (``capevo.runtime.governance.unsafe_reasons``:
-  state it ran from and executed action, plus each episode's final state), with the reasons'
-  constraints tallied;
+* unsafe-step rate and unsafe-episode rate, graded by the episode loop's independent safety
+  monitor (``capevo.runtime.safety_monitor``: MuJoCo ground truth after each step against the
+  paper's box, cap and 20 N contact force), with the broken axes tallied;
 * "pushing over the force limit": steps whose executed translation moves into a contact
   (``a_k f_k < 0`` on some axis, world frame) while the contact force is above the limit; the
   action-side reading of the force constraint, recorded for comparison with the state-side one.
@@ -267,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     )
     path = save_results(
-        "bench_governance_rates",
+        f"bench_governance_rates_{args.phi}",
         {
             "episodes": args.episodes,
             "horizon": args.horizon,

@@ -102,7 +102,9 @@ def bench_reference(name: str, episodes: int, perturbed: bool) -> dict[str, Any]
 
 
 def run_governed(env: Any, policy: Any, phi: Any, seed: int) -> dict[str, Any]:
-    """One reference episode through enforcing governance, judged like the episode loop judges it.
+    """One reference episode through enforcing governance, judged by governance's own check
+    (:func:`~capevo.runtime.governance.unsafe_reasons`; the episode loop's grader is the
+    independent safety monitor).
 
     Returns success, steps, unsafe steps (by constraint) and interventions (by constraint).
     """
