@@ -1,4 +1,4 @@
-"""The trace, worker and governance benchmarks still run against the code (tiny budgets; no timing is judged).
+"""The trace, worker, governance and resolve benchmarks still run against the code (tiny budgets; no timing is judged).
 
 A benchmark drives the runtime through its public seams (sinks, writers, the episode loop); when
 one of those changes, the script is the first thing to break, and nobody runs it until a figure
@@ -19,6 +19,7 @@ sys.path.insert(0, str(BENCHMARKS))
 
 import _common  # noqa: E402
 import bench_governance_live  # noqa: E402
+import bench_resolve_clients  # noqa: E402
 import bench_traces_loop  # noqa: E402
 import bench_worker  # noqa: E402
 
@@ -58,3 +59,14 @@ def test_governance_live_benchmark_times_every_action_of_a_real_episode(results_
     assert row["actions"] == 12 and row["in_process"]["samples"] == 24  # each action timed twice
     assert row["in_process"]["p50_ms"] > 0 and row["env_step_p50_ms"] > 0 and row["pct_of_env_step"] > 0
     assert sum(row["share"].values()) == pytest.approx(1.0)
+
+
+@pytest.mark.zenoh
+def test_resolve_clients_benchmark_runs_raw_and_capevo_over_real_zenoh(results_in: Path) -> None:
+    argv = ["--clients", "2", "--seconds", "0.3", "--warmup", "5", "--rounds", "1", "--publish-seconds", "0"]
+    assert bench_resolve_clients.main([*argv, "--out", "smoke"]) == 0
+    saved = json.loads((results_in / "smoke.json").read_text())
+    (row,) = saved["by_clients"]
+    assert row["clients"] == 2 and set(row["rounds"]) == {"raw", "capevo"}
+    assert all(row[kind]["throughput_per_s"] > 0 and row[kind]["p50_ms"] > 0 for kind in ("raw", "capevo"))
+    assert saved["server_exit_code"] == 0 and saved["reply_bytes"] > 100
