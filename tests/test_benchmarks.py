@@ -1,4 +1,6 @@
-"""The trace, worker, governance and resolve benchmarks still run against the code (tiny budgets; no timing is judged).
+"""The trace, worker, governance (live and rates) and resolve benchmarks still run against the code (tiny budgets).
+
+No timing is judged.
 
 A benchmark drives the runtime through its public seams (sinks, writers, the episode loop); when
 one of those changes, the script is the first thing to break, and nobody runs it until a figure
@@ -19,6 +21,7 @@ sys.path.insert(0, str(BENCHMARKS))
 
 import _common  # noqa: E402
 import bench_governance_live  # noqa: E402
+import bench_governance_rates  # noqa: E402
 import bench_resolve_clients  # noqa: E402
 import bench_traces_loop  # noqa: E402
 import bench_worker  # noqa: E402
@@ -59,6 +62,27 @@ def test_governance_live_benchmark_times_every_action_of_a_real_episode(results_
     assert row["actions"] == 12 and row["in_process"]["samples"] == 24  # each action timed twice
     assert row["in_process"]["p50_ms"] > 0 and row["env_step_p50_ms"] > 0 and row["pct_of_env_step"] > 0
     assert sum(row["share"].values()) == pytest.approx(1.0)
+
+
+def test_governance_rates_benchmark_runs_adversaries_off_and_on_and_resumes(
+    results_in: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["--tasks", "T6", "--episodes", "5", "--horizon", "4", "--jobs", "1", "--phi", "task"]
+    argv += ["--adversaries", "arm_grab", "oscillate", "--out", "smoke"]
+    assert bench_governance_rates.main(argv) == 0
+    saved = json.loads((results_in / "smoke.json").read_text())
+    assert {(j["adversary"], j["governance"]) for j in saved["results"]} == {
+        (a, m) for a in ("arm_grab", "oscillate") for m in ("off", "on")
+    }
+    assert [e["seed"] for j in saved["results"] if j["adversary"] == "arm_grab" for e in j["episodes"]] == [3, 3]
+    rows = {(r["adversary"], r["phi"]): r for r in saved["summary"]}
+    assert rows[("all", "task")]["on"]["episodes"] == 2 and rows[("oscillate", "task")]["on"]["steps"] == 4
+    assert rows[("oscillate", "task")]["off"]["unsafe_steps_by_axis"]["cap"] > 0
+    assert "cap" not in rows[("oscillate", "task")]["on"]["unsafe_steps_by_axis"]
+    assert len(list((results_in / "smoke.jobs").iterdir())) == 4
+    capsys.readouterr()
+    assert bench_governance_rates.main(argv) == 0  # every job's file is there: nothing reruns
+    assert capsys.readouterr().err.count("(cached)") == 4
 
 
 @pytest.mark.zenoh
