@@ -129,6 +129,13 @@ class Governor:
         self._n_arms = len(layout.arms)
         self.reset_stats()
 
+    def new_episode(self) -> None:
+        """Start an episode: forget what a stateful check remembers (the force ramp's latch).
+
+        Checks are compiled afresh, which is what the constructor does; counters are kept.
+        """
+        self._checks = tuple(c.compile(self.layout) for c in self.phi.constraints)
+
     def reset_stats(self) -> None:
         """Zero the counters."""
         self._steps = 0

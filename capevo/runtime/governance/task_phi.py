@@ -6,8 +6,9 @@ the base and stays unchanged. :func:`task_constraints` are what
 
 * ``workspace_guard`` on the same box: a braking band inside the margin, an inward push when
   an end effector is outside, and no turning within the margin;
-* ``force_ramp`` at the same force limit: into-contact motion slowed from half the limit, a
-  slow back-off above it;
+* ``force_ramp`` just under the same force limit (:data:`FORCE_MARGIN`): into-contact motion
+  slowed from half the limit, a slow back-off above it, and motion into a contact that went
+  above it held until the hand has backed off (:data:`FORCE_RELEASE`);
 * ``contact_approach`` (:data:`CONTACT_APPROACH`): motion slowed along every pair of nearest
   points between a hand (with what it touches) and the rest of the scene, which the task's
   ``robot_state()`` measures on the live simulator each step
@@ -20,7 +21,8 @@ the base and stays unchanged. :func:`task_constraints` are what
 * ``reach_limit`` around each arm's shoulder: the Panda's reach (with a slow creep left up to
   its edge) and a column around its base wide enough to keep the elbow off its joint limit.
 
-The per-task Φ is opt-in: the runtime's default stays the paper's Φ.
+The per-task Φ is the runtime's default (:mod:`capevo.runtime.envelope`); the paper's Φ alone
+stays selectable (``--phi paper``) to reproduce the paper's table.
 The scripted pick, place and stack references (``capevo.runtime.tasks.scripted``) succeed under
 it about as often as under the paper's Φ, with no unsafe step (measured by
 ``python -m capevo.runtime.tasks.bench --phi paper task``).
@@ -97,6 +99,15 @@ CONTACT_APPROACH: Mapping[str, float] = MappingProxyType(
     {"clearance": 0.005, "brake": 0.1, "touch": 0.04, "touch_loose": 0.04}
 )
 """``contact_approach`` settings of every per-task Φ."""
+FORCE_MARGIN = 2.0
+"""Newtons below the paper's 20 N at which ``force_ramp`` ends its ramp and starts backing off.
+Governance reads the wrist sensor with the hand's weight removed but not its acceleration
+(:mod:`capevo.runtime.governance.robosuite_state`); measured on a grasp, that term read 20.01 N
+against a true 19.57 N (MuJoCo's contact forces). 2 N, four times that error, keeps a reading of
+18 N below the true 20 N; the independent safety monitor grades against the 20 N itself."""
+FORCE_RELEASE = 0.02
+"""Hysteresis of ``force_ramp``: after a force above its limit, motion into that contact is held
+until the hand has backed off 2 cm (a re-approach at touch speed then starts from clear of it)."""
 SURFACE_CLEARANCE = -0.004
 """Let the fingertips settle 4 mm "into" the surface: the OSC push that remains there is gentle (about 10 N)."""
 
@@ -222,7 +233,11 @@ def task_constraints(geometry: TaskGeometry, base: Sequence[Constraint]) -> list
     force = next((c for c in base if isinstance(c, ContactForce)), ContactForce())
     added: list[Constraint] = [
         WorkspaceGuard(low=box.low, high=box.high, margin=box.margin),
-        ForceRamp(max_force=force.max_force, soft_from=force.max_force / 2),
+        ForceRamp(
+            max_force=force.max_force - FORCE_MARGIN,
+            soft_from=force.max_force / 2,
+            release=FORCE_RELEASE,
+        ),
         ContactApproach(**CONTACT_APPROACH),
     ]
     if geometry.surface_height is not None:

@@ -208,6 +208,55 @@ def test_force_ramp_examples() -> None:
     assert e.value.details["field"] == "soft_from"
 
 
+HOLDING = ForceRamp(release=0.02)
+
+
+def test_force_ramp_holds_motion_into_a_contact_after_a_spike_until_the_hand_has_backed_off() -> None:
+    gov = Phi((HOLDING,)).governor(SINGLE_PANDA)
+    at = lambda z, fz: RobotState(arms=(ArmState(eef_pos=(0.1, 0.0, z), eef_force=(0.0, 0.0, fz)),))  # noqa: E731
+    down = (0.3, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0)
+    assert gov(at(0.9, 0.0), down) == (down, ())  # no contact yet: untouched
+    gov(at(0.85, 40.0), down)  # the spike: the table pushes up at 40 N
+    # The reading drops (the hand bounced, or the rule backed it off): still no pushing down...
+    out, (rec,) = gov(at(0.855, 0.0), down)
+    assert out == (0.3, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0) and "held until the hand has backed off 0.02 m" in rec.reason
+    assert gov(at(0.869, 5.0), down)[0][2] == 0.0  # backed off 1.9 cm: held
+    assert gov(at(0.87, 0.0), down) == (down, ())  # 2 cm: released
+    assert gov(at(0.86, 0.0), down) == (down, ())  # and it stays released until the next spike
+    # A new episode starts unlatched; without hysteresis nothing is held after the spike.
+    gov(at(0.85, 40.0), down)
+    gov.new_episode()
+    assert gov(at(0.855, 0.0), down) == (down, ())
+    plain = Phi((RAMP,)).governor(SINGLE_PANDA)
+    plain(at(0.85, 40.0), down)
+    assert plain(at(0.855, 0.0), down) == (down, ())
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    f=st.tuples(*[st.floats(-60.0, 60.0)] * 3),
+    moves=st.lists(st.tuples(st.floats(-0.03, 0.03), st.floats(-0.03, 0.03), st.floats(-0.03, 0.03)), max_size=6),
+    action=actions(7),
+)
+def test_force_ramp_hysteresis_invariant(f, moves, action) -> None:
+    # Invariant 6: after a spike, until the hand is `release` back along the spike's direction,
+    # no translational component moves into that contact, whatever the force reads meanwhile.
+    n = math.hypot(*f)
+    assume(n > HOLDING.max_force * 1.001)
+    u = tuple(x / n for x in f)
+    gov = Phi((HOLDING,)).governor(SINGLE_PANDA)
+    p = [0.0, 0.0, 1.0]
+    gov(RobotState(arms=(ArmState(eef_pos=tuple(p), eef_force=f),)), action)
+    released = False
+    for d in moves:
+        p = [p[k] + d[k] for k in range(3)]
+        back = sum((p[k] - (0.0, 0.0, 1.0)[k]) * u[k] for k in range(3))
+        released = released or back >= HOLDING.release
+        out, _ = gov(RobotState(arms=(ArmState(eef_pos=tuple(p), eef_force=(0.0, 0.0, 0.0)),)), action)
+        if not released:
+            assert all(out[k] * u[k] >= 0.0 or out[k] == 0.0 for k in range(3))
+
+
 def test_surface_approach_lets_the_hand_touch_softly_and_sees_its_tilt() -> None:
     gov = Phi((SURFACE,)).governor(SINGLE_PANDA)
     down = (0.0, 0.0, -1.0, 0.4, 0.0, 0.0, -1.0)
@@ -311,7 +360,9 @@ def test_per_task_phi_satisfies_every_rule_at_once_where_nothing_restores(task, 
     reach = next(c for c in phi.constraints if isinstance(c, ReachLimit))
     p = data.draw(in_reach(reach.centres[0], reach))
     assume(all(-0.6 <= p[k] <= 0.6 for k in (0, 1)) and 0.6 <= p[2] <= 1.3)
-    f = data.draw(st.tuples(*[st.floats(-20.0, 20.0)] * 3).filter(lambda f: math.hypot(*f) <= 20.0))
+    # Up to the force ramp's limit (2 N under the paper's 20 N): above it the ramp backs off.
+    limit = next(c for c in phi.constraints if isinstance(c, ForceRamp)).max_force
+    f = data.draw(st.tuples(*[st.floats(-limit, limit)] * 3).filter(lambda f: math.hypot(*f) <= limit))
     arm = ArmPose(eef_pos=p, eef_force=f, eef_rot=rotation(data.draw(QUATS)))
     assume(within_reach(reach, 0, arm))
     state = RobotState(arms=(arm,))
@@ -331,7 +382,7 @@ def test_two_arm_task_phi_satisfies_every_rule_at_once_where_nothing_restores(da
     for i in range(2):
         p = data.draw(in_reach(reach.centres[i], reach))
         assume(all(-0.6 <= p[k] <= 0.6 for k in (0, 1)) and 0.6 <= p[2] <= 1.3)
-        f = data.draw(st.tuples(*[st.floats(-11.0, 11.0)] * 3).filter(lambda f: math.hypot(*f) <= 20.0))
+        f = data.draw(st.tuples(*[st.floats(-10.0, 10.0)] * 3).filter(lambda f: math.hypot(*f) <= 18.0))
         arms_.append(ArmPose(eef_pos=p, eef_force=f, eef_rot=rotation(data.draw(QUATS))))
         assume(within_reach(reach, i, arms_[-1]))
     state = RobotState(arms=tuple(arms_))
