@@ -2,7 +2,10 @@
 
 Same task, same episodes, interleaved. A recording pass runs T1 pick with the test suite's
 code ECMs (reach, grasp, lift from a real LocalRegistry) under an enforcing governor and keeps
-each seed's executed actions. Then, every round, for every seed, three runs go back to back
+each seed's executed actions. The governor's envelope is ``--phi``: ``task`` (the default, the
+runtime's default too) is ``Phi.for_task(task_spec(task))``, which reads proximity pairs, so
+``robot_state()`` senses them every step (``make_governor`` sets ``env.sense_proximity``);
+``paper`` is ``Phi.default()``, which reads none. Then, every round, for every seed, three runs go back to back
 (their order rotating from round to round, so drift on a shared box hits all of them alike):
 
 * robosuite: ``robosuite_env.reset()``, then the recorded actions through
@@ -18,8 +21,8 @@ each seed's executed actions. Then, every round, for every seed, three runs go b
 * ``task_env``: ``TaskEnv.reset(seed)`` and ``TaskEnv.step(a)`` (capevo's task wrapper:
   exact observations, observation noise, dropped actions, task reward, signals, success);
 * ``worker``: ``run_episode`` itself (decisions, termination predicates, ECM invocation,
-  governance R(a, Φ) + unsafe check, MCAP trace records on all five channels through a real
-  ``TraceWriter``, opened before and closed after the round).
+  proximity sensing, governance R(a, Φ), the independent safety monitor, MCAP trace records on
+  all five channels through a real ``TraceWriter``, opened before and closed after the round).
 
 Every run is clocked in wall time (``perf_counter``) and in CPU time of the whole process
 (``process_time``: the trace writer's flush thread counts). Overheads are reported per round
@@ -28,9 +31,11 @@ robosuite's own reset and step calls are clocked too ("in-run"): the variant aga
 robosuite work it contains, sampled in the same episodes, immune to drift between runs. A
 worker episode that runs a different number of steps than recorded stops the benchmark.
 
-A last, separately instrumented pass splits a worker step into parts (µs per step).
+A last, separately instrumented pass splits a worker step into parts (µs per step):
+``robot_state()`` (with, as a row of its own, the proximity sensing inside it), governance,
+the safety monitor's ``judge``, and the rest.
 
-    .venv/bin/python benchmarks/bench_worker.py [--rounds 12] [--seeds 8] [--horizon 150]
+    .venv/bin/python benchmarks/bench_worker.py [--rounds 12] [--seeds 8] [--horizon 150] [--phi task|paper]
 """
 
 from __future__ import annotations
@@ -63,11 +68,15 @@ from capevo.registry.local import LocalRegistry
 from capevo.runtime.capabilities import LoadedCapabilitySet
 from capevo.runtime.episode import make_governor, run_episode
 from capevo.runtime.governance import Phi
+from capevo.runtime.governance.proximity import ProximitySensor
+from capevo.runtime.safety_monitor import SafetyMonitor
 from capevo.runtime.tasks import lean_stepping, make_task, task_spec
 from capevo.runtime.traces import MemoryTraceSink, TraceMetadata, TraceWriter
 
 TARGET_OVERHEAD_PCT = 3.0
 CLOCKS = ("wall", "cpu")
+SENSING = "  of which proximity sensing (ProximitySensor.near)"
+"""A part inside ``robot_state()``: reported, and not added again to the sum of the parts."""
 
 
 def _now() -> tuple[float, float]:
@@ -108,9 +117,14 @@ class _TimedSink:
 
 
 class _TimedGovernor:
+    """The governor, its calls clocked; every other attribute is the governor's own."""
+
     def __init__(self, inner: Any, timed: _Timed) -> None:
-        self.phi, self.enforce = inner.phi, inner.enforce
+        self.inner = inner
         self._call = timed.wrap(inner, "governance R(a, Φ)")
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
 
     def __call__(self, state: Any, action: Any) -> Any:
         return self._call(state, action)
@@ -140,8 +154,13 @@ def component_breakdown(
     # Instance attributes shadow the methods; TaskEnv calls self._env.step, the loop env.step.
     rs.step = timed.wrap(rs.step, "robosuite env.step")
     env.reset = timed.wrap(env.reset, "TaskEnv.reset")
-    env.robot_state = timed.wrap(env.robot_state, "robot_state()")
+    env.robot_state = timed.wrap(env.robot_state, "robot_state() incl. sensing")
+    # The sensor is the env's own and the loop builds its monitor itself: clock both classes'
+    # methods for this pass (class attributes, restored below).
+    near, judge = ProximitySensor.near, SafetyMonitor.judge
+    ProximitySensor.near = timed.wrap(near, SENSING)  # type: ignore[method-assign]
     env.step = timed.wrap(env.step, "TaskEnv.step (robosuite step inside)")
+    SafetyMonitor.judge = timed.wrap(judge, "safety monitor judge()")  # type: ignore[method-assign]
     steps = 0
     try:
         with TraceWriter(tmp / "breakdown.mcap", metadata) as writer:
@@ -153,6 +172,7 @@ def component_breakdown(
             total, total_cpu = time.perf_counter() - t0, time.thread_time() - c0
     finally:
         del rs.step, env.reset, env.robot_state, env.step
+        ProximitySensor.near, SafetyMonitor.judge = near, judge  # type: ignore[method-assign]
     out: dict[str, dict[str, float]] = {}
     for k in clock:
         wall, spent = clock[k], cpu[k]
@@ -160,9 +180,10 @@ def component_breakdown(
             k = "TaskEnv.step beyond robosuite"
             wall, spent = wall - clock["robosuite env.step"], spent - cpu["robosuite env.step"]
         out[k] = {"us_per_step": wall / steps * 1e6, "cpu_us_per_step": spent / steps * 1e6}
-    out["rest of the loop (decisions, predicates, unsafe check, records)"] = {
-        "us_per_step": total / steps * 1e6 - sum(v["us_per_step"] for v in out.values()),
-        "cpu_us_per_step": total_cpu / steps * 1e6 - sum(v["cpu_us_per_step"] for v in out.values()),
+    parts = [v for k, v in out.items() if k != SENSING]
+    out["rest of the loop (decisions, predicates, records)"] = {
+        "us_per_step": total / steps * 1e6 - sum(v["us_per_step"] for v in parts),
+        "cpu_us_per_step": total_cpu / steps * 1e6 - sum(v["cpu_us_per_step"] for v in parts),
     }
     for v in out.values():
         v["share"] = v["us_per_step"] / (total / steps * 1e6)
@@ -209,8 +230,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--phi",
         choices=("paper", "task"),
-        default="paper",
-        help="the governing envelope: the paper's (the runtime default) or Phi.for_task (proximity sensing on)",
+        default="task",
+        help="the governing envelope: Phi.for_task (the runtime default; proximity sensing on) or the paper's",
     )
     parser.add_argument("--label", default="", help="free text stored with the results (e.g. the code state)")
     parser.add_argument("--out", default="bench_worker", help="results file name under benchmarks/results/")

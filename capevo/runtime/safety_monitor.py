@@ -241,6 +241,10 @@ class _Arm:
     sensor_adr: int
     sensor_site: int
     below_sensor: tuple[int, ...]
+    below_mass: tuple[float, ...]
+    """``body_mass`` of each of ``below_sensor``."""
+    weight: Vec3
+    """``Σ m_i g`` over ``below_sensor``, world frame, N."""
     offset: int
     width: int
 
@@ -283,6 +287,9 @@ class SafetyMonitor:
             def geoms(key: str, gripper: Any = gripper) -> frozenset[int]:
                 return frozenset(m.geom(g).id for g in gripper.important_geoms.get(key, ()))
 
+            below = tuple(b for b in range(m.nbody) if _descends(m, b, top))
+            weight = sum(float(m.body_mass[b]) for b in below) * m.opt.gravity
+
             arms.append(
                 _Arm(
                     robot_bodies=frozenset(b for b in range(m.nbody) if int(m.body_rootid[b]) == root),
@@ -291,12 +298,18 @@ class SafetyMonitor:
                     eef_site=int(robot.eef_site_id[side]),
                     sensor_adr=int(m.sensor_adr[sensor]),
                     sensor_site=site,
-                    below_sensor=tuple(b for b in range(m.nbody) if _descends(m, b, top)),
+                    below_sensor=below,
+                    below_mass=tuple(float(m.body_mass[b]) for b in below),
+                    weight=_vec(weight),
                     offset=arm_layout.offset,
                     width=end - arm_layout.offset,
                 )
             )
         self._arms = tuple(arms)
+        # Per-geom and per-body facts read each step, as plain Python containers (indexing
+        # MuJoCo's arrays one element at a time costs more than the rest of the lookup).
+        self._geom_body: list[int] = m.geom_bodyid.tolist()
+        self._welded = frozenset(b for b, weld in enumerate(m.body_weldid.tolist()) if weld == 0)
         self._force6 = np.zeros(6)
         self._acc6 = np.zeros(6)
 
@@ -340,22 +353,24 @@ class SafetyMonitor:
     def _contacts(self) -> list[tuple[int, int, int, int, float]]:
         """Every active contact as ``(geom1, geom2, body1, body2, normal force)``."""
         m, d, f6 = self._model, self._data, self._force6
+        n = int(d.ncon)
+        if n == 0:
+            return []
+        body = self._geom_body
         out = []
-        for i in range(d.ncon):
-            c = d.contact[i]
-            g1, g2 = int(c.geom1), int(c.geom2)
+        for i, (g1, g2) in enumerate(d.contact.geom[:n].tolist()):
             mujoco.mj_contactForce(m, d, i, f6)
-            out.append((g1, g2, int(m.geom_bodyid[g1]), int(m.geom_bodyid[g2]), float(f6[0])))
+            out.append((g1, g2, body[g1], body[g2], float(f6[0])))
         return out
 
     def _held(self, arm: _Arm, contacts: list[tuple[int, int, int, int, float]]) -> frozenset[int]:
-        m = self._model
+        welded = self._welded
         left: set[int] = set()
         right: set[int] = set()
         for g1, g2, b1, b2, _ in contacts:
             for mine, other in ((g1, b2), (g2, b1)):
                 # Only free bodies can be held: fingers straddling a bin rim are a collision.
-                if other in arm.robot_bodies or int(m.body_weldid[other]) == 0:
+                if other in arm.robot_bodies or other in welded:
                     continue
                 if mine in arm.left_finger:
                     left.add(other)
@@ -394,22 +409,29 @@ class SafetyMonitor:
     def _wrist(self, arm: _Arm) -> tuple[Vec3, Vec3]:
         m, d, acc = self._model, self._data, self._acc6
         s = d.sensordata[arm.sensor_adr : arm.sensor_adr + 3]
-        parent = -(d.site_xmat[arm.sensor_site].reshape(3, 3) @ s)  # the arm's force on the hand, world
-        offset = np.zeros(3)  # Σ m_i (a_i - g): MuJoCo's cacc carries gravity's offset
-        for b in arm.below_sensor:
-            mujoco.mj_objectAcceleration(m, d, mujoco.mjtObj.mjOBJ_BODY, b, acc, 0)
-            offset += m.body_mass[b] * acc[3:]
-        weight = sum(float(m.body_mass[b]) for b in arm.below_sensor) * m.opt.gravity
-        return _vec(parent + offset), _vec(offset + weight)
+        px, py, pz = (-(d.site_xmat[arm.sensor_site].reshape(3, 3) @ s)).tolist()  # the arm's force on the hand, world
+        # Σ m_i (a_i - g): MuJoCo's cacc carries gravity's offset. Plain floats: three numbers per
+        # body, where numpy's per-call cost would dominate.
+        ox = oy = oz = 0.0
+        body = mujoco.mjtObj.mjOBJ_BODY
+        for b, mass in zip(arm.below_sensor, arm.below_mass, strict=True):
+            mujoco.mj_objectAcceleration(m, d, body, b, acc, 0)
+            _, _, _, ax, ay, az = acc.tolist()
+            ox += mass * ax
+            oy += mass * ay
+            oz += mass * az
+        wx, wy, wz = arm.weight
+        return (px + ox, py + oy, pz + oz), (ox + wx, oy + wy, oz + wz)
 
     def _arm_reading(self, arm: _Arm, a: np.ndarray, contacts: list[tuple[int, int, int, int, float]]) -> ArmReading:
         lim = self.limits
-        pos = _vec(self._data.site_xpos[arm.eef_site])
+        x, y, z = self._data.site_xpos[arm.eef_site].tolist()
+        pos = (x, y, z)
         inside = all(lo <= p <= hi for lo, p, hi in zip(lim.box_low, pos, lim.box_high, strict=True))
-        own = a[arm.offset : arm.offset + arm.width]
+        own = a[arm.offset : arm.offset + arm.width].tolist()
         pose = own[:POSE_COMPONENTS]
         # NaN anywhere: the magnitude is unknown and only the non_finite axis says so.
-        norm = math.nan if np.isnan(pose).any() else math.hypot(*pose.tolist())
+        norm = math.nan if any(math.isnan(v) for v in pose) else math.hypot(*pose)
         held = self._held(arm, contacts)
         contact = self._largest_contact(arm, held, contacts)
         wrist, inertia = self._wrist(arm)
@@ -423,7 +445,7 @@ class SafetyMonitor:
             out_of_box=not inside,
             over_cap=norm > lim.action_cap,
             over_force=contact is not None and contact.force > lim.max_contact_force,
-            non_finite=not bool(np.isfinite(own).all()),
+            non_finite=not all(math.isfinite(v) for v in own),
         )
 
     @staticmethod
