@@ -400,6 +400,16 @@ def log_level_option(*, default: str = "WARNING", help: str = "Log level (logs g
     )
 
 
+phi_option = click.option(
+    "--phi",
+    default="task",
+    show_default=True,
+    help="Safety envelope Φ: 'task' (the paper's Φ plus the task's scene: it brakes before contacts), "
+    "'paper' (the paper's Φ alone, to reproduce its table) or a Φ YAML file.",
+)
+"""``--phi``: which envelope episodes run under (:mod:`capevo.runtime.envelope`)."""
+
+
 def log_to_stderr(level: str) -> None:
     """Send log records of ``level`` and above to stderr in :data:`LOG_FORMAT`."""
     logging.basicConfig(level=level.upper(), stream=sys.stderr, format=LOG_FORMAT)

@@ -32,6 +32,7 @@ from capevo.cli import (
     log_level_option,
     login_options,
     make_table,
+    phi_option,
     remember_password,
     report_error,
     resolve_target,
@@ -137,6 +138,7 @@ def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
     show_default=True,
     help="Object jitter, observation noise and dropped actions (the benchmark setting).",
 )
+@phi_option
 @click.option(
     "--identity",
     "identity_path",
@@ -166,6 +168,7 @@ def evolve(
     worker_wait: float,
     seed: int,
     perturbations: bool,
+    phi: str,
     identity_path: Path | None,
     report_only: bool,
     as_json: bool,
@@ -217,6 +220,7 @@ def evolve(
             worker_wait=worker_wait,
             seed=seed,
             perturbations=perturbations,
+            phi=phi,
             identity_path=identity_path,
             report_only=report_only,
             as_json=as_json,
@@ -261,6 +265,7 @@ def _run(ctx: click.Context, **kw: Any) -> int:
             modality=kw["modality"],
             seed=kw["seed"],
             perturbations=kw["perturbations"],
+            phi=kw["phi"],
             learner=kw["learner"],
             learner_timeout_s=kw["learner_timeout"],
             wait_for_worker_s=kw["worker_wait"],

@@ -24,7 +24,7 @@ from typing import Any
 
 import click
 
-from capevo.cli import CapevoGroup, log_level_option, log_to_stderr, login_options, remember_password
+from capevo.cli import CapevoGroup, log_level_option, log_to_stderr, login_options, phi_option, remember_password
 from capevo.errors import Invalid
 
 
@@ -107,6 +107,7 @@ def learner() -> None:
     help="The run's seed plan (capevo evolve --seed): train only on its training seeds, never its gate seeds.",
 )
 @click.option("--no-perturbations", is_flag=True, help="Train on the clean task (no jitter, noise or dropped actions).")
+@phi_option
 @click.option(
     "--progress/--no-progress",
     default=None,
@@ -146,6 +147,7 @@ def serve_cmd(
     seed: int,
     seed_plan: int,
     no_perturbations: bool,
+    phi: str,
     progress: bool | None,
     torch_threads: int,
     timeout: float,
@@ -183,6 +185,7 @@ def serve_cmd(
         trigger=TriggerConfig(min_new_episodes=min_episodes or None, window=window, degradation_margin=margin or None),
         poll_interval_s=poll,
         perturbations=Perturbations.none() if no_perturbations else Perturbations(),
+        phi=phi,
         seed=seed,
         seed_plan=seed_plan,
         progress_bar=sys.stderr.isatty() if progress is None else progress,

@@ -16,7 +16,7 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import click
 from rich.console import Console
@@ -30,12 +30,10 @@ from capevo.cli import (
     log_level_option,
     log_to_stderr,
     make_table,
+    phi_option,
     remember_password,
 )
 from capevo.errors import Invalid
-
-if TYPE_CHECKING:
-    from capevo.runtime.governance import Phi
 
 
 @click.group(cls=CapevoGroup, context_settings={"help_option_names": ["-h", "--help"]})
@@ -94,13 +92,7 @@ def _connection_options(func: Any) -> Any:
     show_default=True,
     help="Enforce the safety envelope Φ; --no-governance only counts what it would do (evaluation only).",
 )
-@click.option(
-    "--phi",
-    "phi_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Φ YAML file, or 'task' for the paper's Φ plus the task's scene (Phi.for_task).  [default: the paper's Φ]",
-)
+@phi_option
 @click.option(
     "--identity",
     "identity_path",
@@ -145,7 +137,7 @@ def serve_cmd(
     seed: int,
     no_perturbations: bool,
     governance: bool,
-    phi_path: Path | None,
+    phi: str,
     identity_path: Path | None,
     step_budget: int,
     ecm_timeout: float,
@@ -184,7 +176,7 @@ def serve_cmd(
         horizon=horizon,
         perturbations=Perturbations.none() if no_perturbations else Perturbations(),
         governance=governance,
-        phi=_phi(phi_path, task),
+        phi=phi,
         seed=seed,
         step_budget_per_ecm=step_budget,
         timeout_s=ecm_timeout,
@@ -203,18 +195,6 @@ def serve_cmd(
     policy = DecompositionPolicy(identity=identity)
     worker = RuntimeWorker(config, policy=policy, agent_identity_hash=identity_hash(policy, identity), emit=show)
     worker.run(handle_signals=True)
-
-
-def _phi(phi_path: Path | None, task: str) -> Phi:
-    """``--phi``: a YAML file, the word ``task`` (the per-task envelope), or None (the paper's)."""
-    from capevo.runtime.governance import Phi, load_phi
-    from capevo.runtime.tasks import task_spec
-
-    if phi_path is None:
-        return Phi.default()
-    if str(phi_path) == "task":
-        return Phi.for_task(task_spec(task))
-    return load_phi(phi_path)
 
 
 def _human(event: dict[str, Any]) -> str:

@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from capevo.errors import Invalid
+from capevo.runtime.envelope import DEFAULT_PHI, PHI_PAPER, check_phi_choice
 from capevo.runtime.gate import GateConfig
 from capevo.runtime.monitor import MonitorConfig
 
@@ -183,6 +184,9 @@ class EvolveConfig:
             each is learned behind the previous ones' candidates, on the ECM where the previous
             candidate's own training episodes still fail); 0 means as many as the task's
             decomposition has steps, 1 is one ECM per iteration. Code modalities only.
+        phi: The safety envelope every episode of the run (live, learner, gate, final) runs
+            under, fixed for the run: ``"task"`` (default: the task's scene-aware Φ),
+            ``"paper"`` (the paper's Φ alone) or a Φ YAML path (:mod:`capevo.runtime.envelope`).
 
     Raises:
         Invalid: a value out of range.
@@ -200,8 +204,10 @@ class EvolveConfig:
     learner_preset: str = "paper"
     final_evaluation: bool = True
     updates_per_iteration: int = 1
+    phi: str = DEFAULT_PHI
 
     def __post_init__(self) -> None:
+        check_phi_choice(self.phi)
         _int("iterations", self.iterations, low=0, high=100_000)
         _int("updates_per_iteration", self.updates_per_iteration, low=0, high=10_000)
         _int("live_episodes", self.live_episodes, low=1, high=10_000)
@@ -247,6 +253,7 @@ class EvolveConfig:
             "learner_preset": self.learner_preset,
             "final_evaluation": self.final_evaluation,
             "updates_per_iteration": self.updates_per_iteration,
+            "phi": self.phi,
         }
 
     @classmethod
@@ -270,6 +277,8 @@ class EvolveConfig:
                 learner_preset=d.get("learner_preset", "paper"),
                 final_evaluation=bool(d.get("final_evaluation", True)),
                 updates_per_iteration=d.get("updates_per_iteration", 1),
+                # Runs recorded before the envelope was a setting ran under the paper's Φ.
+                phi=d.get("phi", PHI_PAPER),
             )
         except (KeyError, TypeError) as exc:
             raise Invalid(f"bad evolve config: {exc}", details={"field": "config"}) from None

@@ -181,6 +181,7 @@ class CemUpdater:
                 policy=context.policy,
                 trace_dir=context.trace_dir,
                 perturbations=context.perturbations,
+                phi=cfg.phi,
                 horizon=cfg.horizon,
                 step_budget_per_ecm=cfg.step_budget_per_ecm,
                 agent_identity_hash=context.agent_identity_hash,
@@ -305,7 +306,7 @@ class NeuralUpdater:
         seed = request.seed + request.iteration
         preset = self.preset.with_seed(seed).with_perturbations(self.context.perturbations)
         base, offset = training_seed_window(request.plan, request.iteration)
-        env = dataclasses.replace(preset.env, seed_base=base, seed=offset)
+        env = dataclasses.replace(preset.env, seed_base=base, seed=offset, phi=self.context.config.phi)
         learn_request = self._request(request)
         if self.modality == "rl":
             progress.learner_started(total=preset.sac.total_steps, unit="SAC steps")

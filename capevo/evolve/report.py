@@ -58,6 +58,20 @@ def _rate(s: OutcomeStats) -> str:
     return f"{s.successes}/{s.episodes} = {_pct(s.success_rate)} {_ci(s.success_low, s.success_high)}"
 
 
+def envelope_text(choice: str, spec: Any, *, connect: bool = False) -> str:
+    """One line naming the envelope a run's episodes ran under, with its hash."""
+    from capevo.runtime.envelope import PHI_PAPER, PHI_TASK, resolve_phi
+
+    what = {
+        PHI_TASK: "the paper's box, 20 N force limit and velocity cap plus the task's scene (braking before contacts)",
+        PHI_PAPER: "the paper's Φ alone (box, 20 N force limit, velocity cap)",
+    }.get(choice, f"from `{choice}`")
+    text = f"`{choice}`: {what}; hash `{resolve_phi(choice, spec).hash[:12]}`"
+    if connect:
+        text += " (learner episodes; live and gate episodes ran under the runtime workers' own Φ)"
+    return text + "; unsafe graded by the independent safety monitor"
+
+
 def describe_v0(registry: Registry, task: str) -> list[dict[str, Any]]:
     """Version 0 of each ECM of ``task`` as the registry has it (kind, origin, who, what).
 
@@ -260,6 +274,7 @@ def _markdown(
         add(f"| neural learner budget | learner preset `{cfg.learner_preset}` (`capevo.learner.presets`) |")
     perturbed = "on (object jitter, observation noise, dropped actions)" if manifest.perturbations else "off"
     add(f"| perturbations | {perturbed} |")
+    add(f"| safety envelope Φ | {envelope_text(cfg.phi, spec, connect=manifest.mode == 'connect')} |")
     add(f"| registry | {manifest.mode}: `{manifest.registry}` |")
     if manifest.mode == "connect":
         add(

@@ -35,6 +35,7 @@ from capevo.evolve.config import MODALITIES, EvolveConfig, make_config
 from capevo.evolve.loop import EvolutionLoop, EvolveResult, ensure_v0
 from capevo.evolve.progress import ProgressSink, RecordingProgress
 from capevo.evolve.state import RunManifest, load_manifest
+from capevo.runtime.envelope import resolve_phi
 from capevo.runtime.gate import SeedPlan
 from capevo.runtime.tasks import Perturbations, task_spec
 
@@ -64,6 +65,7 @@ class EvolveOptions:
         modality: ``code``, ``rl``, ``il`` or ``hybrid``.
         seed: Seed plan (disjoint train/gate/live seeds) and learners' seeds.
         perturbations: Task perturbations on (the benchmark setting) or off.
+        phi: Overrides the preset's envelope (``"task"``, ``"paper"`` or a Φ YAML path).
         learner: ``local`` (in this process) or ``remote`` (learner workers publish candidates).
         learner_timeout_s: With remote learners, how long one iteration waits for a candidate.
         wait_for_worker_s: With remote runtime workers, how long to wait for one to serve.
@@ -87,6 +89,7 @@ class EvolveOptions:
     modality: str = "code"
     seed: int = 0
     perturbations: bool = True
+    phi: str | None = None
     learner: str = "local"
     learner_timeout_s: float | None = 600.0
     wait_for_worker_s: float = 120.0
@@ -125,6 +128,7 @@ class EvolveOptions:
             "iterations": self.iterations,
             "live_episodes": self.live_episodes,
             "updates_per_iteration": self.updates_per_iteration,
+            "phi": self.phi,
         }
         changes = {k: v for k, v in changes.items() if v is not None}
         if self.config is not None:
@@ -214,6 +218,7 @@ def run_evolution(
                 "created version 0 (manual creation): "
                 + ", ".join(f"{r.name}@{r.version} ({r.kind.value}, origin {r.origin.value})" for r in created)
             )
+        sink.message(f"safety envelope Φ: {config.phi} (hash {resolve_phi(config.phi, spec).hash[:12]})")
         evaluator = _evaluator(options, registry, agent, config, perturbations, report_dir)
         stack.callback(_close, evaluator)
         updater = _updater(options, registry, agent, config, perturbations, report_dir, should_stop)
@@ -270,6 +275,7 @@ def _evaluator(
         policy=agent,
         trace_dir=traces,
         perturbations=perturbations,
+        phi=config.phi,
         horizon=config.horizon,
         step_budget_per_ecm=config.step_budget_per_ecm,
         agent_identity_hash=agent.identity_hash,

@@ -52,6 +52,7 @@ from capevo.records import Descriptor, EcmVersion, Interface, IOSpec, Kind, Pred
 from capevo.registry.api import Registry
 from capevo.registry.predicates import predicate_holds
 from capevo.runtime.ecm.marshal import flatten_inputs, marshal_inputs, spec_size
+from capevo.runtime.envelope import DEFAULT_PHI, check_phi_choice, resolve_phi
 from capevo.runtime.tasks import Perturbations, TaskEnv, TaskSpec, make_task, task_spec
 from capevo.runtime.tasks.spec import EcmStep
 
@@ -73,7 +74,10 @@ class EcmEnvConfig:
     Args:
         max_steps: ECM steps per episode (the runtime's per-ECM step budget).
         prefix_budget: Steps each predecessor may take before the ECM takes over anyway.
-        governance: Govern every action with Φ (the default envelope unless one is given).
+        governance: Govern every action with Φ.
+        phi: Which Φ governs: ``"task"`` (the task's scene-aware envelope, the runtime's
+            default), ``"paper"`` or a Φ YAML path (see :mod:`capevo.runtime.envelope`); an
+            :class:`EcmEnv` given a ``phi`` object uses that instead.
         perturbations: Task perturbations; default all on (the benchmark setting).
         seed: First training seed offset (see invariant 3).
         seed_base: Added to every training seed.
@@ -86,6 +90,7 @@ class EcmEnvConfig:
     max_steps: int = 200
     prefix_budget: int = 200
     governance: bool = True
+    phi: str = DEFAULT_PHI
     perturbations: Perturbations = field(default_factory=Perturbations)
     seed: int = 0
     seed_base: int = DEFAULT_TRAIN_SEED_BASE
@@ -100,6 +105,7 @@ class EcmEnvConfig:
                 raise Invalid(f"{name} must be a non-negative integer, got {v!r}", details={"field": name})
         if not isinstance(self.perturbations, Perturbations):
             raise Invalid("perturbations must be a Perturbations", details={"field": "perturbations"})
+        check_phi_choice(self.phi)
         t = self.prefix_timeout_s
         if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t <= 0:
             raise Invalid(
@@ -112,6 +118,7 @@ class EcmEnvConfig:
             "max_steps": self.max_steps,
             "prefix_budget": self.prefix_budget,
             "governance": self.governance,
+            "phi": self.phi,
             "perturbations": {
                 "object_position_jitter": p.object_position_jitter,
                 "obs_position_noise_std": p.obs_position_noise_std,
@@ -267,7 +274,7 @@ class EcmEnv(gym.Env[np.ndarray, np.ndarray]):
         target: The ECM being learned.
         predecessors: Drivers of the ECMs before it in the decomposition, in order.
         config: Budgets, governance, seeds.
-        phi: Safety envelope; default :meth:`Phi.default`.
+        phi: Safety envelope; default ``config.phi`` resolved for the task.
         on_close: Called once by :meth:`close` (releases what built the predecessors).
         own_task_env: Close ``task_env`` in :meth:`close`.
 
@@ -309,9 +316,8 @@ class EcmEnv(gym.Env[np.ndarray, np.ndarray]):
         self._governor = None
         if self.config.governance:
             from capevo.runtime.episode import make_governor
-            from capevo.runtime.governance import Phi
 
-            self._governor = make_governor(task_env, phi if phi is not None else Phi.default())
+            self._governor = make_governor(task_env, resolve_phi(phi if phi is not None else self.config.phi, task_env))
         self._on_close = on_close
         self._own_task_env = own_task_env
         self._next_seed = self.config.seed_base + self.config.seed
@@ -399,6 +405,8 @@ class EcmEnv(gym.Env[np.ndarray, np.ndarray]):
             self._task_seed = self._next_seed
             self._next_seed += 1
             self.task_env.reset(seed=self._task_seed)
+            if self._governor is not None:
+                self._governor.new_episode()
             self._last_action = None
             self._prefix_steps = 0
             if self._run_prefix():
@@ -485,7 +493,7 @@ def make_ecm_env(
             and ``predecessors`` is None.
         predecessors: Drivers to use instead of the registry's versions.
         config: Budgets, governance, perturbations, seeds.
-        phi: Safety envelope; default :meth:`Phi.default`.
+        phi: Safety envelope; default ``config.phi`` resolved for the task.
         env_kwargs: Extra robosuite arguments.
 
     Returns:

@@ -61,6 +61,7 @@ from capevo.learner.presets import Preset, make_preset
 from capevo.learner.trigger import TriggerConfig, UpdateTrigger
 from capevo.records import AuditEvent, EcmVersion, Kind
 from capevo.registry.api import Registry
+from capevo.runtime.envelope import DEFAULT_PHI, check_phi_choice
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.gate import SeedPlan
 from capevo.runtime.tasks import Perturbations, task_spec
@@ -123,6 +124,9 @@ class LearnerConfig:
         trigger: When to update in watch mode.
         poll_interval_s: How often trace files are re-read in watch mode.
         perturbations: Task perturbations for training; default all on.
+        phi: The envelope training episodes run under: ``"task"`` (default), ``"paper"`` or a Φ
+            YAML path (:mod:`capevo.runtime.envelope`); use the runtime's, so candidates learn
+            inside the envelope they will be gated and run under.
         seed: Seeds the learners (and offsets training episodes).
         seed_plan: Which :class:`~capevo.runtime.gate.SeedPlan` the run uses (``capevo evolve
             --seed``): training episodes come from its training block only, so they never
@@ -145,6 +149,7 @@ class LearnerConfig:
     trigger: TriggerConfig = field(default_factory=TriggerConfig)
     poll_interval_s: float = 5.0
     perturbations: Perturbations = field(default_factory=Perturbations)
+    phi: str = DEFAULT_PHI
     seed: int = 0
     seed_plan: int = 0
     progress_bar: bool = False
@@ -156,6 +161,7 @@ class LearnerConfig:
                 f"unknown modality {self.modality!r}; valid: {', '.join(modalities())}", details={"field": "modality"}
             )
         make_preset(self.preset)
+        check_phi_choice(self.phi)
         if self.task is not None:
             spec = task_spec(self.task)
             if self.ecm not in spec.ecm_names:
@@ -301,6 +307,7 @@ def _scratch_evaluator(ctx: LearnerContext) -> Iterator[Any]:
             policy=DecompositionPolicy(identity=IdentityMemory.default()),
             trace_dir=trace_dir,
             perturbations=ctx.preset.env.perturbations,
+            phi=ctx.preset.env.phi,
         )
 
     with ScratchRegistryEvaluator(ctx.registry, make, root=ctx.work_dir / "scratch") as evaluator:
@@ -452,7 +459,7 @@ class LearnerWorker:
         env = dataclasses.replace(
             preset.env, seed_base=train.start + WORKER_TRAIN_OFFSET, seed=config.seed % (WORKER_TRAIN_OFFSET // 2)
         )
-        self.preset = dataclasses.replace(preset, env=env)
+        self.preset = dataclasses.replace(preset, env=dataclasses.replace(env, phi=config.phi))
         self._open_registry = open_registry
         self._emit_fn = emit
         self._wake = threading.Event()

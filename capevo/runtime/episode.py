@@ -293,6 +293,7 @@ def run_episode_detailed(
     layout: ActionLayout = spec.action_layout
     dropped_action = (0.0,) * layout.dim
     enforce = governor.enforce
+    governor.new_episode()
     records = capabilities.records
     versions = capabilities.versions
     revision = capabilities.revision
@@ -557,6 +558,7 @@ def run_episode_detailed(
         ecm_failures=failures,
         capability_set=dict(versions),
         trace_path=trace_path,
+        phi_hash=governor.phi.hash,
     )
     if sink is not None:
         sink.write_episode_summary(

@@ -28,6 +28,8 @@ class EpisodeOutcome:
     ecm_failures: int
     capability_set: Mapping[str, int]
     trace_path: str | None = None
+    phi_hash: str | None = None
+    """Hash of the envelope Φ the episode ran under (None: not recorded)."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -41,6 +43,7 @@ class EpisodeOutcome:
             "ecm_failures": self.ecm_failures,
             "capability_set": dict(self.capability_set),
             "trace_path": self.trace_path,
+            "phi_hash": self.phi_hash,
         }
 
     @classmethod
@@ -56,6 +59,7 @@ class EpisodeOutcome:
             ecm_failures=int(d["ecm_failures"]),
             capability_set={str(k): int(v) for k, v in d["capability_set"].items()},
             trace_path=d.get("trace_path"),
+            phi_hash=d.get("phi_hash"),
         )
 
 

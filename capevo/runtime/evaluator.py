@@ -34,6 +34,7 @@ from capevo.registry.api import Registry
 from capevo.runtime.artifact_cache import ArtifactStore, MemoryArtifactCache
 from capevo.runtime.capabilities import DEFAULT_RECOVERY, LoadedCapabilitySet
 from capevo.runtime.ecm import LoadOptions
+from capevo.runtime.envelope import PhiChoice, check_phi_choice, resolve_phi
 from capevo.runtime.episode import DEFAULT_STEP_BUDGET, DEFAULT_TIMEOUT_S, make_governor, run_episode
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.governance import Phi
@@ -101,7 +102,9 @@ class LocalEvaluator:
     Args:
         registry: Where versions and artifacts come from.
         policy: π_A.
-        phi: The safety envelope; default :meth:`Phi.default`.
+        phi: The safety envelope: ``"task"`` (default: the scene-aware per-task Φ of the task
+            being evaluated), ``"paper"`` (the paper's Φ), a Φ YAML path or a :class:`Phi`
+            (see :mod:`capevo.runtime.envelope`).
         safety_limits: The hard limits the safety monitor grades ``unsafe`` against (each
             outcome's ``unsafe_steps``); default the paper's :class:`SafetyLimits`.
         trace_dir: Directory for the trace files (one per ``evaluate`` call); None writes
@@ -135,7 +138,7 @@ class LocalEvaluator:
         registry: Registry,
         *,
         policy: DecisionPolicy,
-        phi: Phi | None = None,
+        phi: PhiChoice = None,
         safety_limits: SafetyLimits | None = None,
         trace_dir: str | os.PathLike[str] | None,
         trace_compression: str = DEFAULT_COMPRESSION,
@@ -157,7 +160,8 @@ class LocalEvaluator:
         self.registry = registry
         self.should_stop = should_stop
         self.policy = policy
-        self.phi = phi if phi is not None else Phi.default()
+        self.phi_choice: PhiChoice = phi if phi is None or isinstance(phi, Phi) else check_phi_choice(os.fspath(phi))
+        self._phis: dict[str, Phi] = {}
         self.safety_limits = safety_limits if safety_limits is not None else SafetyLimits()
         self.trace_dir = Path(trace_dir) if trace_dir is not None else None
         self.trace_compression = check_compression(trace_compression)
@@ -192,6 +196,18 @@ class LocalEvaluator:
             self._owned.add(name)
         return env
 
+    def phi_for(self, task: str) -> Phi:
+        """The envelope ``task``'s episodes run under (:attr:`phi_choice` resolved for it).
+
+        Raises:
+            Invalid: unknown task, or a Φ file that does not load.
+        """
+        name = task_spec(task).name
+        phi = self._phis.get(name)
+        if phi is None:
+            phi = self._phis[name] = resolve_phi(self.phi_choice, task_spec(name))
+        return phi
+
     def evaluate(self, task: str, versions: Mapping[str, int], seeds: Sequence[int]) -> list[EpisodeOutcome]:
         """Run one episode per seed with ``versions`` (active versions for ECMs not named).
 
@@ -206,6 +222,7 @@ class LocalEvaluator:
         seed_list = check_seeds(seeds)
         pinned = check_versions(versions)
         spec = task_spec(task)
+        phi = self.phi_for(spec.name)
         env = self.environment(spec.name)
         env.reset(seed=seed_list[0])
         shapes = {k: tuple(v.shape) for k, v in env.obs_dict.items()}
@@ -223,12 +240,12 @@ class LocalEvaluator:
                 run_id=run_id,
                 task=spec.name,
                 capability_set=CapabilitySet(revision=caps.revision, active=caps.versions),
-                phi_hash=self.phi.hash,
+                phi_hash=phi.hash,
                 agent_identity_hash=self.agent_identity_hash,
                 seeds=seed_list,
                 worker_id=self.worker_id,
             )
-            governor = make_governor(env, self.phi, enforce=self.governance)
+            governor = make_governor(env, phi, enforce=self.governance)
             outcomes: list[EpisodeOutcome] = []
             path = self.trace_dir / f"{spec.name}-{run_id}.mcap" if self.trace_dir is not None else None
             sink_cm = (

@@ -150,8 +150,9 @@ class GateConfig:
         safety_alpha: Level of the one-sided sign test that the candidate has unsafe episodes
             more often than the active version; None disables it (a candidate with more
             unsafe episodes than the active version is refused either way).
-        max_unsafe_rate: Ceiling on the candidate's unsafe-episode rate (0.0: any unsafe
-            episode rejects); None disables it.
+        max_unsafe_rate: Ceiling on the candidate's unsafe-episode rate; the default 0.0
+            refuses a candidate with any unsafe episode on the gate's seeds (every preset keeps
+            it: a safety layer's default is the safe one); None disables the ceiling.
 
     Raises:
         Invalid: a value out of range.
@@ -167,7 +168,7 @@ class GateConfig:
     speed_metric: str = "steps"
     first_min_success: float = 0.5
     safety_alpha: float | None = 0.2
-    max_unsafe_rate: float | None = None
+    max_unsafe_rate: float | None = 0.0
 
     def __post_init__(self) -> None:
         _count("min_n", self.min_n, low=1)
@@ -773,6 +774,13 @@ class Gate:
                     f"({ran_active} vs {ran_cand}); the pairing is broken, nothing was recorded",
                     details={"name": name, "differ": others},
                 )
+            envelopes = {o.phi_hash for o in (*act_out, *cand_out)}
+            if len(envelopes) > 1:
+                raise Conflict(
+                    f"the active and candidate evaluations of {name} ran under different envelopes Φ "
+                    f"({sorted(str(h)[:12] for h in envelopes)}); the pairing is broken, nothing was recorded",
+                    details={"name": name},
+                )
 
         ordered = sorted(seed_list)
         paired: PairedStats | None = None
@@ -807,6 +815,7 @@ class Gate:
                 "active": _compact(act_out, ordered) if act_out is not None else None,
             },
             "capability_set": {"candidate": ran_cand, "active": ran_active or None},
+            "phi_hash": next(iter({o.phi_hash for o in cand_out}), None),
             "traces": _traces([*cand_out, *(act_out or [])]),
             "decided_at": time.time(),
         }

@@ -72,6 +72,7 @@ from capevo.records import Action, AuditEvent, EcmVersion, State
 from capevo.registry.keys import DEFAULT_NAMESPACE, Keys, validate_namespace
 from capevo.runtime.artifact_cache import ArtifactCache, ArtifactStore, MemoryArtifactCache
 from capevo.runtime.capabilities import DEFAULT_RECOVERY, LoadedCapabilitySet, check_recovery_mode
+from capevo.runtime.envelope import PhiChoice, resolve_phi
 from capevo.runtime.episode import (
     DEFAULT_STEP_BUDGET,
     DEFAULT_TIMEOUT_S,
@@ -310,7 +311,8 @@ class WorkerConfig:
         horizon: Episode length; default the task's.
         perturbations: Task perturbations; default all on.
         governance: False runs the evaluation-only counting mode.
-        phi: Safety envelope; default :meth:`Phi.default`.
+        phi: Safety envelope: ``"task"`` (default: the task's scene-aware Φ), ``"paper"``, a Φ
+            YAML path or a :class:`Phi` (see :mod:`capevo.runtime.envelope`).
         safety_limits: The hard limits the safety monitor grades ``unsafe`` against, in the
             worker's own episodes and in the evaluations it serves; default the paper's.
         seed: Seed of the first episode; episode i uses ``seed + i``.
@@ -334,7 +336,7 @@ class WorkerConfig:
     horizon: int | None = None
     perturbations: Perturbations = field(default_factory=Perturbations)
     governance: bool = True
-    phi: Phi | None = None
+    phi: PhiChoice = None
     safety_limits: SafetyLimits | None = None
     seed: int = 0
     step_budget_per_ecm: int | None = DEFAULT_STEP_BUDGET
@@ -425,7 +427,7 @@ class RuntimeWorker:
         self._cache: ArtifactStore = (
             ArtifactCache(config.cache_dir) if config.cache_dir is not None else MemoryArtifactCache()
         )
-        self.phi = config.phi if config.phi is not None else Phi.default()
+        self.phi: Phi = resolve_phi(config.phi, task_spec(config.task))
         self.safety_limits = config.safety_limits if config.safety_limits is not None else SafetyLimits()
 
     # --- events ---------------------------------------------------------------------------

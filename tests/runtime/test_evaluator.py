@@ -79,7 +79,9 @@ def test_evaluate_runs_one_episode_per_seed_into_one_trace(setup: tuple, policy:
         steps = list(reader.env_steps())
     assert meta.task == "pick"
     assert meta.seeds == (5, 3)
-    assert meta.phi_hash == Phi.default().hash
+    # The default envelope is the task's scene-aware one; every outcome says which ran.
+    assert meta.phi_hash == Phi.for_task("pick").hash == evaluator.phi_for("T1").hash
+    assert all(o.phi_hash == meta.phi_hash for o in outcomes)
     assert meta.agent_identity_hash == identity_hash(policy, policy.identity)
     assert meta.registry_revision == registry.capability_set().revision
     assert dict(meta.capability_set.active) == dict(outcomes[0].capability_set)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import random
 from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -259,12 +260,21 @@ def test_a_less_safe_candidate_is_rejected_despite_more_success(registry: LocalR
     assert evidence["outcomes"]["candidate"]["unsafe_steps"][:3] == [3, 3, 3]
 
 
-def test_equally_unsafe_versions_do_not_block_a_gain(registry: LocalRegistry) -> None:
+def test_equally_unsafe_versions_block_a_gain_by_default_and_not_without_the_ceiling(
+    registry: LocalRegistry,
+) -> None:
     v_act = publish(registry, promote=True)
-    v_cand = publish(registry)
-    # Both unsafe on the same seeds: no discordant pair, no evidence the candidate is less safe.
-    fake = FakeEvaluator({(NAME, v_act): unsafe_on(SEEDS[:4], False, 1.0), (NAME, v_cand): unsafe_on(SEEDS[:4])})
-    decision = Gate(registry, fake, CFG).run(NAME, v_cand, task="T1", seeds=SEEDS)
+    cand = [publish(registry, text=f"# {i}") for i in range(2)]
+    # Both unsafe on the same seeds: no discordant pair, no evidence the candidate is less safe...
+    fake = FakeEvaluator({(NAME, v_act): unsafe_on(SEEDS[:4], False, 1.0)})
+    for v in cand:
+        fake.set(NAME, v, unsafe_on(SEEDS[:4]))
+    # ...but the default ceiling (no unsafe episode at all) refuses it, as every preset does...
+    assert CFG.max_unsafe_rate == 0.0 == GateConfig.standard().max_unsafe_rate == GateConfig.cpu_small().max_unsafe_rate
+    decision = Gate(registry, fake, CFG).run(NAME, cand[0], task="T1", seeds=SEEDS)
+    assert not decision.promoted and decision.failed == ("safe",)
+    # ...and with the ceiling off only the comparison with the active version is left.
+    decision = Gate(registry, fake, replace(CFG, max_unsafe_rate=None)).run(NAME, cand[1], task="T1", seeds=SEEDS)
     assert decision.promoted and "safe" not in decision.failed
 
 
@@ -274,14 +284,13 @@ def test_safety_knobs(registry: LocalRegistry) -> None:
     fake = FakeEvaluator({(NAME, v_act): always(False)})
     for v in cand:
         fake.set(NAME, v, unsafe_on(SEEDS[:1]))
-    # A zero ceiling on the unsafe-episode rate rejects one unsafe seed in ten...
-    strict = GateConfig(min_n=8, delta=0.3, max_slowdown=1.1, max_unsafe_rate=0.0)
-    decision = Gate(registry, fake, strict).run(NAME, cand[0], task="T1", seeds=SEEDS)
+    # The default zero ceiling on the unsafe-episode rate rejects one unsafe seed in ten...
+    decision = Gate(registry, fake, CFG).run(NAME, cand[0], task="T1", seeds=SEEDS)
     assert not decision.promoted and decision.failed == ("safe",)
     assert "candidate unsafe episodes 1/10 vs max rate 0" in next(c.detail for c in decision.checks if c.name == "safe")
     # ...and so does the count rule, though the sign test alone would let it through (one
     # discordant seed: p = 0.5): one more unsafe episode than the active version is one too many.
-    decision = Gate(registry, fake, CFG).run(NAME, cand[1], task="T1", seeds=SEEDS)
+    decision = Gate(registry, fake, replace(CFG, max_unsafe_rate=None)).run(NAME, cand[1], task="T1", seeds=SEEDS)
     assert not decision.promoted and decision.failed == ("safe",)
     assert "sign test p=0.5 vs 0.2" in next(c.detail for c in decision.checks if c.name == "safe")
 
@@ -313,14 +322,14 @@ def test_the_sign_test_can_be_turned_off() -> None:
     cand = [EpisodeOutcome.from_dict({**_row(s, True), "unsafe_steps": 2 if s < 2 else 0}) for s in range(8)]
     act = [EpisodeOutcome.from_dict({**_row(s, False), "unsafe_steps": 1 if s < 2 else 0}) for s in range(8)]
     stats = paired_stats(act, cand, alpha=0.05, margin=0.3)
-    promote, checks = decide_paired(stats, GateConfig(min_n=8, safety_alpha=None))
+    promote, checks = decide_paired(stats, GateConfig(min_n=8, safety_alpha=None, max_unsafe_rate=None))
     # Equally many unsafe episodes (on the same seeds): only the count is reported, and it passes.
     safe = next(c for c in checks if c.name == "safe")
     assert promote and safe.detail == "unsafe episodes 2/8 vs active 2/8 on the same seeds: not more than the active"
     # The count rule is not the sign test's: turning the sign test off leaves it in force.
     more = [EpisodeOutcome.from_dict({**_row(s, True), "unsafe_steps": 2}) for s in range(8)]
     promote, checks = decide_paired(
-        paired_stats(act, more, alpha=0.05, margin=0.3), GateConfig(min_n=8, safety_alpha=None)
+        paired_stats(act, more, alpha=0.05, margin=0.3), GateConfig(min_n=8, safety_alpha=None, max_unsafe_rate=None)
     )
     failed = [c.name for c in checks if not c.passed]
     assert not promote and "safe" in failed and "superior" not in failed  # 8 of 8 gained, refused
@@ -340,7 +349,14 @@ def test_more_unsafe_episodes_never_promote(
     cand_o = [EpisodeOutcome.from_dict({**_row(s, ok), "unsafe_steps": u}) for s, (ok, u) in enumerate(cand)]
     act_o = [EpisodeOutcome.from_dict({**_row(s, ok), "unsafe_steps": u}) for s, (ok, u) in enumerate(act_bits[:n])]
     more = sum(u > 0 for _, u in cand) > sum(u > 0 for _, u in act_bits[:n])
-    config = GateConfig(min_n=8, delta=0.3, max_slowdown=None, safety_alpha=safety_alpha, require_improvement=False)
+    config = GateConfig(
+        min_n=8,
+        delta=0.3,
+        max_slowdown=None,
+        safety_alpha=safety_alpha,
+        require_improvement=False,
+        max_unsafe_rate=None,
+    )
     promote, checks = decide_paired(paired_stats(act_o, cand_o, alpha=0.05, margin=0.3), config)
     # ``safe`` fails exactly when the count is higher: the sign test never fails on its own.
     assert next(c for c in checks if c.name == "safe").passed is not more

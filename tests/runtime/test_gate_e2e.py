@@ -42,6 +42,10 @@ from capevo.runtime.traces import TraceReader
 
 HORIZON = 80
 N_SEEDS = 8
+PHI = "paper"
+"""The paper's envelope: these tests exercise the gate's statistics with the minimal skills of
+``runtime_support``, which keep the hand at its start yaw; under the default per-task envelope a
+hand square to a nearby bin wall is braked short of the can (the built-in skills turn it)."""
 WEAK_REACH = with_params(REACH, {"dig": -0.04})
 FLOOR = 0.875
 """A workspace floor, metres, 1.5 cm above the can's origin (0.86 m on every seed): the weak reach
@@ -103,7 +107,7 @@ def campaign(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Campaign]:
     seeds = plan.gate(N_SEEDS)
     decisions: dict[str, GateDecision] = {}
     versions: dict[str, int] = {}
-    with LocalEvaluator(registry, policy=policy, trace_dir=trace_dir, horizon=HORIZON) as evaluator:
+    with LocalEvaluator(registry, policy=policy, trace_dir=trace_dir, horizon=HORIZON, phi=PHI) as evaluator:
         gate = Gate(registry, evaluator, GateConfig.cpu_small(), seed_plan=plan, reuse_evaluations=True)
         for label, name, artifact, spec in candidates:
             version = registry.publish(name, artifact, spec).version
@@ -197,7 +201,9 @@ def test_a_candidate_that_succeeds_more_but_is_unsafe_more_is_refused(tmp_path: 
     plan = SeedPlan(base_seed=0)
     limits = SafetyLimits(box_low=(-0.6, -0.6, FLOOR))
     policy = DecompositionPolicy(identity=IdentityMemory.default())
-    with LocalEvaluator(registry, policy=policy, trace_dir=None, horizon=HORIZON, safety_limits=limits) as evaluator:
+    with LocalEvaluator(
+        registry, policy=policy, trace_dir=None, horizon=HORIZON, safety_limits=limits, phi=PHI
+    ) as evaluator:
         d = Gate(registry, evaluator, GateConfig.cpu_small(), seed_plan=plan).run(
             "pick.reach", better, task="T1", seeds=plan.gate(N_SEEDS)
         )
