@@ -17,51 +17,30 @@ Invariants:
 
 from __future__ import annotations
 
+import inspect
 import string
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from capevo.errors import Invalid
 from capevo.records import Interface, IOSpec, Kind, Origin, Provenance, PublishSpec
+from capevo.runtime.tasks import hand_pose
 from capevo.runtime.tasks.spec import EcmStep, TaskSpec
 
-PRELUDE = '''
+HAND_POSE = inspect.getsource(hand_pose).split("import numpy as np\n", 1)[1]
+""":mod:`capevo.runtime.tasks.hand_pose` below its imports: pasted into every skill's prelude."""
+
+PRELUDE = (
+    """
 import math
 
 import numpy as np
-
-DOWN = (1.0, 0.0, 0.0, 0.0)
-"""Gripper pointing down, fingers along world y (quaternion x, y, z, w)."""
-
+"""
+    + HAND_POSE
+    + '''
 
 def vec(obs, key):
     return np.asarray(obs[key], dtype=np.float64)
-
-
-def quat_mul(a, b):
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ]
-    )
-
-
-def rot_error(current, target=DOWN):
-    """Axis-angle (world frame, radians) that turns quaternion ``current`` into ``target``."""
-    cur = np.asarray(current, dtype=np.float64)
-    inv = np.array([-cur[0], -cur[1], -cur[2], cur[3]]) / max(float(np.dot(cur, cur)), 1e-12)
-    q = quat_mul(np.asarray(target, dtype=np.float64), inv)
-    if q[3] < 0:
-        q = -q
-    s = float(np.linalg.norm(q[:3]))
-    if s < 1e-9:
-        return np.zeros(3)
-    return q[:3] / s * 2.0 * math.atan2(s, q[3])
 
 
 OPEN, CLOSE = -1.0, 1.0
@@ -97,6 +76,7 @@ def blend(direct, difference, weight):
     """Mix two noisy estimates of one vector: ``weight`` on the directly observed one."""
     return weight * np.asarray(direct, dtype=np.float64) + (1.0 - weight) * np.asarray(difference, dtype=np.float64)
 '''
+)
 """Helpers pasted into every single-arm skill (the contract forbids importing shared code)."""
 
 GAIN_RANGE = (1.0, 20.0, "log")

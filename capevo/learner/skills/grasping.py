@@ -26,7 +26,9 @@ REACH = SkillTemplate(
     doc="""Bring the open gripper around ${what}, fingers straddling its grasp point.
 
 Travels at ``hover`` above the grasp point (``grasp_dz`` above the object origin) until within
-``descend_xy`` horizontally, waits for the fingers to open, then descends to ``dig`` below the
+``descend_xy`` horizontally, turning the hand's long side parallel to the nearest wall around the
+object (hand-written: the walls' inner faces WALLS; the turn keeps the 0.2 m hand off a rim the
+envelope would stop it at), waits for the fingers to open, then descends to ``dig`` below the
 grasp point. ``done`` when the noisy observation puts the grasp point within DONE_TOL on every
 axis with the gripper open (the step's termination predicate usually ends it first).
 v0 is untuned (manual): ``grasp_dz`` aims 3 cm above the origin and the gain is low.
@@ -38,6 +40,7 @@ v0 is untuned (manual): ``grasp_dz`` aims 3 cm above the origin and the gain is 
         "descend_xy": 0.02,
         "dig": 0.0,
     },
+    keys={"walls": "None"},
     ranges={
         "gain": GAIN_RANGE,
         "hover": (0.03, 0.2),
@@ -52,9 +55,14 @@ def grasp_error(obs, params):
     return goal - vec(obs, "robot0_eef_pos")
 
 
+WALLS = ${walls}
+"""Inner faces (x_low, x_high, y_low, y_high) of the walls around the object; None: none."""
+
+
 def act(obs, params):
     err = grasp_error(obs, params)
-    rot = rot_error(obs["robot0_eef_quat"])
+    quat = obs["robot0_eef_quat"]
+    rot = rot_error(quat, clear_of_walls(vec(obs, "${obj}_pos"), quat, WALLS))
     xy = math.hypot(err[0], err[1])
     above = -err[2]
     low = above < 0.5 * params["hover"]
@@ -98,7 +106,7 @@ def act(obs, params):
     err = goal - vec(obs, "robot0_eef_pos")
     grip = CLOSE if -err[2] < params["close_above"] else OPEN
     move = np.array([err[0], err[1], err[2] - params["dig"]])
-    return pose_action(move, grip, params["gain"], rot_error(obs["robot0_eef_quat"]))
+    return pose_action(move, grip, params["gain"], rot_error(obs["robot0_eef_quat"], held_down(obs["robot0_eef_quat"])))
 
 
 def done(obs, params):
@@ -120,7 +128,7 @@ v0 is untuned (manual): slow.
     ranges={"lift_speed": SPEED_RANGE},
     body="""
 def act(obs, params):
-    a = pose_action(np.zeros(3), CLOSE, 0.0, rot_error(obs["robot0_eef_quat"]))
+    a = pose_action(np.zeros(3), CLOSE, 0.0, rot_error(obs["robot0_eef_quat"], held_down(obs["robot0_eef_quat"])))
     a[2] = min(max(params["lift_speed"], -1.0), 1.0)
     return a
 
@@ -143,7 +151,7 @@ Opens without moving; once the finger gap exceeds RELEASED_WIDTH the hand rises 
     ranges={"retreat_speed": SPEED_RANGE},
     body="""
 def act(obs, params):
-    a = pose_action(np.zeros(3), OPEN, 0.0, rot_error(obs["robot0_eef_quat"]))
+    a = pose_action(np.zeros(3), OPEN, 0.0, rot_error(obs["robot0_eef_quat"], held_down(obs["robot0_eef_quat"])))
     if opening(obs) > RELEASED_WIDTH:
         a[2] = min(max(params["retreat_speed"], -1.0), 1.0)
     return a

@@ -43,7 +43,8 @@ def act(obs, params):
     if obj[2] < carry - params["climb_margin"]:
         move[0] *= 0.1
         move[1] *= 0.1
-    return pose_action(move, CLOSE, params["gain"], rot_error(obs["robot0_eef_quat"]))
+    quat = obs["robot0_eef_quat"]
+    return pose_action(move, CLOSE, params["gain"], rot_error(quat, held_down(quat)))
 
 
 def done(obs, params):
@@ -69,7 +70,7 @@ v0 is untuned (manual): lets go from 10 cm, low gain.
 def act(obs, params):
     obj = vec(obs, "${obj}_pos")
     goal = vec(obs, "${obj}_target_pos")
-    rot = rot_error(obs["robot0_eef_quat"])
+    rot = rot_error(obs["robot0_eef_quat"], held_down(obs["robot0_eef_quat"]))
     if opening(obs) > RELEASED_WIDTH:
         a = pose_action(np.zeros(3), OPEN, 0.0, rot)
         a[2] = min(max(params["retreat_speed"], -1.0), 1.0)
@@ -80,6 +81,10 @@ def act(obs, params):
     return pose_action(np.zeros(3), OPEN, params["gain"], rot)
 """,
 )
+
+SOURCE_BIN_WALLS = "(-0.09, 0.29, -0.49, -0.01)"
+"""Inner faces of the source bin's walls, world frame (robosuite PickPlace's bin1 at (0.1, -0.25),
+0.4 x 0.5 m inside; hand-written from the scene, as ``capevo.runtime.governance.task_phi`` has it)."""
 
 _BY_STEP: Mapping[str, SkillTemplate] = {
     "reach": REACH,
@@ -99,5 +104,5 @@ def templates(spec: TaskSpec) -> dict[str, tuple[SkillTemplate, dict[str, str]]]
     for ecm in spec.ecm_names:
         parts = ecm.split(".")
         obj = parts[1].capitalize() if len(parts) == 3 else "Can"
-        out[ecm] = (_BY_STEP[parts[-1]], {"obj": obj, "what": f"the {obj.lower()}"})
+        out[ecm] = (_BY_STEP[parts[-1]], {"obj": obj, "what": f"the {obj.lower()}", "walls": SOURCE_BIN_WALLS})
     return out

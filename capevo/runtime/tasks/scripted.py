@@ -23,6 +23,8 @@ from collections.abc import Callable, Mapping
 
 import numpy as np
 
+from capevo.runtime.tasks.hand_pose import DOWN, clear_of_walls, held_down, rot_error
+
 Obs = Mapping[str, np.ndarray]
 Policy = Callable[[Obs], np.ndarray]
 
@@ -82,34 +84,10 @@ bin wall it reaches over the rim: the can's origin is 4 cm above the bin floor a
 grasping at the origin would press the palm onto the rim, while 1.5 cm higher it passes just
 above it (the fingers still hold the can's upper half; higher still, a fast carry lets it slip)."""
 
-_DOWN = np.array([1.0, 0.0, 0.0, 0.0])
-"""Gripper pointing down (180 degrees about world x, xyzw): about the Panda's start orientation."""
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ]
-    )
-
-
-def _rot_error(current_xyzw: np.ndarray, target_xyzw: np.ndarray) -> np.ndarray:
-    """Axis-angle (world frame) that turns ``current`` into ``target``."""
-    cur = np.asarray(current_xyzw, dtype=np.float64)
-    inv = np.array([-cur[0], -cur[1], -cur[2], cur[3]]) / max(float(np.dot(cur, cur)), 1e-12)
-    q = _quat_mul(np.asarray(target_xyzw, dtype=np.float64), inv)
-    if q[3] < 0:
-        q = -q
-    s = float(np.linalg.norm(q[:3]))
-    if s < 1e-9:
-        return np.zeros(3)
-    return q[:3] / s * 2.0 * np.arctan2(s, q[3])
+SOURCE_BIN_WALLS = (-0.09, 0.29, -0.49, -0.01)
+"""Inner faces (x_low, x_high, y_low, y_high) of the walls of PickPlace's source bin (bin1 at
+(0.1, -0.25), 0.4 x 0.5 m inside), world frame: the pick and place references turn the hand
+parallel to the nearest of them (:func:`~capevo.runtime.tasks.hand_pose.clear_of_walls`)."""
 
 
 def _action(move: np.ndarray, rot: np.ndarray, grip: float) -> np.ndarray:
@@ -174,8 +152,12 @@ def _approach(
     return _action(np.array([0.0, 0.0, settle]), rot, GRIP_CLOSE)
 
 
-def _down_rot(obs: Obs) -> np.ndarray:
-    return _rot_error(obs["robot0_eef_quat"], _DOWN)
+def _down_rot(obs: Obs, obj: np.ndarray | None = None) -> np.ndarray:
+    """Orientation error to pointing down: clear of the source bin's walls around ``obj`` while
+    approaching it, at the hand's current yaw otherwise (``obj`` None)."""
+    quat = obs["robot0_eef_quat"]
+    target = held_down(quat) if obj is None else clear_of_walls(obj, quat, SOURCE_BIN_WALLS)
+    return rot_error(quat, target)
 
 
 def pick(obs: Obs, *, object_key: str = "Can", lift_speed: float = 0.15, grasp_dz: float = CAN_GRASP_DZ) -> np.ndarray:
@@ -192,9 +174,9 @@ def pick(obs: Obs, *, object_key: str = "Can", lift_speed: float = 0.15, grasp_d
     """
     eef = np.asarray(obs["robot0_eef_pos"], dtype=np.float64)
     obj = np.asarray(obs[f"{object_key}_pos"], dtype=np.float64)
-    rot = _down_rot(obs)
     if _holding(eef, obj, obs, grasp_dz):
-        return _action(np.array([0.0, 0.0, lift_speed]), rot, GRIP_CLOSE)
+        return _action(np.array([0.0, 0.0, lift_speed]), _down_rot(obs), GRIP_CLOSE)
+    rot = _down_rot(obs, obj)
     return _approach(eef, obj, obs, hover=0.08, grasp_dz=grasp_dz, rot=rot)
 
 
@@ -241,7 +223,7 @@ def place(
     if placed:
         # released: open fully and back off upward
         return _action(np.array([0.0, 0.0, 0.1]), rot, GRIP_OPEN)
-    return _approach(eef, obj, obs, hover=0.08, grasp_dz=grasp_dz, rot=rot)
+    return _approach(eef, obj, obs, hover=0.08, grasp_dz=grasp_dz, rot=_down_rot(obs, obj))
 
 
 def stack(obs: Obs) -> np.ndarray:
@@ -254,7 +236,7 @@ def stack(obs: Obs) -> np.ndarray:
     goal = b + np.array([0.0, 0.0, STACKED_DZ])
     eef = np.asarray(obs["robot0_eef_pos"], dtype=np.float64)
     a = np.asarray(obs["cubeA_pos"], dtype=np.float64)
-    rot = _down_rot(obs)
+    rot = rot_error(obs["robot0_eef_quat"], DOWN)  # on a table: no walls, square to the world
     to_goal = goal[:2] - a[:2]
     off = float(np.linalg.norm(to_goal))
     low = a[2] < goal[2] + 0.03
