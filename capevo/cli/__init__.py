@@ -400,10 +400,17 @@ def log_level_option(*, default: str = "WARNING", help: str = "Log level (logs g
     )
 
 
+def _check_phi(ctx: click.Context, param: click.Parameter, value: str) -> str:
+    from capevo.runtime.envelope import check_phi_choice
+
+    return check_phi_choice(value)  # Invalid: refused before anything starts or imports robosuite
+
+
 phi_option = click.option(
     "--phi",
     default="task",
     show_default=True,
+    callback=_check_phi,
     help="Safety envelope Φ: 'task' (the paper's Φ plus the task's scene: it brakes before contacts), "
     "'paper' (the paper's Φ alone, to reproduce its table) or a Φ YAML file.",
 )

@@ -244,3 +244,22 @@ def test_password_is_redacted_from_error_messages(cli: Callable[..., Result]) ->
         env={"CAPEVO_PASSWORD": secret},
     )
     assert secret not in res.stderr and "****" in res.stderr
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ("runtime", "serve", "--connect", "tcp/127.0.0.1:9", "--task", "T1", "--episodes", "1"),
+        ("evolve", "--task", "T1", "--root", "{reg}"),
+        ("learner", "serve", "--ecm", "pick.reach", "--modality", "il", "--root", "{reg}", "--once"),
+    ],
+)
+def test_an_unknown_envelope_is_refused_before_anything_starts(
+    cli: Callable[..., Result], tmp_path: Path, command: tuple[str, ...]
+) -> None:
+    reg = tmp_path / "reg"
+    res = cli(*(c.format(reg=reg) for c in command), "--phi", "papr")
+    assert res.exit_code == 3, res.stderr
+    msg = assert_clean_error(res.stderr, "invalid")
+    assert msg == "phi: expected one of task, paper or a Φ YAML file, got 'papr'"
+    assert not reg.exists()
