@@ -32,6 +32,7 @@ from capevo.cli import (
     make_table,
     phi_option,
     remember_password,
+    resolve_target,
 )
 from capevo.errors import Invalid
 
@@ -282,15 +283,33 @@ def _parse_seeds(text: str) -> list[int]:
 
 
 @runtime.command("evaluate")
-@_connection_options
+@click.option(
+    "--connect",
+    multiple=True,
+    metavar="ENDPOINT",
+    envvar="CAPEVO_CONNECT",
+    help="Zenoh endpoint of the registry: the episodes run on one of its runtime workers; repeatable.",
+)
+@click.option(
+    "--root",
+    envvar="CAPEVO_ROOT",
+    default=None,
+    help="Local registry directory: the episodes run in this process instead (env CAPEVO_ROOT).",
+)
+@click.option("--namespace", default="capevo", show_default=True, envvar="CAPEVO_NAMESPACE", help="Zenoh key prefix.")
+@click.option("--user", default=None, envvar="CAPEVO_USER", help="Registry user (env CAPEVO_USER).")
+@click.option("--password", default=None, envvar="CAPEVO_PASSWORD", help="Registry password (env CAPEVO_PASSWORD).")
 @click.option("--task", required=True, help="Task: T1..T6 or its name.")
 @click.option("--seeds", default="0-4", show_default=True, help="Seeds, e.g. 0-9 or 1,5,7.")
 @click.option("--version", "versions", multiple=True, metavar="NAME=VERSION", help="Run NAME at VERSION; repeatable.")
 @click.option("--worker-id", default=None, help="Ask this worker. [default: any worker of the task]")
 @click.option("--timeout", type=click.FloatRange(min=0.01), default=600.0, show_default=True, help="Seconds to wait.")
+@phi_option
+@click.option("--horizon", type=click.IntRange(min=1), default=None, help="With --root: episode length.")
 @json_option
 def evaluate_cmd(
     connect: tuple[str, ...],
+    root: str | None,
     namespace: str,
     user: str | None,
     password: str | None,
@@ -299,22 +318,44 @@ def evaluate_cmd(
     versions: tuple[str, ...],
     worker_id: str | None,
     timeout: float,
+    phi: str,
+    horizon: int | None,
     as_json: bool,
 ) -> None:
-    """Run evaluation episodes on a runtime worker and print their outcomes."""
-    from capevo.runtime.worker import RemoteEvaluator
+    """Run evaluation episodes and print their outcomes, with 95 % Wilson intervals.
 
+    \b
+    --connect EP: on a runtime worker of the task (its own Φ, horizon and perturbations apply).
+    --root DIR: in this process, on the local registry, under --phi, perturbations on.
+    """
+    from capevo.runtime.gate_stats import wilson_interval
+
+    ctx = click.get_current_context()
+    root_path, endpoints = resolve_target(
+        root=root,
+        root_source=ctx.get_parameter_source("root"),
+        connect=connect,
+        connect_source=ctx.get_parameter_source("connect"),
+    )
     pinned = _parse_versions(versions)
     seed_list = _parse_seeds(seeds)
-    with RemoteEvaluator(
-        list(connect),
-        namespace=namespace,
-        user=user or None,
-        password=remember_password(password),
-        worker_id=worker_id,
-        timeout=timeout,
-    ) as evaluator:
-        outcomes = evaluator.evaluate(task, pinned, seed_list)
+    if root_path is not None:
+        outcomes = _evaluate_locally(root_path, task, pinned, seed_list, phi=phi, horizon=horizon, actor=user)
+    else:
+        from capevo.runtime.worker import RemoteEvaluator
+
+        with RemoteEvaluator(
+            list(endpoints),
+            namespace=namespace,
+            user=user or None,
+            password=remember_password(password),
+            worker_id=worker_id,
+            timeout=timeout,
+        ) as evaluator:
+            outcomes = evaluator.evaluate(task, pinned, seed_list)
+    n = len(outcomes)
+    successes = sum(o.success for o in outcomes)
+    unsafe = sum(o.unsafe_steps > 0 for o in outcomes)
 
     def render(console: Console) -> None:
         table = make_table("SEED", "SUCCESS", "REWARD", "STEPS", "INTERVENTIONS", "UNSAFE", "ECM FAILURES")
@@ -329,10 +370,46 @@ def evaluate_cmd(
                 str(o.ecm_failures),
             )
         console.print(table)
-        rate = sum(o.success for o in outcomes) / len(outcomes)
-        console.print(f"success rate {rate:.1%} over {len(outcomes)} episodes")
+        ok, bad = wilson_interval(successes, n, alpha=0.025), wilson_interval(unsafe, n, alpha=0.025)
+        console.print(
+            f"success {successes}/{n} = {successes / n:.1%} [95% Wilson {ok.low:.1%}, {ok.high:.1%}]; "
+            f"unsafe episodes {unsafe}/{n} [{bad.low:.1%}, {bad.high:.1%}]"
+        )
 
     emit(as_json, [o.to_dict() for o in outcomes], render)
+
+
+def _evaluate_locally(
+    root: Path,
+    task: str,
+    pinned: dict[str, int],
+    seeds: list[int],
+    *,
+    phi: str,
+    horizon: int | None,
+    actor: str | None,
+) -> list[Any]:
+    from capevo.agent import DecompositionPolicy, IdentityMemory, identity_hash
+    from capevo.registry.local import LocalRegistry
+    from capevo.runtime.evaluator import LocalEvaluator
+
+    if not (root / "registry.sqlite3").is_file():
+        raise Invalid(f"no registry at {str(root)!r} (no registry.sqlite3 there)", details={"field": "root"})
+    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
+    policy = DecompositionPolicy(identity=IdentityMemory.default())
+    with (
+        LocalRegistry(root, actor=actor or "evaluate") as registry,
+        LocalEvaluator(
+            registry,
+            policy=policy,
+            phi=phi,
+            horizon=horizon,
+            trace_dir=None,
+            agent_identity_hash=identity_hash(policy, policy.identity),
+            worker_id="capevo-runtime-evaluate",
+        ) as evaluator,
+    ):
+        return evaluator.evaluate(task, pinned, seeds)
 
 
 if __name__ == "__main__":
