@@ -17,8 +17,10 @@ Invariants:
    HOG_SHARE of the episode in one activation instead of the last one).
 3. :func:`progress` is 1.0 for a successful episode and ``k / n`` otherwise, ``k`` the index
    of the furthest decomposition step the episode started (0 when none).
-5. ``EpisodeEnd.ecm_unsafe`` attributes each non-rescaling intervention to the ECM whose call
-   produced that step's action ("" when no call is traced for the step).
+5. ``EpisodeEnd.ecm_unsafe`` attributes each step the independent safety monitor graded unsafe
+   (``/safety/unsafe``) to the ECM whose call produced that step's action ("" when no call is
+   traced for the step). Governance interventions are not unsafe steps: under the default
+   envelope most are braking before a contact, which is the envelope working.
 4. :func:`handover_rate` counts an episode when it succeeded or its plan started a step after
    the judged one; it is monotone in those episodes and in [0, 1].
 """
@@ -35,16 +37,13 @@ from capevo.errors import CapevoError
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.traces import EcmInvocation, EpisodeSummary, PlanStep, TraceReader
 from capevo.runtime.traces import Outcome as CallOutcome
-from capevo.runtime.traces.records import Intervention
+from capevo.runtime.traces.records import UnsafeStep
 
 MAX_ERRORS_KEPT = 5
 HOG_SHARE = 0.5
 """An episode that ran out of time blames a step that spent more than this share of it."""
 """Error texts kept per episode (the first ones)."""
-_TOPICS = (PlanStep.TOPIC, EcmInvocation.TOPIC, EpisodeSummary.TOPIC, Intervention.TOPIC)
-RESCALING_CONSTRAINTS = frozenset({"velocity_cap"})
-"""Governance constraints that only scale an action down (the step stays within Φ); every other
-intervention marks a step the envelope had to stop (contact force, workspace, ...)."""
+_TOPICS = (PlanStep.TOPIC, EcmInvocation.TOPIC, EpisodeSummary.TOPIC, UnsafeStep.TOPIC)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -71,8 +70,7 @@ class EpisodeEnd:
     ecm_steps: Mapping[str, int] = field(default_factory=dict)
     """Per ECM, how many calls (environment steps) it made in the episode."""
     ecm_unsafe: Mapping[str, int] = field(default_factory=dict)
-    """Per ECM, governance interventions (other than :data:`RESCALING_CONSTRAINTS`) on steps it
-    was running: where unsafe steps came from."""
+    """Per ECM, steps it was running that the safety monitor graded unsafe."""
 
 
 def read_episode_ends(path: str | os.PathLike[str]) -> list[EpisodeEnd]:
@@ -108,9 +106,8 @@ def read_episode_ends(path: str | os.PathLike[str]) -> list[EpisodeEnd]:
                 kept = errors.setdefault(ep, [])
                 if len(kept) < MAX_ERRORS_KEPT:
                     kept.append(f"{rec.ecm}: {rec.outcome.value}: {rec.error or ''}".strip())
-        elif isinstance(rec, Intervention):
-            if rec.constraint not in RESCALING_CONSTRAINTS:
-                stops.setdefault(ep, []).append(rec.step)
+        elif isinstance(rec, UnsafeStep):
+            stops.setdefault(ep, []).append(rec.step)
         elif isinstance(rec, EpisodeSummary):
             plan = tuple(plans.get(ep, ()))
             reason = ends.get(ep) or ("success" if rec.success else "horizon")

@@ -80,6 +80,7 @@ from capevo.runtime.traces import (
     EpisodeSummary,
     PlanStep,
     TraceSink,
+    UnsafeStep,
 )
 from capevo.runtime.traces import Intervention as TraceIntervention
 from capevo.runtime.traces import Outcome as TraceOutcome
@@ -510,6 +511,10 @@ def run_episode_detailed(
         verdict = monitor.judge(dropped_action if info.get("actuation_dropped") else executed)
         if verdict.unsafe:
             count_unsafe(verdict, f"step {steps}")
+            if sink is not None:
+                sink.write_unsafe_step(
+                    UnsafeStep(episode=episode, step=steps, broken=verdict.broken, reasons=verdict.reasons)
+                )
         signals = None
         next_t = _read_only(next_obs)
         reward = float(reward)

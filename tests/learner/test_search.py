@@ -553,8 +553,8 @@ def test_handover_rate_and_steps_per_ecm_come_from_traces(tmp_path) -> None:
 
 
 def test_unsafe_steps_are_attributed_to_the_ecm_that_ran_them(tmp_path) -> None:
-    from capevo.learner.experience import RESCALING_CONSTRAINTS, unsafe_ecm
-    from capevo.runtime.traces.records import Intervention
+    from capevo.learner.experience import unsafe_ecm
+    from capevo.runtime.traces.records import Intervention, UnsafeStep
 
     path = tmp_path / "u.mcap"
     plan = ["stack.reach", "stack.align", "stack.align", "stack.lower"]
@@ -573,17 +573,19 @@ def test_unsafe_steps_are_attributed_to_the_ecm_that_ran_them(tmp_path) -> None:
                         outcome=CallOutcome.OK,
                     )
                 )
-            # episode 0: a contact stop in align (twice) and a mere rescale in reach; episode 1: a stop in lower
-            stops = [(1, "contact_force"), (2, "contact_force"), (0, next(iter(RESCALING_CONSTRAINTS)))]
-            for step, constraint in stops if ep == 0 else [(3, "contact_force")]:
+            # Episode 0: the monitor grades two steps of align unsafe, and governance braked reach
+            # (an intervention, not an unsafe step); episode 1: one unsafe step in lower.
+            for step in (1, 2) if ep == 0 else (3,):
+                w.write_unsafe_step(UnsafeStep(episode=ep, step=step, broken=("force",), reasons=("x",)))
+            if ep == 0:
                 w.write_intervention(
                     Intervention(
                         episode=ep,
-                        step=step,
-                        constraint=constraint,
+                        step=0,
+                        constraint="contact_approach",
                         original_action=(0.0,) * 7,
                         result_action=(0.0,) * 7,
-                        reason="x",
+                        reason="braked",
                     )
                 )
             w.write_episode_summary(

@@ -420,7 +420,11 @@ def test_unsafe_is_the_monitors_verdict_on_the_action_that_really_ran(
     out = run.outcome
     assert out.steps == HORIZON
     (summary,) = sink.episode_summaries
-    assert summary.unsafe_steps == out.unsafe_steps
+    assert summary.unsafe_steps == out.unsafe_steps == len(sink.unsafe_steps)
+    # Each unsafe step is on /safety/unsafe, at its env step, with the monitor's axes and reasons.
+    # (the hand climbs out of the box too: those steps break "box" as well)
+    assert all("cap" in u.broken and len(u.reasons) == len(u.broken) for u in sink.unsafe_steps)
+    assert {u.step for u in sink.unsafe_steps} <= {s.step for s in sink.env_steps}
     if drop_p == 0.0:
         assert run.unsafe_by_constraint.get("cap") == out.steps == out.unsafe_steps
         assert run.unsafe_reasons[0].startswith("step 0: arm 0: cap: pose-delta norm 1 is above 0.5")

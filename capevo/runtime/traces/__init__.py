@@ -6,6 +6,7 @@ Topics (schemas in :mod:`capevo.runtime.traces.records`):
 - ``/ecm/invocation``          :class:`EcmInvocation`
 - ``/governance/intervention`` :class:`Intervention`
 - ``/env/step``                :class:`EnvStep`
+- ``/safety/unsafe``           :class:`UnsafeStep` (a step the safety monitor graded unsafe)
 - ``/episode/summary``         :class:`EpisodeSummary`
 
 Write with :class:`TraceWriter` (or inject :class:`MemoryTraceSink` in tests), read with
@@ -37,6 +38,7 @@ from capevo.runtime.traces.records import (
     PlanStep,
     TraceMetadata,
     TraceRecord,
+    UnsafeStep,
     package_versions,
     record_type,
     topics,
@@ -76,6 +78,7 @@ __all__ = [
     "TraceSummary",
     "TraceWriter",
     "Transitions",
+    "UnsafeStep",
     "check_compression",
     "default_output",
     "export_transitions",

@@ -34,6 +34,7 @@ from capevo.runtime.traces.records import (
     PlanStep,
     TraceMetadata,
     TraceRecord,
+    UnsafeStep,
     record_type,
 )
 from capevo.runtime.traces.records import topics as all_topics
@@ -130,6 +131,9 @@ class TraceReader:
 
     def env_steps(self) -> Iterator[EnvStep]:
         return self._typed(EnvStep)
+
+    def unsafe_steps(self) -> Iterator[UnsafeStep]:
+        return self._typed(UnsafeStep)
 
     def episode_summaries(self) -> Iterator[EpisodeSummary]:
         return self._typed(EpisodeSummary)

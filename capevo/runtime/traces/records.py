@@ -510,6 +510,47 @@ class EnvStep(_ByValue):
         )
 
 
+def _strings(description: str) -> dict[str, Any]:
+    return {"type": "array", "items": {"type": "string"}, "description": description}
+
+
+@register_topic
+@dataclass(frozen=True, slots=True, kw_only=True)
+class UnsafeStep:
+    """A step the independent safety monitor graded unsafe (after governance, from ground truth)."""
+
+    TOPIC: ClassVar[str] = "/safety/unsafe"
+    SCHEMA_NAME: ClassVar[str] = "capevo.UnsafeStep"
+    SCHEMA: ClassVar[dict[str, Any]] = _object_schema(
+        SCHEMA_NAME,
+        "An executed step the safety monitor graded unsafe: which limits broke and why.",
+        {
+            "episode": _EPISODE,
+            "step": _int("Env step index"),
+            "broken": _strings("Limits broken: box, cap, force, non_finite"),
+            "reasons": _strings("One reason per broken limit"),
+        },
+    )
+
+    episode: int
+    step: int
+    broken: tuple[str, ...]
+    reasons: tuple[str, ...] = ()
+
+    def to_dict(self, *, vector: Callable[[Any], Any] = _as_list) -> dict[str, Any]:
+        """The object :attr:`SCHEMA` describes (no vector fields: ``vector`` is not called)."""
+        return {"episode": self.episode, "step": self.step, "broken": list(self.broken), "reasons": list(self.reasons)}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> UnsafeStep:
+        return cls(
+            episode=int(d["episode"]),
+            step=int(d["step"]),
+            broken=tuple(str(x) for x in d["broken"]),
+            reasons=tuple(str(x) for x in d.get("reasons", ())),
+        )
+
+
 @register_topic
 @dataclass(frozen=True, slots=True, kw_only=True)
 class EpisodeSummary:
@@ -578,7 +619,7 @@ class EpisodeSummary:
         )
 
 
-TraceRecord = PlanStep | EcmInvocation | Intervention | EnvStep | EpisodeSummary
+TraceRecord = PlanStep | EcmInvocation | Intervention | EnvStep | UnsafeStep | EpisodeSummary
 """Any record a trace holds."""
 
 

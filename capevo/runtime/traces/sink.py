@@ -26,6 +26,7 @@ from capevo.runtime.traces.records import (
     PlanStep,
     TraceMetadata,
     TraceRecord,
+    UnsafeStep,
 )
 
 
@@ -41,6 +42,8 @@ class TraceSink(Protocol):
 
     def write_env_step(self, record: EnvStep) -> None: ...
 
+    def write_unsafe_step(self, record: UnsafeStep) -> None: ...
+
     def write_episode_summary(self, record: EpisodeSummary) -> None: ...
 
     def flush(self) -> None: ...
@@ -53,6 +56,7 @@ WRITE_METHODS: tuple[str, ...] = (
     "write_invocation",
     "write_intervention",
     "write_env_step",
+    "write_unsafe_step",
     "write_episode_summary",
 )
 """The :class:`TraceSink` methods that take a record (for wrappers that clock or count them)."""
@@ -99,6 +103,9 @@ class MemoryTraceSink:
     def write_env_step(self, record: EnvStep) -> None:
         self._add(record, EnvStep, "write_env_step")
 
+    def write_unsafe_step(self, record: UnsafeStep) -> None:
+        self._add(record, UnsafeStep, "write_unsafe_step")
+
     def write_episode_summary(self, record: EpisodeSummary) -> None:
         self._add(record, EpisodeSummary, "write_episode_summary")
 
@@ -133,6 +140,10 @@ class MemoryTraceSink:
     @property
     def env_steps(self) -> list[EnvStep]:
         return [r for r in self.records if isinstance(r, EnvStep)]
+
+    @property
+    def unsafe_steps(self) -> list[UnsafeStep]:
+        return [r for r in self.records if isinstance(r, UnsafeStep)]
 
     @property
     def episode_summaries(self) -> list[EpisodeSummary]:

@@ -62,6 +62,7 @@ from capevo.runtime.traces.records import (
     PlanStep,
     TraceMetadata,
     TraceRecord,
+    UnsafeStep,
     record_type,
     topics,
 )
@@ -247,6 +248,10 @@ class TraceWriter:
     def write_env_step(self, record: EnvStep) -> None:
         """Append an env step to ``/env/step``."""
         self._write(record, EnvStep, "write_env_step")
+
+    def write_unsafe_step(self, record: UnsafeStep) -> None:
+        """Append a step the safety monitor graded unsafe to ``/safety/unsafe``."""
+        self._write(record, UnsafeStep, "write_unsafe_step")
 
     def write_episode_summary(self, record: EpisodeSummary) -> None:
         """Append an episode summary to ``/episode/summary`` and flush: episodes are the unit

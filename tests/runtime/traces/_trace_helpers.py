@@ -19,6 +19,7 @@ from capevo.runtime.traces import (
     TraceMetadata,
     TraceRecord,
     TraceWriter,
+    UnsafeStep,
 )
 from capevo.runtime.traces.scan import McapScan
 
@@ -104,6 +105,7 @@ def one_of_each(episode: int = 0) -> list[TraceRecord]:
             reason="force 120 N > 80 N",
         ),
         make_env_step(episode, 0, terminated=True, is_success=True),
+        UnsafeStep(episode=episode, step=0, broken=("box", "force"), reasons=("eef left the box", "31.5 N on bin1")),
         EpisodeSummary(
             episode=episode,
             seed=123,
@@ -126,6 +128,7 @@ def write_records(writer: TraceWriter, records: Iterable[TraceRecord]) -> None:
             EcmInvocation: writer.write_invocation,
             Intervention: writer.write_intervention,
             EnvStep: writer.write_env_step,
+            UnsafeStep: writer.write_unsafe_step,
             EpisodeSummary: writer.write_episode_summary,
         }[type(r)]
         method(r)  # type: ignore[operator]

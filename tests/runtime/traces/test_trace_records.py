@@ -23,13 +23,14 @@ from capevo.runtime.traces.records import (
     Outcome,
     PlanStep,
     TraceMetadata,
+    UnsafeStep,
     package_versions,
     record_type,
     register_topic,
     topics,
 )
 
-ALL_TYPES = (PlanStep, EcmInvocation, Intervention, EnvStep, EpisodeSummary)
+ALL_TYPES = (PlanStep, EcmInvocation, Intervention, EnvStep, UnsafeStep, EpisodeSummary)
 
 
 @pytest.mark.parametrize("record", one_of_each(), ids=lambda r: f"{type(r).__name__}")
@@ -109,6 +110,7 @@ def test_topic_registry() -> None:
         "/ecm/invocation",
         "/governance/intervention",
         "/env/step",
+        "/safety/unsafe",
         "/episode/summary",
     )
     for cls in ALL_TYPES:

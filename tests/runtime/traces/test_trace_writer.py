@@ -40,6 +40,7 @@ def test_round_trip_of_every_record_type(tmp_path: Path) -> None:
         "/ecm/invocation": 4,
         "/governance/intervention": 4,
         "/env/step": 2,
+        "/safety/unsafe": 2,
         "/episode/summary": 2,
     }
     assert reader.scan_result is not None and reader.scan_result.complete
