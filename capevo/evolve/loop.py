@@ -582,7 +582,7 @@ class EvolutionLoop:
         Each next ECM is :func:`~capevo.learner.experience.pick_ecm_to_update` over the previous
         candidate's training episodes, learned behind every candidate of the chain so far
         (companions); an ECM already in the chain is learned again from its chain candidate.
-        Exceptions: an ECM that governance had to stop (unsafe steps) in those episodes is learned
+        Exceptions: an ECM with steps the safety monitor graded unsafe in those episodes is learned
         next, once per chain, even if they succeeded (safety ranks first in the search); when the
         ECM just learned still hands over in fewer than
         :data:`UPSTREAM_BELOW` of its own episodes, the fault may lie in the state it is handed

@@ -270,7 +270,7 @@ def handover_rate(
 
 
 def unsafe_ecm(evidence: Sequence[EpisodeOutcome] | Sequence[EpisodeEnd], decomposition: Sequence[str]) -> str | None:
-    """The ECM of ``decomposition`` with unsafe (stopped) steps in the most episodes, ties to the
+    """The ECM of ``decomposition`` with unsafe steps (the monitor's) in the most episodes, ties to the
     earliest step; None when no episode had one (see ``EpisodeEnd.ecm_unsafe``)."""
     counts: Counter[str] = Counter()
     for e in _ends(evidence):

@@ -435,7 +435,7 @@ class _Finalist:
     steps: float = 0.0
     """Mean environment steps per episode spent in the tuned ECM."""
     unsafe: float = 0.0
-    """Fraction of episodes where governance had to stop a step of the tuned ECM."""
+    """Fraction of episodes where the safety monitor graded a step of the tuned ECM unsafe."""
 
     def rank(self) -> tuple[float, float, float, float, float, float]:
         """Safety first (the gate rejects a version that is unsafe more often), then success,
@@ -770,7 +770,7 @@ def _steps_in(ends: Sequence[EpisodeEnd], ecm: str) -> float:
 
 
 def _unsafe_in(ends: Sequence[EpisodeEnd], ecm: str) -> float:
-    """Fraction of traced episodes with an unsafe (stopped) step of ``ecm``."""
+    """Fraction of traced episodes with a step of ``ecm`` the safety monitor graded unsafe."""
     if not ends:
         return 0.0
     return sum(1 for e in ends if e.ecm_unsafe.get(ecm, 0) > 0) / len(ends)
