@@ -16,7 +16,12 @@ Usage::
 
     .venv/bin/python benchmarks/bench_evolution.py [--tasks T1 T2 T3] [--preset cpu-small] \\
         [--iterations N] [--live-episodes N] [--updates-per-iteration K] [--parallel] [--seed 0] \\
-        [--work-dir DIR] [--no-perturbations]
+        [--work-dir DIR] [--no-perturbations] [--phi task|paper] [--heldout 30]
+
+Every episode (live, learner, gate, final) runs under ``--phi`` (default: the per-task envelope,
+the runtime's default); after each run the final capability set also runs ``--heldout`` episodes
+on fresh held-out seeds (:func:`heldout_evaluation`), reported with 95 % Wilson intervals and the
+safety monitor's unsafe-episode count.
 
 ``--parallel`` starts every task's run at once (each run's CPU time is still its own, from
 ``wait4``); the load average at the start and end of each run is recorded with it.
@@ -44,6 +49,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _common import RESULTS_DIR, markdown_table, save_results
 
 NAME = "evolution"
+HELDOUT_SEED = 250_000
+"""First seed of the held-out evaluation (see :func:`heldout_evaluation`)."""
 
 
 def evolve_command() -> list[str]:
@@ -70,6 +77,8 @@ def start_task(task: str, args: argparse.Namespace, work: Path) -> dict[str, Any
         str(args.seed),
         "--json",
         "--perturbations" if args.perturbations else "--no-perturbations",
+        "--phi",
+        args.phi,
     ]
     for flag, value in (
         ("--iterations", args.iterations),
@@ -150,12 +159,46 @@ def finish_task(run: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]
         "chains": [[r.get("ecm_updated"), *(u.get("ecm") for u in r.get("further") or [])] for r in rows],
         "report": str(report / "report.md") if args.keep else None,
     }
+    if args.heldout:
+        out["heldout"] = heldout_evaluation(task, work / task / "data", args)
     print(
         f"[{task}] v0 {out['v0_successes']} -> final {out['final_successes']}; "
         f"{out['promoted']} promoted, {out['rejected']} rejected; {wall:.0f} s wall, {cpu:.0f} s CPU",
         flush=True,
     )
     return out
+
+
+def heldout_evaluation(task: str, root: Path, args: argparse.Namespace) -> dict[str, Any]:
+    """The final capability set on ``args.heldout`` fresh seeds, by ``capevo runtime evaluate --root``.
+
+    The seeds start at ``HELDOUT_SEED`` (250000): inside the seed plan's live block but past every
+    seed a run of these sizes uses there (live episodes of iteration ``i`` are 200000 + ``i`` x
+    live_episodes), and outside its training (0-99999) and gate (100000-199999) blocks, so no
+    learner, gate decision or ECM choice ever saw them.
+    """
+    from capevo.runtime.gate_stats import wilson_interval
+
+    first = HELDOUT_SEED + args.seed * 300_000
+    seeds = f"{first}-{first + args.heldout - 1}"
+    cmd = [sys.executable, "-m", "capevo", "runtime", "evaluate", "--root", str(root), "--task", task]
+    cmd += ["--seeds", seeds, "--phi", args.phi, "--json"]
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        return {"seeds": seeds, "error": done.stderr.strip().splitlines()[-1:]}
+    rows = json.loads(done.stdout)
+    n, ok = len(rows), sum(r["success"] for r in rows)
+    unsafe = sum(r["unsafe_steps"] > 0 for r in rows)
+    ci = wilson_interval(ok, n, alpha=0.025)
+    return {
+        "seeds": seeds,
+        "episodes": n,
+        "successes": ok,
+        "wilson95": [ci.low, ci.high],
+        "unsafe_episodes": unsafe,
+        "mean_steps": sum(r["steps"] for r in rows) / n,
+        "command": " ".join(["capevo", *cmd[3:]]),
+    }
 
 
 def _comparison(report: Path) -> dict[str, Any] | None:
@@ -183,6 +226,8 @@ def table(results: list[dict[str, Any]]) -> str:
         "v0 success",
         "final success",
         "paired p",
+        "held-out success [95% Wilson]",
+        "held-out unsafe episodes",
         "promoted",
         "rejected",
         "rollbacks",
@@ -205,6 +250,8 @@ def table(results: list[dict[str, Any]]) -> str:
                     "",
                     "",
                     "",
+                    "",
+                    "",
                     f"{r['wall_s']:.0f}",
                     f"{r['cpu_s']:.0f}",
                     _load(r),
@@ -219,6 +266,7 @@ def table(results: list[dict[str, Any]]) -> str:
                 r["v0_successes"],
                 r["final_successes"],
                 "-" if p is None else f"{p:.3g}",
+                *_heldout(r),
                 r["promoted"],
                 r["rejected"],
                 r["rollbacks"],
@@ -229,6 +277,16 @@ def table(results: list[dict[str, Any]]) -> str:
             ]
         )
     return markdown_table(headers, rows)
+
+
+def _heldout(r: dict[str, Any]) -> list[str]:
+    h = r.get("heldout")
+    if not h:
+        return ["-", "-"]
+    if "error" in h:
+        return ["error: " + " ".join(h["error"]), "-"]
+    low, high = h["wilson95"]
+    return [f"{h['successes']}/{h['episodes']} [{low:.0%}, {high:.0%}]", f"{h['unsafe_episodes']}/{h['episodes']}"]
 
 
 def _load(r: dict[str, Any]) -> str:
@@ -248,6 +306,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work-dir", type=Path, default=None, help="keep registries and reports here")
     parser.add_argument("--perturbations", action=argparse.BooleanOptionalAction, default=True)
+    parser.add_argument("--phi", default="task", help="the envelope of every episode: task (default) or paper")
+    parser.add_argument(
+        "--heldout", type=int, default=30, help="episodes of the final set on fresh held-out seeds (0: none)"
+    )
     args = parser.parse_args()
     args.keep = args.work_dir is not None
     work = args.work_dir or Path(tempfile.mkdtemp(prefix="capevo-bench-evolution-"))
@@ -262,6 +324,11 @@ def main() -> None:
         "parallel": args.parallel,
         "seed": args.seed,
         "perturbations": args.perturbations,
+        "phi": args.phi,
+        "heldout": args.heldout,
+        "cores": os.cpu_count(),
+        "date": time.strftime("%Y-%m-%d", time.gmtime()),
+        "command": " ".join(["benchmarks/bench_evolution.py", *sys.argv[1:]]),
     }
     try:
         started = [start_task(t, args, work) for t in args.tasks] if args.parallel else []
@@ -271,9 +338,9 @@ def main() -> None:
             save_results(args.name, {"params": params, "results": results})
             md = table(results)
             (RESULTS_DIR / f"{args.name}.md").write_text(
-                f"# capevo evolve, preset {args.preset}, perturbations {'on' if args.perturbations else 'off'}\n\n"
-                + md
-                + "\n"
+                f"# capevo evolve, preset {args.preset}, perturbations {'on' if args.perturbations else 'off'}, "
+                f"Φ {args.phi}\n\n`.venv/bin/python {params['command']}`, {params['date']}, "
+                f"{params['cores']} cores.\n\n" + md + "\n"
             )
     finally:
         if not args.keep:
