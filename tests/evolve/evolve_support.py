@@ -43,7 +43,7 @@ from capevo.runtime.monitor import MonitorConfig
 from capevo.runtime.tasks import task_spec
 from capevo.runtime.traces import EcmInvocation, EpisodeSummary, PlanStep, TraceMetadata, TraceWriter
 from capevo.runtime.traces import Outcome as CallOutcome
-from capevo.runtime.traces.records import Intervention
+from capevo.runtime.traces.records import Intervention, UnsafeStep
 
 TASK = "pick"
 NAMES = task_spec(TASK).ecm_names
@@ -162,8 +162,8 @@ def write_trace(
     path: Path, episodes: Sequence[tuple[int, bool, Sequence[str]]], *, unsafe: str | None = None
 ) -> list[EpisodeOutcome]:
     """A real MCAP trace of ``(seed, success, plan)`` episodes (one invocation per plan entry),
-    and their outcomes pointing at it; ``unsafe``: every step of that ECM gets a contact-force
-    intervention."""
+    and their outcomes pointing at it; ``unsafe``: the safety monitor grades every step of that
+    ECM unsafe (a contact over 20 N), which governance had tried to stop."""
     meta = TraceMetadata.collect(
         run_id="chain",
         task=TASK,
@@ -189,6 +189,9 @@ def write_trace(
                     )
                 )
                 if ecm == unsafe:
+                    w.write_unsafe_step(
+                        UnsafeStep(episode=i, step=j, broken=("force",), reasons=("arm 0: force: 31 N on bin1",))
+                    )
                     w.write_intervention(
                         Intervention(
                             episode=i,
@@ -208,7 +211,7 @@ def write_trace(
                 total_reward=1.0,
                 steps=len(plan),
                 interventions=0,
-                unsafe_steps=0,
+                unsafe_steps=sum(1 for ecm in plan if ecm == unsafe),
                 capability_set=dict.fromkeys(NAMES, 0),
                 duration_s=0.01,
             )

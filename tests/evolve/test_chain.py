@@ -96,11 +96,11 @@ def test_a_step_that_still_fails_to_hand_over_sends_the_chain_upstream(tmp_path:
     assert row.active_after[REACH] == 1 and row.active_after[GRASP] == 1
 
 
-def test_a_step_governance_had_to_stop_is_learned_next_even_after_success(tmp_path: Path) -> None:
+def test_a_step_graded_unsafe_is_learned_next_even_after_success(tmp_path: Path) -> None:
     registry = seeded_registry(tmp_path)
     evaluator = ScriptedEvaluator(registry, _needs(REACH))
-    # reach's candidate succeeds, but governance stopped lift's steps in its episodes: the chain
-    # goes on to lift (once), whose candidate is clean
+    # reach's candidate succeeds, but the safety monitor graded lift's steps unsafe in its
+    # episodes: the chain goes on to lift (once), whose candidate is clean
     updater = ChainUpdater(registry, tmp_path, {REACH: None, LIFT: None}, unsafe={REACH: LIFT})
     row = one_iteration(tmp_path, registry, evaluator, updater, updates=0)
     assert [r.ecm for r in updater.requests] == [REACH, LIFT]
