@@ -223,15 +223,26 @@ class ProximitySensor:
 
     @classmethod
     def for_robots(
-        cls, model: Any, data: Any, robots: Sequence[Any], *, reach: float = DEFAULT_REACH
+        cls, model: Any, data: Any, robots: Sequence[Any], *, reach: float = DEFAULT_REACH, wrist_links: int = 0
     ) -> ProximitySensor:
-        """A sensor for every arm of robosuite ``robots`` (``env.robots``), in action-layout order."""
+        """A sensor for every arm of robosuite ``robots`` (``env.robots``), in action-layout order.
+
+        ``wrist_links`` > 0 senses from that many links above the hand (the Panda's link 7, then
+        link 6, ...), so the wrist's own geoms are part of what is sensed: two arms working face to
+        face (TwoArmPegInHole) can touch wrist to wrist or wrist to plate with both hands clear.
+        """
         import mujoco
 
         bodies, sites = [], []
         for robot in robots:
             for arm in robot.arms:
-                bodies.append(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, robot.robot_model.eef_name[arm]))
+                body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, robot.robot_model.eef_name[arm])
+                for _ in range(wrist_links):
+                    parent = int(model.body_parentid[body])
+                    if int(model.body_weldid[parent]) == 0:
+                        break  # never climb onto the fixed world
+                    body = parent
+                bodies.append(body)
                 sites.append(int(robot.eef_site_id[arm]))
         return cls(model, data, bodies, sites, reach=reach)
 
@@ -409,6 +420,10 @@ class ProximitySensor:
             return None
         _, p1x, p1y, p1z, p2x, p2y, p2z = box
         return (clear, p1x, p1y, p1z, p2x, p2y, p2z)
+
+    def sensed(self, arm: int) -> tuple[int, ...]:
+        """The geoms sensed as arm ``arm``'s hand (without what it holds)."""
+        return tuple(self._arms[arm][0])
 
     def held(self, arm: int) -> tuple[int, ...]:
         """Movable objects (free-body ids) touching ``arm``'s hand now."""

@@ -126,6 +126,9 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
     reads_robosuite_reward: ClassVar[bool] = True
     """False for a task whose :meth:`_reward` ignores robosuite's: the wrapped environment then
     does not compute it (it is 0.0)."""
+    sensed_wrist_links: ClassVar[int] = 0
+    """Links above each hand whose geoms proximity sensing covers too (see
+    :meth:`~capevo.runtime.governance.proximity.ProximitySensor.for_robots`)."""
 
     def __init__(
         self,
@@ -188,7 +191,9 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         self._bind()
         self._eef_sites = tuple(int(r.eef_site_id["right"]) for r in self._env.robots)
         self._force_sensors = tuple(force_sensor(r, "right") for r in self._env.robots)
-        self._proximity = ProximitySensor.for_robots(self._model, self._data, self._env.robots)
+        self._proximity = ProximitySensor.for_robots(
+            self._model, self._data, self._env.robots, wrist_links=self.sensed_wrist_links
+        )
         self.sense_proximity = True
         """Whether :meth:`robot_state` measures proximity pairs; :func:`capevo.runtime.episode.make_governor`
         turns it off when the governing Φ does not read them (they cost ~0.08 ms per step)."""

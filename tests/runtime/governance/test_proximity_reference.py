@@ -149,3 +149,21 @@ def test_near_reports_what_the_pair_by_pair_reference_reports(task: str) -> None
             assert held > 0  # the held-object path ran
     finally:
         env.close()
+
+
+def test_two_arm_sensing_covers_the_wrists_and_single_arm_sensing_the_hand_only() -> None:
+    for task, wrist in (("T6", True), ("T1", False)):
+        env = make_task(task, horizon=5)
+        try:
+            env.reset(seed=0)
+            model = env._model  # the compiled MuJoCo model
+            sensor = env._proximity
+            for arm in range(len(env.task_spec.action_layout.arms)):
+                names = (
+                    mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, model.geom_bodyid[g]) for g in sensor.sensed(arm)
+                )
+                bodies = set(names)
+                links = {b for b in bodies if b.startswith(f"robot{arm}_link")}
+                assert links == ({f"robot{arm}_link6", f"robot{arm}_link7"} if wrist else set()), bodies
+        finally:
+            env.close()
