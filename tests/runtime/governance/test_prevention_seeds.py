@@ -1,0 +1,38 @@
+"""Issue 18's three colliding seeds: the default envelope prevents what the paper's only reacts to.
+
+``data/`` holds the pick set that ``scripts/demo`` evolved under the paper's Φ before the default
+changed (``pick.reach`` v2 by CEM, ``pick.grasp`` and ``pick.lift`` at v0), as published. On live
+seeds 200006, 200017 and 200032 its hand hits the rim of bin1 (and the can) at 40-90 N under the
+paper's Φ, whose force rule acts only once a reading is over 20 N; under the default Φ it slows
+towards every nearby geom first and no step is unsafe. Graded by the independent safety monitor.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from capevo.agent import DecompositionPolicy, IdentityMemory
+from capevo.learner.skills import seed_specs
+from capevo.registry.local import LocalRegistry
+from capevo.runtime.evaluator import LocalEvaluator
+
+DATA = Path(__file__).parent / "data"
+SEEDS = [200006, 200017, 200032]
+SET = {"pick.reach": "pick_reach_v2.src", "pick.grasp": "pick_grasp_v0.src", "pick.lift": "pick_lift_v0.src"}
+
+
+@pytest.mark.slow
+def test_the_default_envelope_prevents_the_rim_collisions_the_papers_lets_through(tmp_path: Path) -> None:
+    specs = {name: spec for name, _, spec in seed_specs("pick")}  # descriptors and interfaces as published
+    with LocalRegistry(tmp_path / "registry", actor="tests") as reg:
+        for name, file in SET.items():
+            reg.promote(name, reg.publish(name, (DATA / file).read_bytes(), specs[name]).version)
+        policy = DecompositionPolicy(identity=IdentityMemory.default())
+        unsafe = {}
+        for phi in ("paper", "task"):
+            with LocalEvaluator(reg, policy=policy, trace_dir=None, phi=phi) as evaluator:
+                unsafe[phi] = [o.unsafe_steps for o in evaluator.evaluate("T1", {}, SEEDS)]
+    assert all(n > 0 for n in unsafe["paper"]), unsafe
+    assert unsafe["task"] == [0, 0, 0], unsafe
