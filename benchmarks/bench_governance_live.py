@@ -57,6 +57,9 @@ class RecordingGovernor:
         self.loop_ns: list[int] = []
         self.outcomes: list[str] = []
 
+    def new_episode(self) -> None:
+        self.inner.new_episode()
+
     def __call__(self, state: Any, action: Any) -> Any:
         t0 = time.perf_counter_ns()
         governed, ivs = self.inner(state, action)

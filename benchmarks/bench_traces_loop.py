@@ -87,7 +87,7 @@ class NoOpSink:
     def write_plan_step(self, record: Any) -> None:
         pass
 
-    write_invocation = write_intervention = write_env_step = write_episode_summary = write_plan_step
+    write_invocation = write_intervention = write_env_step = write_unsafe_step = write_episode_summary = write_plan_step
 
     def flush(self) -> None:
         pass
