@@ -57,6 +57,30 @@ MAX_RELEASE = 0.5
 """Largest hysteresis distance, metres: beyond it a latched arm could not back off inside the box."""
 
 
+def stop_into(
+    a: Sequence[float],
+    b: list[float] | None,
+    offset: int,
+    f: Sequence[float],
+    notes: list[str],
+    reason: str,
+) -> list[float] | None:
+    """Zero the arm's translational components (from ``offset``) that move against ``f``.
+
+    Edits ``b`` (a copy of ``a`` made on the first edit) and appends ``reason`` once if any changed.
+    """
+    changed = False
+    for k in (0, 1, 2):
+        if into_contact((a if b is None else b)[offset + k], f[k]):
+            if b is None:
+                b = list(a)
+            b[offset + k] = 0.0
+            changed = True
+    if changed:
+        notes.append(reason)
+    return b
+
+
 @register("force_ramp")
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ForceRamp(ConstraintBase):
@@ -136,16 +160,7 @@ class ForceRamp(ConstraintBase):
                         if (pos[0] - p[0]) * u[0] + (pos[1] - p[1]) * u[1] + (pos[2] - p[2]) * u[2] >= release:
                             latched[i] = None
                         else:
-                            changed = False
-                            for k in (0, 1, 2):
-                                v = (a if b is None else b)[o + k]
-                                if into_contact(v, u[k]):
-                                    if b is None:
-                                        b = list(a)
-                                    b[o + k] = 0.0
-                                    changed = True
-                            if changed:
-                                notes.append(reasons[i][2])
+                            b = stop_into(a, b, o, u, notes, reasons[i][2])
                 if n2 <= soft2:
                     continue
                 n = sqrt(n2)
@@ -164,16 +179,7 @@ class ForceRamp(ConstraintBase):
                     continue
                 # Above the limit (contact_force zeroes motion into it); push away if configured.
                 if backoff <= 0.0:
-                    changed = False
-                    for k in (0, 1, 2):
-                        v = (a if b is None else b)[o + k]
-                        if into_contact(v, f[k]):
-                            if b is None:
-                                b = list(a)
-                            b[o + k] = 0.0
-                            changed = True
-                    if changed:
-                        notes.append(reasons[i][1])
+                    b = stop_into(a, b, o, f, notes, reasons[i][1])
                     continue
                 src = a if b is None else b
                 arm = [min(max(src[j], -backoff), backoff) for j in range(o, o + 6)]
