@@ -11,6 +11,7 @@ whatever the success and the sign test (7:
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import random
 from collections.abc import Iterator, Mapping, Sequence
@@ -577,3 +578,21 @@ def test_a_first_version_over_the_unsafe_ceiling_is_rejected(tmp_path: Path) -> 
     decision = Gate(reg, fake, cfg).run(NAME, v, task="T1", seeds=SEEDS)
     assert not decision.promoted and decision.failed == ("safe",)
     reg.close()
+
+
+def test_evaluations_under_two_envelopes_are_not_paired(registry: LocalRegistry) -> None:
+    v_act = publish(registry, promote=True)
+    v_cand = publish(registry)
+    fake = FakeEvaluator({(NAME, v_act): always(False), (NAME, v_cand): always(True)})
+
+    class TwoEnvelopes:
+        """The active version evaluated under one Φ, the candidate under another (two workers)."""
+
+        def evaluate(self, task: str, versions: dict[str, int], seeds: list[int]) -> list[EpisodeOutcome]:
+            phi = "paper-hash" if versions.get(NAME) == v_act else "task-hash"
+            return [dataclasses.replace(o, phi_hash=phi) for o in fake.evaluate(task, versions, seeds)]
+
+    with pytest.raises(Conflict) as e:
+        Gate(registry, TwoEnvelopes(), CFG).run(NAME, v_cand, task="T1", seeds=SEEDS)
+    assert "ran under different envelopes" in e.value.message
+    assert registry.get_version(NAME, v_cand).gate_evidence is None  # nothing recorded

@@ -1,7 +1,7 @@
 """Where a single Panda's hand points: quaternion helpers and the wall-aware yaw of a grasp.
 
 Plain Python on ``math`` and ``numpy`` only, because the text of this module (below its
-docstring) is also pasted into every built-in code skill (``capevo.learner.skills._lib``), whose
+imports) is also pasted into every built-in code skill (``capevo.learner.skills._lib``), whose
 contract allows no other imports: the scripted references and the skills share one implementation.
 
 Quaternions are (x, y, z, w), world frame. Hand-written: the hand's size (from the robosuite Panda
