@@ -8,7 +8,7 @@ Quick use::
     from capevo.runtime.state import SINGLE_PANDA
 
     phi = Phi.default()                      # the paper's envelope; or load_phi("my_phi.yaml")
-    phi = Phi.for_task("pick")               # the paper's envelope plus the task's scene (0 % unsafe)
+    phi = Phi.for_task("pick")               # plus the task's scene: the runtime's default (capevo.runtime.envelope)
     govern = phi.governor(SINGLE_PANDA)      # once per run; enforce=False for governance-off
     trace.header["phi_hash"] = phi.hash
     governed, interventions = govern(state, proposed)

@@ -1,7 +1,7 @@
 """Per-task Φ: the paper's envelope plus what is known about each task's scene.
 
-The paper's default Φ (``Phi.default()``: workspace box, contact-force limit, velocity cap) is
-the base and stays unchanged. :func:`task_constraints` are what
+The paper's Φ (``Phi.default()``: workspace box, contact-force limit, velocity cap) is the base
+and stays unchanged. :func:`task_constraints` are what
 :func:`~capevo.runtime.governance.phi.phi_for_task` (``Phi.for_task``) adds, before the cap:
 
 * ``workspace_guard`` on the same box: a braking band inside the margin, an inward push when
