@@ -461,3 +461,29 @@ def test_signals_are_computed_once_per_simulator_state(envs: dict[str, TaskEnv])
         assert after_step == 2 and computed == 2
     finally:
         del env._signals
+
+
+@pytest.mark.parametrize("name", ["place", "pick_place_multi"])
+def test_quadrant_margin_agrees_with_robosuites_bin_check(envs: dict[str, TaskEnv], name: str) -> None:
+    """``object_quadrant_margin`` is > 0 exactly where robosuite's ``not_in_bin`` says "in the
+    quadrant" (heights inside the bin), and at the quadrant's centre it is the smaller half side."""
+    env = shared(envs, name)
+    env.reset(seed=3)
+    rs = env.robosuite_env
+    objs = ["Can"] if name == "place" else ["Milk", "Bread", "Can"]
+    index = {o.name: i for i, o in enumerate(rs.objects)}
+    half = min(float(rs.bin_size[0]), float(rs.bin_size[1])) / 4.0
+    rng = np.random.default_rng(0)
+    prefix = "" if name == "place" else None
+    for o in objs:
+        key = "object_quadrant_margin" if prefix == "" else f"{o.lower()}_object_quadrant_margin"
+        goal = env.clean_obs_dict[f"{o}_target_pos"]
+        for offset in [np.zeros(2), *rng.uniform(-0.2, 0.2, size=(12, 2))]:
+            pos = np.array([goal[0] + offset[0], goal[1] + offset[1], goal[2] + 0.005])
+            _teleport(env, _objects(env)[o].joints[0], pos)
+            margin = env._signals()[key]  # the hook: signals() caches per step, and teleporting is no step
+            inside = not rs.not_in_bin(rs.sim.data.body_xpos[rs.obj_body_id[o]], index[o])
+            assert (margin > 0) == inside, (o, offset, margin)
+            if not offset.any():
+                assert margin == pytest.approx(half, abs=0.006)
+        _teleport(env, _objects(env)[o].joints[0], goal + np.array([0.0, 0.0, 0.3]))
