@@ -9,9 +9,11 @@ Modalities (registered with :func:`register_modality`, built with :func:`make_up
   as the proposal's experience.
 * ``hybrid``: an LLM edit (``CAPEVO_LLM_BASE_URL``) then CEM (:class:`~capevo.learner.hybrid.HybridLearner`);
   without an endpoint it is CEM alone (the note says so).
-* ``rl``: SAC warm-started from the active version (:class:`~capevo.learner.rl.SacLearner`); origin ``rl``.
-* ``il``: behaviour cloning (:class:`~capevo.learner.bc.BcLearner`) from successful traces and,
-  when those are too few, the task's scripted reference; origin ``il``.
+* ``rl``: SAC (:class:`~capevo.learner.rl.SacLearner`), continuing from its own latest candidate
+  and replay buffer (a random-init v0 is first behaviour-cloned); origin ``rl``.
+* ``il``: behaviour cloning (:class:`~capevo.learner.bc.BcLearner`) from the set's successful
+  traces and the task's scripted reference, on every demonstration gathered so far, continuing
+  from its own latest candidate; origin ``il``.
 
 :class:`RemoteCandidates` instead waits for a candidate that a learner worker
 (``capevo learner serve``) publishes, and hands it to the gate.
@@ -124,6 +126,9 @@ class UpdaterContext:
     perturbations: Perturbations
     trace_dir: Path
     """Where the learner's training episodes write their traces."""
+    state_dir: Path | None = None
+    """Where neural learners keep their state between iterations (latest candidate, replay
+    buffer, demonstrations: :mod:`capevo.learner.continuation`); None starts each update afresh."""
 
 
 UpdaterFactory = Callable[[UpdaterContext], Updater]
@@ -310,6 +315,13 @@ class NeuralUpdater:
         learn_request = self._request(request)
         if self.modality == "rl":
             progress.learner_started(total=preset.sac.total_steps, unit="SAC steps")
+            # a random-init v0 is first cloned from the scripted reference and the set's successes
+            clone_from = BcLearner(
+                config=preset.bc,
+                env_config=env,
+                registry=self.context.registry,
+                scripted_episodes=preset.scripted_episodes,
+            )
             sac = SacLearner(
                 config=preset.sac,
                 env_config=env,
@@ -317,6 +329,8 @@ class NeuralUpdater:
                 registry=self.context.registry,
                 distill=dataclasses.replace(preset.bc, net_arch=preset.sac.net_arch),
                 distill_episodes=preset.distill_episodes,
+                bc=clone_from,
+                state_dir=self.context.state_dir,
             )
             candidate = sac.learn(learn_request)
             progress.learner_advance(preset.sac.total_steps)
@@ -335,6 +349,7 @@ class NeuralUpdater:
             registry=self.context.registry,
             scripted_episodes=preset.scripted_episodes,
             progress=lambda epoch, epochs, loss: progress.learner_advance(1),
+            state_dir=self.context.state_dir,
         )
         candidate = bc.learn(learn_request)
         demos = dict(candidate.notes.get("demos") or {})

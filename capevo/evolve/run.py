@@ -304,6 +304,7 @@ def _updater(
         agent_identity_hash=agent.identity_hash,
         perturbations=perturbations,
         trace_dir=report_dir / "traces" / "learner",
+        state_dir=report_dir / "learner-state",
     )
     return make_updater(options.modality, context)
 

@@ -19,8 +19,12 @@ they are (a later RL run trains them).
 
 :class:`BcLearner` is the :class:`~capevo.learner.base.Learner` for modality ``il``: it warm
 starts from the parent's weights when the parent is a SAC policy, gathers demonstrations
-(traces first, the scripted reference when traces give too few), clones, and returns a
-candidate with origin ``il``.
+(the successful traces of the current set *and* rollouts of the task's scripted reference, so
+that it keeps learning from its own successes once the set succeeds), clones, and returns a
+candidate with origin ``il``. With a ``state_dir`` (:mod:`capevo.learner.continuation`) it
+continues from its own latest candidate rather than the active version, and clones on every
+demonstration row gathered so far, so updates add up across iterations whether or not the gate
+promoted the previous one (issue 19).
 
 Invariants:
 1. :func:`behaviour_clone` changes only the actor's parameters (and its own optimizer's state).
@@ -620,6 +624,9 @@ class BcLearner:
         progress: Called after each epoch as ``progress(epoch, epochs, loss)``.
         torch_threads: CPU threads for torch while learning (None: leave as is).
         should_stop: Polled while rolling out demonstrations; True cuts the rollouts short.
+        state_dir: Where this learner keeps its state between updates (its latest candidate and
+            every demonstration row so far, per ECM; :class:`~capevo.learner.continuation.LearnerState`);
+            None starts every update afresh from the parent.
 
     Raises:
         Invalid: bad settings.
@@ -640,7 +647,9 @@ class BcLearner:
         progress: Callable[[int, int, float], Any] | None = None,
         torch_threads: int | None = None,
         should_stop: Callable[[], bool] | None = None,
+        state_dir: str | os.PathLike[str] | None = None,
     ) -> None:
+        self.state_dir = Path(state_dir) if state_dir is not None else None
         self.config = config or BcConfig()
         self.torch_threads = torch_threads
         self.should_stop = should_stop
@@ -656,7 +665,8 @@ class BcLearner:
         self.last_report: BcReport | None = None
 
     def gather(self, request: LearnRequest, target: EcmTarget) -> Demos:
-        """Demonstrations for ``request``: traces first, then scripted rollouts if too few.
+        """Demonstrations for ``request``: the successful steps of its traces, plus
+        ``scripted_episodes`` rollouts of the task's scripted reference.
 
         Raises:
             Invalid: too few demonstrations from every source.
@@ -670,7 +680,7 @@ class BcLearner:
             else Demos.empty(target.input_size, task_spec(request.task).action_layout.dim, "traces")
         )
         log.info("%s: %d demonstration steps from %d trace episodes", request.ecm, len(demos), demos.episodes)
-        if len(demos) < self.config.min_samples and self.scripted_episodes > 0:
+        if self.scripted_episodes > 0:
             controller = scripted_controller(request.task)
             if controller is not None:
                 env = make_ecm_env(request.task, target, registry=self.registry, config=self.env_config)
@@ -732,11 +742,14 @@ class BcLearner:
             return self._learn(request, parent_artifact=parent_artifact, demos=demos)
 
     def _learn(self, request: LearnRequest, *, parent_artifact: bytes | None, demos: Demos | None) -> Candidate:
+        from capevo.learner.continuation import LearnerState
 
         target = target_for(request.task, request.ecm, request.parent)
         act_dim = task_spec(request.task).action_layout.dim
-        artifact = parent_artifact_of(request, self.registry, parent_artifact)
-        warm = request.parent.kind is Kind.NEURAL and artifact is not None
+        state = LearnerState(self.state_dir, request.ecm) if self.state_dir is not None else None
+        latest = state.latest() if state is not None else None
+        artifact = latest if latest is not None else parent_artifact_of(request, self.registry, parent_artifact)
+        warm = (latest is not None or request.parent.kind is Kind.NEURAL) and artifact is not None
         kwargs = sac_policy_kwargs(artifact) if warm and artifact is not None else None
         model = offline_sac(
             target.interface, act_dim, net_arch=self.config.net_arch, seed=self.config.seed, policy_kwargs=kwargs
@@ -745,9 +758,21 @@ class BcLearner:
             warm_start(model, artifact)
         if demos is None:
             demos = self.gather(request, target)
+        new_rows = len(demos)
+        if state is not None:
+            obs, action = state.add_demos(demos.obs, demos.action)
+            if len(obs) > new_rows:
+                demos = Demos(
+                    obs=obs,
+                    action=action,
+                    source=f"{demos.source}+earlier",
+                    episodes=demos.episodes,
+                    episodes_seen=demos.episodes_seen,
+                    traces=demos.traces,
+                )
         report = behaviour_clone(model, demos, self.config, progress=self.progress)
         self.last_report = report
-        return neural_candidate(
+        candidate = neural_candidate(
             model,
             target,
             request=request,
@@ -757,12 +782,17 @@ class BcLearner:
                 "learner": self.learner_id,
                 "modality": self.modality,
                 "warm_start": warm,
+                "continued": latest is not None,
                 "demos": {
                     "source": demos.source,
                     "samples": len(demos),
+                    "new_samples": new_rows,
                     "episodes": demos.episodes,
                     "episodes_seen": demos.episodes_seen,
                 },
                 "bc": report.to_dict(),
             },
         )
+        if state is not None:
+            state.save_latest(candidate.artifact)
+        return candidate

@@ -9,6 +9,16 @@ weights; the actor is then first distilled from the parent's behaviour (behaviou
 ``distill_episodes`` rollouts of the parent in the training environment) so RL starts from what
 the robot already does, not from a random policy.
 
+Random-init start (issue 19): when the parent is a randomly initialised neural version 0 (origin
+``manual``) and a ``bc`` learner is given, the actor is first behaviour-cloned on that learner's
+demonstrations (the scripted reference's rollouts and the current set's successful traces), so
+SAC fine-tunes a policy that already roughly does the job instead of exploring from nothing.
+
+Continuation (issue 19): with a ``state_dir`` (:mod:`capevo.learner.continuation`) the learner
+continues from its own latest candidate (all its parameters) and its replay buffer, whether or
+not the gate promoted that candidate, so SAC updates add up across iterations. A continued
+model skips SAC's random warm-up (``learning_starts``): its buffer already holds experience.
+
 Training runs in the ECM's own step of the task (:class:`~capevo.learner.ecm_env.EcmEnv`: the
 predecessors run at their active versions, governance on) with the paper's reward shaping on
 top of the task's dense reward (:class:`~capevo.learner.reward.ShapedReward`). Optionally the
@@ -29,9 +39,11 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -40,6 +52,7 @@ from capevo.errors import Invalid
 from capevo.learner.base import Candidate, LearnRequest, config_hash
 from capevo.learner.bc import (
     BcConfig,
+    BcLearner,
     BcReport,
     behaviour_clone,
     collect_demos,
@@ -351,6 +364,15 @@ def train_sac(
 # --- the learner ---------------------------------------------------------------------------
 
 
+def _warm_start_note(continued: bool, neural_parent: bool, distilled: BcReport | None) -> str:
+    """Where the candidate's training started, for its notes."""
+    if continued:
+        return "latest candidate"
+    if distilled is not None:
+        return "cloned" if neural_parent else "distilled"
+    return "weights" if neural_parent else "random"
+
+
 class SacLearner:
     """SAC learner (modality ``rl``) for neural ECMs.
 
@@ -372,6 +394,10 @@ class SacLearner:
         torch_threads: CPU threads for torch while learning (None: leave as is). On a small
             shared CPU, 1 is several times faster than torch's default for these networks.
         progress: Called as ``progress(steps_done, total_steps)`` during training.
+        bc: Behaviour cloning learner whose demonstrations start a randomly initialised parent
+            (None: SAC starts from the random weights).
+        state_dir: Where this learner keeps its latest candidate and replay buffer between
+            updates, per ECM (None: every update starts from the parent).
 
     Raises:
         Invalid: bad settings.
@@ -395,7 +421,11 @@ class SacLearner:
         should_stop: Callable[[], bool] | None = None,
         torch_threads: int | None = None,
         progress: Callable[[int, int], Any] | None = None,
+        bc: BcLearner | None = None,
+        state_dir: str | os.PathLike[str] | None = None,
     ) -> None:
+        self.bc = bc
+        self.state_dir = Path(state_dir) if state_dir is not None else None
         self.should_stop = should_stop
         self.progress = progress
         self.torch_threads = torch_threads
@@ -475,7 +505,24 @@ class SacLearner:
         with torch_threads(self.torch_threads):
             return self._learn(request, parent_artifact)
 
+    def _cloned(self, model: Any, request: LearnRequest, target: EcmTarget) -> BcReport | None:
+        """Clone :attr:`bc`'s demonstrations into a randomly initialised actor."""
+        if self.bc is None:
+            return None
+        demos = self.bc.gather(request, target)
+        report = behaviour_clone(model, demos, self.distill)
+        log.info(
+            "%s: cloned %d demonstration steps (%s) into the random v0: loss %.4f -> %.4f",
+            request.ecm,
+            report.samples,
+            demos.source,
+            report.loss_before,
+            report.loss_after,
+        )
+        return report
+
     def _learn(self, request: LearnRequest, parent_artifact: bytes | None) -> Candidate:
+        from capevo.learner.continuation import LearnerState
         from capevo.learner.experience import trace_paths
 
         target = target_for(request.task, request.ecm, request.parent)
@@ -483,13 +530,23 @@ class SacLearner:
         neural_parent = request.parent.kind is Kind.NEURAL
         if neural_parent and artifact is None:
             raise Invalid(f"{request.ecm}: the parent's weights are needed; give a registry or parent_artifact")
+        state = LearnerState(self.state_dir, request.ecm) if self.state_dir is not None else None
+        latest = state.latest() if state is not None else None
         env = self._env(request.task, target)
         try:
             shaped = ShapedReward(env, self.shaping, dt=env.control_dt)
-            model = build_sac(shaped, self.config, parent_artifact=artifact if neural_parent else None)
+            start = latest if latest is not None else (artifact if neural_parent else None)
+            model = build_sac(shaped, self.config, parent_artifact=start)
             distilled = None
-            if not neural_parent and artifact is not None:
+            kept = 0
+            if latest is not None and state is not None:
+                kept = state.load_replay(model)
+                if kept:
+                    model.learning_starts = 0
+            elif not neural_parent and artifact is not None:
                 distilled = self._distil(env, model, request, artifact)
+            elif request.parent.origin is Origin.MANUAL:
+                distilled = self._cloned(model, request, target)
             paths = [*self.traces, *trace_paths(request.outcomes)]
             prefilled = (
                 prefill_replay(model, paths, task=request.task, target=target, shaping=self.shaping, dt=env.control_dt)
@@ -512,6 +569,8 @@ class SacLearner:
                 prefilled=prefilled,
                 distill=distilled,
             )
+            if state is not None:
+                state.save_replay(model)
         finally:
             env.close()
         self.last_report = report
@@ -526,7 +585,7 @@ class SacLearner:
             report.successes,
         )
         used = task_trace_files(paths, request.task) if paths else []
-        return neural_candidate(
+        candidate = neural_candidate(
             model,
             target,
             request=request,
@@ -535,7 +594,11 @@ class SacLearner:
             notes={
                 "learner": self.learner_id,
                 "modality": self.modality,
-                "warm_start": "weights" if neural_parent else ("distilled" if distilled is not None else "random"),
+                "warm_start": _warm_start_note(latest is not None, neural_parent, distilled),
+                "replay_kept": kept,
                 "train": report.to_dict(),
             },
         )
+        if state is not None:
+            state.save_latest(candidate.artifact)
+        return candidate

@@ -169,7 +169,8 @@ def test_bc_learner_turns_a_code_parent_into_an_il_neural_candidate(
         assert cand.spec.parent == request.parent.version == 0
         assert cand.spec.provenance.learner_id == "il-t" and len(cand.spec.provenance.config_hash or "") == 64
         assert cand.spec.provenance.traces == (str((trace_dir[0] / "pick-run.mcap").resolve()),)
-        assert cand.notes["demos"]["source"] == "traces" and cand.notes["warm_start"] is False
+        # the current set's successful traces and the scripted reference's rollouts, both (issue 19)
+        assert cand.notes["demos"]["source"] == "traces+scripted" and cand.notes["warm_start"] is False
         assert cand.notes["bc"]["loss_after"] < cand.notes["bc"]["loss_before"]
         record = cand.publish(reg)
         assert record.kind is Kind.NEURAL and record.origin is Origin.IL and record.parent == 0

@@ -1,0 +1,142 @@
+"""Neural learning accumulates across iterations (issue 19): the learners continue from their own
+latest candidate, SAC keeps its replay buffer, BC keeps every demonstration row, and SAC on a
+randomly initialised v0 starts from a behaviour-cloned actor. Real robosuite episodes, real files."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from capevo.errors import Invalid
+from capevo.learner.base import LearnRequest
+from capevo.learner.bc import BcConfig, BcLearner, torch_threads
+from capevo.learner.continuation import DEMOS, LATEST, LearnerState
+from capevo.learner.ecm_env import EcmEnvConfig
+from capevo.learner.neural_seed import seed_policy
+from capevo.learner.rl import SacConfig, SacLearner
+from capevo.registry.local import LocalRegistry
+from capevo.runtime.tasks import Perturbations
+
+ECM = "pick.reach"
+ENV_CONFIG = EcmEnvConfig(max_steps=60, prefix_budget=60, perturbations=Perturbations.none(), seed_base=700_000)
+SAC = SacConfig(total_steps=60, buffer_size=1_000, batch_size=16, learning_starts=20, net_arch=(32, 32))
+BC = BcConfig(epochs=5, batch_size=32, net_arch=(32, 32), seed=0)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread() -> Iterator[None]:
+    with torch_threads(1):
+        yield
+
+
+@pytest.fixture()
+def registry(tmp_path: Path) -> Iterator[LocalRegistry]:
+    """T1's reach as a randomly initialised neural v0 (what ``capevo evolve --modality rl`` seeds)."""
+    reg = LocalRegistry(tmp_path / "registry", actor="tests")
+    artifact, spec = seed_policy("T1", ECM, net_arch=(32, 32), seed=7)
+    reg.promote(ECM, reg.publish(ECM, artifact, spec).version)
+    yield reg
+    reg.close()
+
+
+def _request(reg: LocalRegistry) -> LearnRequest:
+    return LearnRequest(task="pick", ecm=ECM, parent=reg.get_version(ECM), source="")
+
+
+def test_state_files_round_trip_and_demos_accumulate(tmp_path: Path) -> None:
+    state = LearnerState(tmp_path, ECM)
+    assert state.latest() is None and state.demos() is None and not state.has_replay()
+    state.save_latest(b"zip-1")
+    assert LearnerState(tmp_path, ECM).latest() == b"zip-1"  # invariant 1: another instance reads it
+    a = (np.ones((3, 4), np.float32), np.zeros((3, 2), np.float32))
+    b = (np.full((2, 4), 2.0, np.float32), np.ones((2, 2), np.float32))
+    state.add_demos(*a)
+    obs, act = state.add_demos(*b)
+    np.testing.assert_array_equal(obs, np.concatenate([a[0], b[0]]))  # invariant 2: stored rows first
+    np.testing.assert_array_equal(LearnerState(tmp_path, ECM).demos()[1], np.concatenate([a[1], b[1]]))
+    with pytest.raises(Invalid) as info:
+        state.add_demos(np.ones((1, 5), np.float32), np.ones((1, 2), np.float32))
+    assert info.value.details["field"] == "demos"
+    assert sorted(p.name for p in state.directory.iterdir()) == [DEMOS, LATEST]  # no temporary left
+
+
+def test_a_writer_killed_mid_write_leaves_the_previous_state(tmp_path: Path) -> None:
+    """Invariant 3: SIGKILL while a large state file is written; the old file stays whole."""
+    state = LearnerState(tmp_path, ECM)
+    state.save_latest(b"old")
+    child = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            textwrap.dedent(
+                f"""
+                import sys
+                from capevo.learner.continuation import LearnerState
+                s = LearnerState({str(tmp_path)!r}, {ECM!r})
+                sys.stdout.write("ready\\n"); sys.stdout.flush()
+                while True:
+                    s.save_latest(b"x" * 50_000_000)
+                """
+            ),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert child.stdout is not None and child.stdout.readline() == "ready\n"
+    os.kill(child.pid, signal.SIGKILL)
+    child.wait()
+    assert LearnerState(tmp_path, ECM).latest() in (b"old", b"x" * 50_000_000)
+
+
+@pytest.mark.slow
+def test_sac_continues_from_its_rejected_candidate_and_keeps_its_buffer(
+    registry: LocalRegistry, tmp_path: Path
+) -> None:
+    state_dir = tmp_path / "state"
+    first = SacLearner(config=SAC, env_config=ENV_CONFIG, registry=registry, state_dir=state_dir, torch_threads=1)
+    a = first.learn(_request(registry))
+    assert a.notes["warm_start"] == "weights" and a.notes["replay_kept"] == 0
+    assert LearnerState(state_dir, ECM).latest() == a.artifact
+    # the gate rejected `a` (nothing was promoted): the next update still starts from it
+    second = SacLearner(config=SAC, env_config=ENV_CONFIG, registry=registry, state_dir=state_dir, torch_threads=1)
+    b = second.learn(_request(registry))
+    assert b.notes["warm_start"] == "latest candidate"
+    assert b.notes["replay_kept"] == SAC.total_steps  # every transition of the first update
+    assert second.last_model.replay_buffer.pos == 2 * SAC.total_steps
+    # without a state directory, the same request starts from the active v0 again
+    fresh = SacLearner(config=SAC, env_config=ENV_CONFIG, registry=registry, torch_threads=1)
+    assert fresh.learn(_request(registry)).notes["warm_start"] == "weights"
+
+
+@pytest.mark.slow
+def test_sac_on_a_random_v0_starts_from_a_cloned_actor(registry: LocalRegistry) -> None:
+    bc = BcLearner(config=BC, env_config=ENV_CONFIG, registry=registry, scripted_episodes=2)
+    cloned = SacLearner(
+        config=SAC, env_config=ENV_CONFIG, registry=registry, bc=bc, distill=BC, torch_threads=1
+    ).learn(_request(registry))
+    assert cloned.notes["warm_start"] == "cloned"
+    distill = cloned.notes["train"]["distill"]
+    assert distill["samples"] > 0 and distill["loss_after"] < distill["loss_before"]
+
+
+@pytest.mark.slow
+def test_bc_keeps_every_demonstration_and_continues_from_its_latest(registry: LocalRegistry, tmp_path: Path) -> None:
+    state_dir = tmp_path / "state"
+    learner = BcLearner(config=BC, env_config=ENV_CONFIG, registry=registry, scripted_episodes=1, state_dir=state_dir)
+    a = learner.learn(_request(registry))
+    assert a.notes["continued"] is False and a.notes["demos"]["source"] == "scripted"
+    rows_a = a.notes["demos"]["samples"]
+    b = learner.learn(_request(registry))
+    assert b.notes["continued"] is True and b.notes["demos"]["source"] == "scripted+earlier"
+    assert b.notes["demos"]["samples"] == rows_a + b.notes["demos"]["new_samples"]
+    assert LearnerState(state_dir, ECM).latest() == b.artifact
+    # b started from a's weights: its loss before cloning is a's loss after, on a's rows
+    assert b.notes["bc"]["loss_before"] < a.notes["bc"]["loss_before"]
