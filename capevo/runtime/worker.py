@@ -10,14 +10,20 @@
 * announces itself and what it runs on Zenoh (key space below);
 * keeps running episodes on its last good versions while the registry is away; when the
   registry's liveliness token returns it re-reads the capability set and catches up;
-* serves evaluation requests (``evaluate(task, versions, seeds)``) between its own
-  episodes, on its own environment; :class:`RemoteEvaluator` is the client side;
+* serves evaluation requests (``evaluate(task, versions, seeds)``, optionally with inline
+  candidate artifacts in place of some ECMs' registry artifacts) between its own episodes, on
+  its own environment; :class:`RemoteEvaluator` is the client side, and splits one call's
+  seeds across every live worker of the task (:mod:`capevo.runtime.fanout`);
 * shuts down cleanly on SIGTERM/SIGINT (ends the running episode, replies to queued
   requests with ``unavailable``, closes traces and sessions). It never forks.
 
 Key space, under the registry's namespace ``<ns>``::
 
     <ns>/runtime/<worker_id>/alive      liveliness token while the worker serves
+    <ns>/runtime/<worker_id>/serves/<task>
+                                        liveliness token: the same, naming its task (task
+                                        name); get <ns>/runtime/*/serves/<task> finds the
+                                        live workers of a task in one round trip
     <ns>/runtime/<worker_id>/adopted    queryable: JSON Adoption {worker_id, task, revision,
                                         versions, pending, episodes, registry_connected, pid,
                                         started_at}; get <ns>/runtime/*/adopted lists all
@@ -25,9 +31,15 @@ Key space, under the registry's namespace ``<ns>``::
     <ns>/runtime/evaluate/<task>        queryable (complete): the same, served by any one
                                         worker of <task> (task name, e.g. ``pick``)
 
-An evaluate request's payload is JSON ``{"task", "versions", "seeds"}``; the reply is JSON
-``{"worker_id", "outcomes": [EpisodeOutcome.to_dict(), ...]}``, or an error reply carrying
-:meth:`CapevoError.to_payload`.
+An evaluate request's payload is JSON ``{"task", "versions", "seeds"}``, plus optionally
+``"overrides": {ecm: base64 artifact}`` and ``"override_origin"``: unpublished candidate
+artifacts (a learner's CEM samples) that run in place of the named ECMs' artifacts at the
+version ``versions`` (or the registry) names, keeping that version's descriptor and interface.
+Candidates reach a worker this way, inline, or as registry versions pinned in ``versions``;
+never as paths on a shared disk. Inline code never runs in the worker's process: an override
+whose origin the trust policy would run in-process is refused (:class:`Forbidden`). The reply
+is JSON ``{"worker_id", "outcomes": [EpisodeOutcome.to_dict(), ...]}``, or an error reply
+carrying :meth:`CapevoError.to_payload`.
 
 Invariants:
 1. The loaded versions change only between episodes (``LoadedCapabilitySet.begin_episode``).
@@ -38,11 +50,21 @@ Invariants:
 4. Losing the registry never stops the episode loop; nothing blocks on the registry for
    longer than the client's timeout.
 5. A trace file holds only episodes of one capability set: a swap starts a new file.
+6. Overrides change only the request they come with: the worker's own episodes and later
+   requests load the registry's artifacts, and an override's bytes never enter the on-disk
+   artifact cache.
+7. :meth:`RemoteEvaluator.evaluate` returns one outcome per seed, in seed order, each from
+   exactly one episode, whichever workers ran them and however many died on the way (see
+   :mod:`capevo.runtime.fanout` for the split and the retry rules).
 """
 
 from __future__ import annotations
 
+import base64
+import binascii
 import contextlib
+import dataclasses
+import hashlib
 import json
 import logging
 import os
@@ -61,6 +83,7 @@ import zenoh
 
 from capevo.errors import (
     CapevoError,
+    Forbidden,
     Invalid,
     NotFound,
     Timeout,
@@ -68,10 +91,11 @@ from capevo.errors import (
     Unavailable,
     error_from_payload,
 )
-from capevo.records import Action, AuditEvent, EcmVersion, State
+from capevo.records import Action, ArtifactRef, AuditEvent, CapabilitySet, EcmVersion, Origin, State
 from capevo.registry.keys import DEFAULT_NAMESPACE, Keys, validate_namespace
-from capevo.runtime.artifact_cache import ArtifactCache, ArtifactStore, MemoryArtifactCache
+from capevo.runtime.artifact_cache import ArtifactCache, ArtifactStore, MemoryArtifactCache, check_sha256
 from capevo.runtime.capabilities import DEFAULT_RECOVERY, LoadedCapabilitySet, check_recovery_mode
+from capevo.runtime.ecm import LoadOptions, TrustPolicy
 from capevo.runtime.envelope import PhiChoice, resolve_phi
 from capevo.runtime.episode import (
     DEFAULT_STEP_BUDGET,
@@ -81,6 +105,7 @@ from capevo.runtime.episode import (
 )
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.evaluator import LocalEvaluator, check_seeds, check_versions
+from capevo.runtime.fanout import DEFAULT_MAX_ATTEMPTS, Part, SeedLedger
 from capevo.runtime.governance import Phi
 from capevo.runtime.policy import DecisionPolicy
 from capevo.runtime.safety_monitor import SafetyLimits
@@ -100,10 +125,14 @@ EVALUATE = "evaluate"
 WORKER_ID_PATTERN = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 MAX_EVAL_SEEDS = 1000
 MAX_QUEUED_EVALUATIONS = 16
-MAX_REQUEST_BYTES = 1 << 20
+MAX_REQUEST_BYTES = 4 << 20
+"""Inline artifacts travel in the request (base64): code skills are a few kB; a large neural
+candidate goes through the registry instead (publish it as a candidate, pin its version)."""
 DEFAULT_EVALUATE_TIMEOUT_S = 600.0
 JSON_ENCODING = "application/json"
-_NO_REPLY_GRACE = 0.95
+SERVES = "serves"
+DISCOVERY_TIMEOUT_S = 5.0
+"""At most this long to list the live workers of a task (the router answers from its table)."""
 
 
 def validate_worker_id(worker_id: object) -> str:
@@ -144,6 +173,12 @@ class RuntimeKeys:
 
     def alive_all(self) -> str:
         return f"{self.root}/*/alive"
+
+    def serves(self, worker_id: str, task: str) -> str:
+        return f"{self.root}/{validate_worker_id(worker_id)}/{SERVES}/{task_spec(task).name}"
+
+    def serves_task(self, task: str) -> str:
+        return f"{self.root}/*/{SERVES}/{task_spec(task).name}"
 
     def adopted(self, worker_id: str) -> str:
         return f"{self.root}/{validate_worker_id(worker_id)}/adopted"
@@ -216,18 +251,52 @@ class Adoption:
             raise Invalid(f"malformed adoption record: {type(exc).__name__}: {exc}") from None
 
 
+def check_overrides(overrides: Mapping[str, bytes] | None, task: str) -> dict[str, bytes]:
+    """``overrides`` as ``{ecm: bytes}`` for ECMs of ``task``'s plan.
+
+    Raises:
+        Invalid: not a mapping of plan ECM names to non-empty bytes; unknown task.
+    """
+    if overrides is None:
+        return {}
+    if not isinstance(overrides, Mapping):
+        raise Invalid(f"overrides must be a mapping, got {type(overrides).__name__}", details={"field": "overrides"})
+    spec = task_spec(task)
+    out: dict[str, bytes] = {}
+    for name, data in overrides.items():
+        if not isinstance(name, str) or name not in spec.ecm_names:
+            raise Invalid(
+                f"override {name!r} is not an ECM of task {spec.name!r} ({', '.join(spec.ecm_names)})",
+                details={"field": "overrides"},
+            )
+        if not isinstance(data, (bytes, bytearray)) or not data:
+            raise Invalid(f"override {name!r} must be non-empty bytes", details={"field": "overrides"})
+        out[name] = bytes(data)
+    return out
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class EvaluateRequest:
-    """The payload of an evaluate query."""
+    """The payload of an evaluate query.
+
+    ``overrides`` (inline artifacts, base64 on the wire) run in place of the named ECMs'
+    registry artifacts; ``override_origin`` is the origin they run under (default the
+    overridden version's), which decides where code runs (see the module docstring).
+    """
 
     task: str
     versions: Mapping[str, int]
     seeds: tuple[int, ...]
+    overrides: Mapping[str, bytes] = field(default_factory=dict)
+    override_origin: Origin | None = None
 
     def to_json(self) -> bytes:
-        return json.dumps(
-            {"task": self.task, "versions": dict(self.versions), "seeds": list(self.seeds)}, separators=(",", ":")
-        ).encode()
+        body: dict[str, Any] = {"task": self.task, "versions": dict(self.versions), "seeds": list(self.seeds)}
+        if self.overrides:
+            body["overrides"] = {k: base64.b64encode(v).decode("ascii") for k, v in sorted(self.overrides.items())}
+        if self.override_origin is not None:
+            body["override_origin"] = self.override_origin.value
+        return json.dumps(body, separators=(",", ":")).encode()
 
     @classmethod
     def from_json(cls, payload: bytes, *, max_seeds: int = MAX_EVAL_SEEDS) -> EvaluateRequest:
@@ -235,7 +304,8 @@ class EvaluateRequest:
 
         Raises:
             TooLarge: the payload or the seed list is over the limit.
-            Invalid: not JSON, a missing or mistyped field, an unknown task.
+            Invalid: not JSON, a missing or mistyped field, an unknown task, an override of an
+                ECM outside the task's plan, an unknown origin.
         """
         if len(payload) > MAX_REQUEST_BYTES:
             raise TooLarge(f"evaluate request is {len(payload)} bytes; the limit is {MAX_REQUEST_BYTES}")
@@ -245,7 +315,7 @@ class EvaluateRequest:
             raise Invalid(f"evaluate request is not JSON: {exc}", details={"field": "payload"}) from None
         if not isinstance(body, dict):
             raise Invalid("evaluate request must be a JSON object", details={"field": "payload"})
-        unknown = sorted(set(body) - {"task", "versions", "seeds"})
+        unknown = sorted(set(body) - {"task", "versions", "seeds", "overrides", "override_origin"})
         if unknown:
             raise Invalid(f"evaluate request: unknown field(s) {', '.join(unknown)}", details={"field": unknown[0]})
         task = body.get("task")
@@ -257,7 +327,32 @@ class EvaluateRequest:
             raise Invalid("evaluate request: seeds must be a list of integers", details={"field": "seeds"})
         if len(seeds) > max_seeds:
             raise TooLarge(f"evaluate request has {len(seeds)} seeds; a worker runs at most {max_seeds} per request")
-        return cls(task=spec.name, versions=check_versions(body.get("versions") or {}), seeds=tuple(check_seeds(seeds)))
+        raw = body.get("overrides") or {}
+        if not isinstance(raw, dict) or not all(isinstance(v, str) for v in raw.values()):
+            raise Invalid(
+                "evaluate request: overrides must map ECM names to base64 text", details={"field": "overrides"}
+            )
+        try:
+            decoded = {k: base64.b64decode(v, validate=True) for k, v in raw.items()}
+        except (binascii.Error, ValueError):
+            raise Invalid("evaluate request: an override is not base64", details={"field": "overrides"}) from None
+        origin = body.get("override_origin")
+        if origin is not None:
+            try:
+                origin = Origin(origin)
+            except (ValueError, TypeError):
+                valid = ", ".join(o.value for o in Origin)
+                raise Invalid(
+                    f"evaluate request: unknown override_origin {origin!r}; valid: {valid}",
+                    details={"field": "override_origin"},
+                ) from None
+        return cls(
+            task=spec.name,
+            versions=check_versions(body.get("versions") or {}),
+            seeds=tuple(check_seeds(seeds)),
+            overrides=check_overrides(decoded, spec.name),
+            override_origin=origin,
+        )
 
 
 def encode_outcomes(worker_id: str, outcomes: Sequence[EpisodeOutcome]) -> bytes:
@@ -383,6 +478,93 @@ def _reply(query: zenoh.Query, result: bytes | CapevoError) -> None:
                 query.reply(query.key_expr, result, encoding=JSON_ENCODING)
     except zenoh.ZError as exc:
         log.warning("could not reply to %s: %s", query.selector, exc)
+
+
+class _OverrideRegistry:
+    """A read-only view of ``registry`` in which some ECMs' artifacts are inline bytes.
+
+    The overridden version keeps its record (descriptor, interface, version number, so the
+    outcomes name it) except the artifact reference, which names the inline bytes, and the
+    origin, which is ``origin`` when given.
+
+    Raises (from :meth:`get_version`):
+        Forbidden: the trust policy would run the inline code in the worker's process.
+    """
+
+    def __init__(
+        self, registry: Any, overrides: Mapping[str, bytes], origin: Origin | None, trust: TrustPolicy
+    ) -> None:
+        self._registry = registry
+        self._bytes = dict(overrides)
+        self._sha = {k: hashlib.sha256(v).hexdigest() for k, v in self._bytes.items()}
+        self._origin = origin
+        self._trust = trust
+
+    def capability_set(self, revision: int | None = None) -> CapabilitySet:
+        return self._registry.capability_set(revision)
+
+    def get_ecm(self, name: str) -> Any:
+        return self._registry.get_ecm(name)
+
+    def get_version(self, name: str, version: int | None = None) -> EcmVersion:
+        record = self._registry.get_version(name, version)
+        data = self._bytes.get(name)
+        if data is None:
+            return record
+        origin = self._origin or record.origin
+        if self._trust.runs_in_process(record.kind, origin):
+            raise Forbidden(
+                f"inline artifact for {name} would run in the worker's process (origin {origin.value!r}); "
+                "inline code runs only in the sandbox: give an override_origin the trust policy sandboxes",
+                details={"field": "override_origin", "ecm": name},
+            )
+        artifact = ArtifactRef(sha256=self._sha[name], size=len(data), media_type=record.artifact.media_type)
+        return dataclasses.replace(record, artifact=artifact, origin=origin)
+
+    def get_artifact(self, name: str, version: int | None = None) -> bytes:
+        data = self._bytes.get(name)
+        return data if data is not None else self._registry.get_artifact(name, version)
+
+
+class _OverrideCache:
+    """The worker's artifact cache, except that inline bytes are served from memory and never stored."""
+
+    def __init__(self, base: ArtifactStore, overrides: Mapping[str, bytes]) -> None:
+        self._base = base
+        self._inline = {hashlib.sha256(v).hexdigest(): bytes(v) for v in overrides.values()}
+
+    def get(self, sha256: str) -> bytes | None:
+        inline = self._inline.get(check_sha256(sha256))
+        return inline if inline is not None else self._base.get(sha256)
+
+    def put(self, sha256: str, data: bytes) -> None:
+        if check_sha256(sha256) not in self._inline:
+            self._base.put(sha256, data)
+
+    def fetch(self, sha256: str, load: Callable[[], bytes]) -> bytes:
+        inline = self._inline.get(check_sha256(sha256))
+        return inline if inline is not None else self._base.fetch(sha256, load)
+
+
+@contextlib.contextmanager
+def _overridden(evaluator: LocalEvaluator, request: EvaluateRequest) -> Any:
+    """``evaluator`` reading ``request``'s inline artifacts for the duration (invariant 6).
+
+    The worker serves requests one at a time on its main thread, so swapping the evaluator's
+    registry and cache for the call and back is safe; a copy of the evaluator would have to
+    repeat its dozen settings.
+    """
+    if not request.overrides:
+        yield evaluator
+        return
+    registry, cache = evaluator.registry, evaluator.cache
+    trust = (evaluator.load_options or LoadOptions()).trust
+    evaluator.registry = _OverrideRegistry(registry, request.overrides, request.override_origin, trust)
+    evaluator.cache = _OverrideCache(cache, request.overrides)
+    try:
+        yield evaluator
+    finally:
+        evaluator.registry, evaluator.cache = registry, cache
 
 
 class RuntimeWorker:
@@ -645,9 +827,10 @@ class RuntimeWorker:
         ):
             queryable = session.declare_queryable(key, handler, complete=complete)
             stack.callback(queryable.undeclare)
-        token = session.liveliness().declare_token(self.keys.alive(self.worker_id))
-        # Undeclared before the queryables (the stack unwinds in reverse): alive implies served.
-        stack.callback(token.undeclare)
+        for key in (self.keys.alive(self.worker_id), self.keys.serves(self.worker_id, self.spec.name)):
+            token = session.liveliness().declare_token(key)
+            # Undeclared before the queryables (the stack unwinds in reverse): alive implies served.
+            stack.callback(token.undeclare)
         # Runs first on the way out, while the session can still carry the error replies.
         stack.callback(self._drain, f"runtime worker {self.worker_id} is shutting down")
         return session
@@ -756,13 +939,15 @@ class RuntimeWorker:
             req = item.request
             started = time.monotonic()
             try:
-                outcomes = evaluator.evaluate(req.task, req.versions, req.seeds)
+                with _overridden(evaluator, req):
+                    outcomes = evaluator.evaluate(req.task, req.versions, req.seeds)
                 result: bytes | CapevoError = encode_outcomes(self.worker_id, outcomes)
                 self._emit(
                     "evaluated",
                     task=req.task,
                     versions=dict(req.versions),
                     seeds=len(req.seeds),
+                    overrides=sorted(req.overrides),
                     successes=sum(o.success for o in outcomes),
                     duration_s=time.monotonic() - started,
                 )
@@ -831,17 +1016,30 @@ class _SessionOwner:
 class RemoteEvaluator:
     """:class:`capevo.runtime.evaluation.Evaluator` served by runtime workers over Zenoh.
 
+    One call's seeds are split across every live worker of the task (found by their
+    ``<ns>/runtime/*/serves/<task>`` liveliness tokens) and run concurrently, one query per
+    worker; the outcomes are merged back in seed order (:mod:`capevo.runtime.fanout`). A worker
+    that dies mid-call (its liveliness token goes, or its query ends without outcomes) or
+    refuses with ``unavailable`` (shutting down, queue full) has its unfinished seeds re-split
+    across the workers still alive, re-listing them first if none is left; every seed is
+    counted once (invariant 7). Any other error from a worker (``invalid``, ``not_found``, an
+    evaluation failure) ends the call with that error, as a local evaluation would.
+
+    It also implements :class:`capevo.learner.base.CandidateEvaluator`: ``overrides`` travel
+    inline in the request, so a learner's unpublished candidates run on the workers too.
+
     Args:
         connect: Endpoint(s) of the registry router (or any router the workers reach); or
         session: an open Zenoh session to use (not closed here).
         namespace: The registry's namespace.
         user, password: Zenoh credentials when ``connect`` is given.
-        worker_id: Ask this worker; default any one worker of the task
-            (``<ns>/runtime/evaluate/<task>``).
-        timeout: Seconds to wait for the outcomes of one call.
+        worker_id: Ask only this worker (no split); default every live worker of the task.
+        timeout: Seconds to wait for all the outcomes of one call.
+        max_attempts: Dispatches of one seed before the call gives up with ``unavailable``.
 
     Raises:
-        Invalid: neither or both of ``connect``/``session``; bad namespace or worker id.
+        Invalid: neither or both of ``connect``/``session``; bad namespace, worker id, timeout or
+            max_attempts.
         Unavailable: the session cannot open.
     """
 
@@ -855,6 +1053,7 @@ class RemoteEvaluator:
         password: str | None = None,
         worker_id: str | None = None,
         timeout: float = DEFAULT_EVALUATE_TIMEOUT_S,
+        max_attempts: int = DEFAULT_MAX_ATTEMPTS,
     ) -> None:
         self.keys = RuntimeKeys(namespace)
         self.worker_id = validate_worker_id(worker_id) if worker_id is not None else None
@@ -863,53 +1062,223 @@ class RemoteEvaluator:
                 f"timeout must be a positive number of seconds, got {timeout!r}", details={"field": "timeout"}
             )
         self.timeout = float(timeout)
+        SeedLedger((), max_attempts=max_attempts)  # checks max_attempts
+        self.max_attempts = max_attempts
+        self.last_call: dict[str, Any] = {}
+        """How the last call went: ``parts``, ``failed_parts``, ``dropped``, ``workers``."""
         self._owner = _SessionOwner(session=session, connect=connect, user=user, password=password)
+        self._listeners: set[queue.Queue[tuple[str, Any, Any]]] = set()
+        self._listeners_lock = threading.Lock()
+        try:
+            # One subscriber for the evaluator's life: a call learns of a death while it waits.
+            self._liveliness: Any = self._owner.session.liveliness().declare_subscriber(
+                self.keys.alive_all(), zenoh.handlers.Callback(self._on_liveliness)
+            )
+        except zenoh.ZError as exc:
+            self._owner.close()
+            raise Unavailable(f"cannot watch the runtime workers: {_first_line(exc)}") from None
 
-    def evaluate(self, task: str, versions: Mapping[str, int], seeds: Sequence[int]) -> list[EpisodeOutcome]:
-        """Run the episodes on a worker and return its outcomes, one per seed in order.
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.DELETE:
+            return
+        worker = self.keys.worker_of(str(sample.key_expr))
+        if worker is None:
+            return
+        with self._listeners_lock:
+            for q in self._listeners:
+                q.put(("gone", worker, None))
+
+    def live_workers(self, task: str, timeout: float = DISCOVERY_TIMEOUT_S) -> list[str]:
+        """The ids of the workers whose ``serves/<task>`` token is alive, sorted.
 
         Raises:
-            Invalid: bad arguments (checked here first) or refused by the worker.
-            Unavailable: no worker serves the task (or the chosen worker is gone or busy).
-            Timeout: no outcomes within ``timeout``.
-            CapevoError: whatever the worker's evaluation raised (same class and code).
+            Invalid: unknown task. Unavailable: the liveliness query failed.
         """
-        request = EvaluateRequest(
-            task=task_spec(task).name, versions=check_versions(versions), seeds=tuple(check_seeds(seeds))
-        )
-        key = self.keys.evaluate(self.worker_id) if self.worker_id else self.keys.evaluate_task(request.task)
-        started = time.monotonic()
+        if self.worker_id is not None:
+            return [self.worker_id]
+        key = self.keys.serves_task(task)
+        found = set()
         try:
-            replies = self._owner.session.get(
+            for reply in self._owner.session.liveliness().get(key, timeout=max(timeout, 0.1)):
+                if reply.ok is not None:
+                    worker = self.keys.worker_of(str(reply.ok.key_expr))
+                    if worker is not None:
+                        found.add(worker)
+        except zenoh.ZError as exc:
+            raise Unavailable(f"{key}: listing runtime workers failed: {_first_line(exc)}") from None
+        return sorted(found)
+
+    def evaluate(
+        self,
+        task: str,
+        versions: Mapping[str, int],
+        seeds: Sequence[int],
+        *,
+        overrides: Mapping[str, bytes] | None = None,
+        override_origin: Origin | None = None,
+    ) -> list[EpisodeOutcome]:
+        """Run the episodes on the task's live workers; one outcome per seed, in seed order.
+
+        Args:
+            task, versions, seeds: As :meth:`capevo.runtime.evaluation.Evaluator.evaluate`.
+            overrides: ECM name to artifact bytes run in place of that ECM's artifact (sent
+                inline; see the module docstring).
+            override_origin: The origin the overrides run under (default the overridden
+                version's); inline code must run in the sandbox.
+
+        Raises:
+            Invalid: bad arguments (checked here first) or refused by a worker.
+            Forbidden: an override the worker would run in its own process.
+            Unavailable: no worker serves the task, or every worker that could run some seed
+                died or refused.
+            Timeout: not every outcome within ``timeout``.
+            CapevoError: whatever a worker's evaluation raised (same class and code).
+        """
+        spec = task_spec(task)
+        if override_origin is not None and not isinstance(override_origin, Origin):
+            raise Invalid(f"override_origin must be an Origin, got {override_origin!r}", details={"field": "origin"})
+        request = EvaluateRequest(
+            task=spec.name,
+            versions=check_versions(versions),
+            seeds=tuple(check_seeds(seeds)),
+            overrides=check_overrides(overrides, spec.name),
+            override_origin=override_origin,
+        )
+        deadline = time.monotonic() + self.timeout
+        ledger = SeedLedger(request.seeds, max_attempts=self.max_attempts)
+        events: queue.Queue[tuple[str, Any, Any]] = queue.Queue()
+        tokens: dict[int, zenoh.CancellationToken] = {}
+        out: set[str] = set()  # workers this call no longer sends to: dead or refusing
+        used: set[str] = set()
+        with self._listeners_lock:
+            self._listeners.add(events)
+        try:
+            live = set(self.live_workers(spec.name, min(DISCOVERY_TIMEOUT_S, self.timeout)))
+            while not ledger.done:
+                if ledger.pool:
+                    candidates = live - out
+                    if not candidates:  # every worker we knew is gone: one may have joined since
+                        live |= set(self.live_workers(spec.name, min(DISCOVERY_TIMEOUT_S, _left(deadline))))
+                        candidates = live - out
+                    if not candidates:
+                        raise self._no_worker(spec.name, ledger, tried=sorted(used))
+                    for part in ledger.dispatch(candidates):
+                        used.add(part.worker_id)
+                        tokens[part.part_id] = self._send(part, request, events, deadline)
+                try:
+                    kind, subject, body = events.get(timeout=_left(deadline))
+                except queue.Empty:
+                    raise Timeout(
+                        f"{self.keys.serves_task(spec.name)}: not every outcome within {self.timeout:g}s",
+                        details={"key": self.keys.serves_task(spec.name), "pending": len(ledger.in_flight())},
+                    ) from None
+                if kind == "gone":
+                    out.add(subject)
+                    for part in ledger.in_flight(subject):
+                        self._lose(ledger, part, tokens, "its liveliness token went away")
+                    continue
+                part = next((p for p in ledger.in_flight() if p.part_id == subject), None)
+                if kind == "ok":
+                    ledger.complete(subject, decode_outcomes(body)[1])
+                elif kind == "err":
+                    if part is None:  # a part given up already; its late error changes nothing
+                        continue
+                    err = _reply_error(body, self.keys.evaluate(part.worker_id), self.timeout)
+                    if not isinstance(err, Unavailable):
+                        raise err
+                    out.add(part.worker_id)
+                    self._lose(ledger, part, tokens, err.message)
+                elif kind == "end" and part is not None:
+                    # The query ended without a reply: its worker vanished with it.
+                    out.add(part.worker_id)
+                    self._lose(ledger, part, tokens, "its query ended without outcomes")
+            return ledger.merged()
+        finally:
+            with self._listeners_lock:
+                self._listeners.discard(events)
+            for token in tokens.values():
+                token.cancel()
+            self.last_call = {
+                "parts": len(tokens),
+                "failed_parts": ledger.failed_parts,
+                "dropped": ledger.dropped,
+                "workers": sorted(used),
+            }
+
+    def _send(
+        self, part: Part, request: EvaluateRequest, events: queue.Queue[tuple[str, Any, Any]], deadline: float
+    ) -> zenoh.CancellationToken:
+        """Query ``part``'s worker; its reply and its end land on ``events`` as ``(kind, part_id, body)``."""
+        key = self.keys.evaluate(part.worker_id)
+        payload = dataclasses.replace(request, seeds=part.seeds).to_json()
+        token = zenoh.CancellationToken()
+        pid = part.part_id
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                events.put(("ok", pid, reply.ok.payload.to_bytes()))
+            else:
+                events.put(("err", pid, reply.err.payload.to_bytes() if reply.err is not None else b""))
+
+        def on_end() -> None:
+            events.put(("end", pid, None))
+
+        try:
+            self._owner.session.get(
                 key,
-                payload=request.to_json(),
-                timeout=self.timeout,
+                zenoh.handlers.Callback(on_reply, on_end),
+                payload=payload,
+                # a little past the call's deadline: the call's own Timeout is the one raised
+                timeout=_left(deadline) + 1.0,
                 target=zenoh.QueryTarget.BEST_MATCHING,
                 consolidation=zenoh.ConsolidationMode.NONE,
                 congestion_control=zenoh.CongestionControl.BLOCK,
+                cancellation_token=token,
             )
-            for reply in replies:
-                if reply.ok is not None:
-                    _, outcomes = decode_outcomes(reply.ok.payload.to_bytes())
-                    if len(outcomes) != len(request.seeds):
-                        raise CapevoError(
-                            f"runtime worker returned {len(outcomes)} outcomes for {len(request.seeds)} seeds"
-                        )
-                    return outcomes
-                body = reply.err.payload.to_bytes() if reply.err is not None else b""
-                if body == b"Timeout":
-                    raise Timeout(f"{key}: no outcomes within {self.timeout:g}s", details={"key": key})
-                raise error_from_payload(body)
         except zenoh.ZError as exc:
             raise Unavailable(f"{key}: query failed: {_first_line(exc)}", details={"key": key}) from None
-        if time.monotonic() - started >= self.timeout * _NO_REPLY_GRACE:
-            raise Timeout(f"{key}: no outcomes within {self.timeout:g}s", details={"key": key})
-        who = f"runtime worker {self.worker_id!r}" if self.worker_id else f"no runtime worker of task {request.task!r}"
-        raise Unavailable(
-            f"{key}: {who} answered (namespace {self.keys.namespace!r}); is one running?", details={"key": key}
+        log.debug("sent seeds %s to %s (part %d)", list(part.seeds), part.worker_id, pid)
+        return token
+
+    @staticmethod
+    def _lose(ledger: SeedLedger, part: Part, tokens: Mapping[int, zenoh.CancellationToken], why: str) -> None:
+        back = ledger.fail(part.part_id)
+        token = tokens.get(part.part_id)
+        if token is not None:
+            token.cancel()
+        if back:
+            log.warning(
+                "runtime worker %s lost seeds %s (%s); re-running them elsewhere",
+                part.worker_id,
+                [ledger.seeds[i] for i in back],
+                why,
+            )
+
+    def _no_worker(self, task: str, ledger: SeedLedger, *, tried: list[str]) -> Unavailable:
+        if self.worker_id is not None:
+            key = self.keys.evaluate(self.worker_id)
+            return Unavailable(
+                f"{key}: runtime worker {self.worker_id!r} did not answer (namespace {self.keys.namespace!r}); "
+                "is it running?",
+                details={"key": key},
+            )
+        key = self.keys.serves_task(task)
+        if not tried:
+            return Unavailable(
+                f"{key}: no runtime worker of task {task!r} answered (namespace {self.keys.namespace!r}); "
+                "is one running?",
+                details={"key": key},
+            )
+        lost = [ledger.seeds[i] for i in ledger.pool]
+        return Unavailable(
+            f"{key}: runtime workers {', '.join(tried)} of task {task!r} died or refused with seeds {lost} "
+            "unfinished, and no other worker is alive",
+            details={"key": key, "seeds": lost},
         )
 
     def close(self) -> None:
+        with contextlib.suppress(zenoh.ZError):
+            self._liveliness.undeclare()
         self._owner.close()
 
     def __enter__(self) -> RemoteEvaluator:
@@ -917,6 +1286,17 @@ class RemoteEvaluator:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _left(deadline: float) -> float:
+    return max(deadline - time.monotonic(), 0.0)
+
+
+def _reply_error(body: bytes, key: str, timeout: float) -> CapevoError:
+    """The error an error reply carries (Zenoh's own query timeout says ``Timeout``)."""
+    if body == b"Timeout":
+        return Timeout(f"{key}: no outcomes within {timeout:g}s", details={"key": key})
+    return error_from_payload(body)
 
 
 def list_workers(

@@ -1,0 +1,293 @@
+"""One evaluation call's seeds split across runtime workers (issue 19), merged back in seed order.
+
+The bookkeeping (:mod:`capevo.runtime.fanout`) is checked on its own first, one test per
+invariant. Then real worker processes (``capevo runtime serve``, each a fresh interpreter)
+against a real registry server process, over loopback Zenoh with scouting off: the split is
+the one :func:`split` gives, and its merged outcomes equal a one-worker run on the same
+seeds; inline candidate artifacts run on the workers and change nothing after their call; a
+worker SIGKILLed in the middle of a call loses no seed and counts none twice.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import random
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from procs import ServerProcess, start_server
+from runtime_support import Proc, publish_pick, start_worker
+
+from capevo.errors import CapevoError, Forbidden, Invalid, Unavailable
+from capevo.records import Origin
+from capevo.runtime.evaluation import EpisodeOutcome
+from capevo.runtime.fanout import SeedLedger, split
+from capevo.runtime.worker import RemoteEvaluator
+
+HORIZON = "20"
+# A reach that holds still with the gripper open: with it no episode gets near the can.
+HOLD = b"""
+PARAMS = {}
+def act(obs, params):
+    return [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0]
+"""
+
+
+def outcome(seed: int, *, success: bool = False) -> EpisodeOutcome:
+    return EpisodeOutcome(
+        seed=seed,
+        success=success,
+        reward=0.0,
+        steps=1,
+        duration_s=0.0,
+        interventions=0,
+        unsafe_steps=0,
+        ecm_failures=0,
+        capability_set={},
+    )
+
+
+# --- the bookkeeping, without processes -------------------------------------------------------
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    n=st.integers(min_value=0, max_value=40),
+    workers=st.lists(st.text("abcdef", min_size=1, max_size=3), min_size=1, max_size=6),
+    order=st.randoms(use_true_random=False),
+)
+def test_split_depends_only_on_the_worker_set_and_covers_every_index_once(
+    n: int, workers: list[str], order: random.Random
+) -> None:
+    """Invariant 1."""
+    parts = split(range(n), workers)
+    shuffled = list(workers) * 2
+    order.shuffle(shuffled)
+    assert split(range(n), shuffled) == parts
+    assert [w for w, _ in parts] == sorted(set(workers))[: len(parts)]
+    flat = [i for _, idx in parts for i in idx]
+    assert flat == list(range(n))  # contiguous runs in order: each index exactly once
+    sizes = [len(idx) for _, idx in parts]
+    assert all(sizes) and (not sizes or max(sizes) - min(sizes) <= 1)
+    assert sizes == sorted(sizes, reverse=True)
+
+
+def test_split_needs_a_worker() -> None:
+    with pytest.raises(Invalid) as err:
+        split([0, 1], [])
+    assert err.value.code.value == "invalid" and err.value.message == "split: no worker to run the seeds on"
+
+
+def test_a_late_reply_of_a_failed_part_never_counts_a_seed_twice() -> None:
+    """Invariants 2, 4 and 6: a worker taken for dead answers after its seeds were re-run."""
+    seeds = [10, 11, 12, 13, 14]
+    ledger = SeedLedger(seeds)
+    a, b = ledger.dispatch(["w-b", "w-a"])
+    assert (a.worker_id, a.seeds, b.worker_id, b.seeds) == ("w-a", (10, 11, 12), "w-b", (13, 14))
+    assert ledger.fail(b.part_id) == (3, 4)
+    assert ledger.pool == (3, 4)
+    (again,) = ledger.dispatch(["w-a"])
+    assert again.seeds == (13, 14) and ledger.pool == ()
+    assert [p.part_id for p in ledger.in_flight()] == [a.part_id, again.part_id]  # no index on two parts
+    with pytest.raises(Invalid):
+        ledger.merged()  # invariant 4: not before every seed is in
+    assert ledger.complete(a.part_id, [outcome(s) for s in a.seeds]) == 3
+    assert ledger.complete(b.part_id, [outcome(s, success=True) for s in b.seeds]) == 2  # the late one fills
+    assert ledger.complete(again.part_id, [outcome(s) for s in again.seeds]) == 0
+    assert ledger.dropped == 2 and ledger.failed_parts == 1 and ledger.done
+    merged = ledger.merged()
+    assert [o.seed for o in merged] == seeds
+    assert [o.success for o in merged] == [False, False, False, True, True]
+
+
+def test_a_reply_for_other_seeds_is_refused_and_fails_its_part() -> None:
+    """Invariant 3."""
+    ledger = SeedLedger([1, 2, 2])
+    (part,) = ledger.dispatch(["w"])
+    with pytest.raises(CapevoError) as err:
+        ledger.complete(part.part_id, [outcome(1), outcome(2), outcome(3)])
+    assert err.value.message == "runtime worker w returned outcomes for seeds [1, 2, 3], asked for [1, 2, 2]"
+    assert ledger.pool == (0, 1, 2) and not ledger.in_flight()
+    with pytest.raises(CapevoError):
+        ledger.complete(part.part_id, [outcome(1)])
+
+
+def test_a_seed_is_dispatched_at_most_max_attempts_times() -> None:
+    """Invariant 5."""
+    ledger = SeedLedger([7, 8], max_attempts=2)
+    for _ in range(2):
+        for part in ledger.dispatch(["w-a", "w-b"]):
+            ledger.fail(part.part_id)
+    assert ledger.attempts(0) == ledger.attempts(1) == 2
+    with pytest.raises(Unavailable) as err:
+        ledger.dispatch(["w-a"])
+    assert err.value.code.value == "unavailable"
+    assert err.value.message.startswith("seeds [7, 8] were dispatched 2 times")
+    with pytest.raises(Invalid):
+        SeedLedger([1], max_attempts=0)
+
+
+# --- real workers -----------------------------------------------------------------------------
+
+
+@dataclass
+class Cluster:
+    endpoint: str
+    registry: ServerProcess
+    workers: dict[str, Proc]
+    root: Path
+
+    def start(self, worker_id: str) -> Proc:
+        proc = start_worker(
+            self.endpoint,
+            task="T1",
+            log_path=self.root / f"{worker_id}.log",
+            extra=[
+                "--worker-id",
+                worker_id,
+                "--idle",
+                "--horizon",
+                HORIZON,
+                "--trace-dir",
+                str(self.root / worker_id),
+                "--trace-compression",
+                "none",
+                "--cache-dir",
+                str(self.root / worker_id / "cache"),
+            ],
+        )
+        self.workers[worker_id] = proc
+        return proc
+
+    def ran_on(self, o: EpisodeOutcome) -> str:
+        """Which worker ran an episode: its trace file lies under that worker's trace directory."""
+        assert o.trace_path is not None
+        return Path(o.trace_path).relative_to(self.root).parts[0]
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
+    root = tmp_path_factory.mktemp("fanout")
+    registry = start_server(root / "registry")
+    with registry.client(actor="tester") as client:
+        publish_pick(client)
+    c = Cluster(endpoint=registry.endpoint, registry=registry, workers={}, root=root)
+    try:
+        c.start("w-a")
+        c.start("w-b")
+        yield c
+    finally:
+        codes = {w: p.terminate() for w, p in c.workers.items() if p.running()}
+        registry.stop()
+    assert all(code == 0 for code in codes.values()), {w: c.workers[w].log()[-2000:] for w in codes}
+
+
+def same_episodes(a: list[EpisodeOutcome], b: list[EpisodeOutcome]) -> None:
+    assert [(o.seed, o.success, o.reward, o.steps) for o in a] == [(o.seed, o.success, o.reward, o.steps) for o in b]
+
+
+@pytest.mark.slow
+@pytest.mark.zenoh
+def test_the_split_is_deterministic_and_merges_to_a_one_worker_run(cluster: Cluster) -> None:
+    seeds = [5, 3, 8, 1, 9]
+    with RemoteEvaluator(cluster.endpoint, timeout=240) as evaluator:
+        assert evaluator.live_workers("T1") == ["w-a", "w-b"]
+        first = evaluator.evaluate("T1", {}, seeds)
+        assert evaluator.last_call == {"parts": 2, "failed_parts": 0, "dropped": 0, "workers": ["w-a", "w-b"]}
+        second = evaluator.evaluate("T1", {}, seeds)
+    with RemoteEvaluator(cluster.endpoint, worker_id="w-a", timeout=240) as alone:
+        one = alone.evaluate("T1", {}, seeds)
+    assert [o.seed for o in first] == seeds
+    # the split is split()'s: the first three seeds on w-a, the last two on w-b, both times
+    expected = {i: w for w, idx in split(range(len(seeds)), ["w-b", "w-a"]) for i in idx}
+    assert [cluster.ran_on(o) for o in first] == [expected[i] for i in range(len(seeds))]
+    assert [cluster.ran_on(o) for o in second] == [cluster.ran_on(o) for o in first]
+    assert {cluster.ran_on(o) for o in one} == {"w-a"}
+    same_episodes(first, one)
+    same_episodes(second, one)
+    assert all(0 < o.steps <= int(HORIZON) for o in one)
+
+
+@pytest.mark.slow
+@pytest.mark.zenoh
+def test_inline_candidates_run_on_the_workers_sandboxed_and_only_for_their_call(cluster: Cluster) -> None:
+    seeds = [2, 4]
+    with RemoteEvaluator(cluster.endpoint, timeout=240) as evaluator:
+        before = evaluator.evaluate("T1", {}, seeds)
+        # a manual-origin override would run shipped bytes in the worker's own process
+        with pytest.raises(Forbidden) as err:
+            evaluator.evaluate("T1", {}, seeds, overrides={"pick.reach": HOLD})
+        assert err.value.code.value == "forbidden" and "inline code runs only in the sandbox" in err.value.message
+        with pytest.raises(Invalid) as bad:
+            evaluator.evaluate("T1", {}, seeds, overrides={"place.drop": b"x"})
+        assert bad.value.message.startswith("override 'place.drop' is not an ECM of task 'pick'")
+        held = evaluator.evaluate("T1", {}, seeds, overrides={"pick.reach": HOLD}, override_origin=Origin.CLONE)
+        after = evaluator.evaluate("T1", {}, seeds)
+    assert [o.seed for o in held] == seeds
+    assert {cluster.ran_on(o) for o in held} == {"w-a", "w-b"}
+    # reported at the version the override stands in for
+    assert all(dict(o.capability_set) == {"pick.reach": 0, "pick.grasp": 0, "pick.lift": 0} for o in held)
+    # the override is what ran: an arm that holds still earns other rewards than one that reaches
+    assert [o.reward for o in held] != [o.reward for o in before]
+    same_episodes(after, before)  # worker invariant 6: nothing of the override stays behind
+    cached = {p.name for p in cluster.root.glob("w-*/cache/*/*")}
+    assert cached, "the workers cache the registry's artifacts"
+    assert hashlib.sha256(HOLD).hexdigest() not in cached
+
+
+@pytest.mark.slow
+@pytest.mark.zenoh
+@pytest.mark.parametrize(
+    ("victim_id", "how"),
+    [
+        ("w-c", "sigkill"),  # dies silently: its liveliness token goes (or its query ends unanswered)
+        ("w-d", "sigterm"),  # shuts down cleanly: it refuses the running part with `unavailable`
+    ],
+)
+def test_a_worker_killed_mid_call_loses_no_seed_and_counts_none_twice(
+    cluster: Cluster, victim_id: str, how: str
+) -> None:
+    seeds = [11, 12, 13, 14, 15, 16]
+    with RemoteEvaluator(cluster.endpoint, worker_id="w-a", timeout=300) as alone:
+        reference = alone.evaluate("T1", {}, seeds)
+    victim = cluster.start(victim_id)
+    evaluations = cluster.root / victim_id / "evaluations"
+    result: dict[str, object] = {}
+
+    def call() -> None:
+        with RemoteEvaluator(cluster.endpoint, timeout=300) as evaluator:
+            try:
+                result["outcomes"] = evaluator.evaluate("T1", {}, seeds)
+            except BaseException as exc:  # re-raised on the test's thread below
+                result["error"] = exc
+            result["last_call"] = dict(evaluator.last_call)
+
+    thread = threading.Thread(target=call)
+    thread.start()
+    # w-c opens its evaluation's trace file when its part starts: kill it in the middle of the part
+    deadline = time.monotonic() + 120
+    while not list(evaluations.glob("*.mcap")) and time.monotonic() < deadline and thread.is_alive():
+        time.sleep(0.05)
+    assert list(evaluations.glob("*.mcap")), victim.log()[-3000:]
+    if how == "sigkill":
+        victim.kill()
+    else:
+        assert victim.terminate() == 0, victim.log()[-3000:]
+    thread.join(300)
+    assert not thread.is_alive()
+    if "error" in result:
+        raise result["error"]  # type: ignore[misc]
+    outcomes = result["outcomes"]
+    assert isinstance(outcomes, list)
+    assert [o.seed for o in outcomes] == seeds  # one outcome per seed, in order
+    same_episodes(outcomes, reference)
+    # the victim's part (the last two seeds: its id sorts last of three) was re-run by the survivors
+    assert {cluster.ran_on(o) for o in outcomes[4:]} <= {"w-a", "w-b"}
+    last = result["last_call"]
+    assert isinstance(last, dict) and last["failed_parts"] >= 1 and victim_id in last["workers"]
