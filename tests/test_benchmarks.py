@@ -23,6 +23,7 @@ import _common  # noqa: E402
 import bench_governance_live  # noqa: E402
 import bench_governance_rates  # noqa: E402
 import bench_resolve_clients  # noqa: E402
+import bench_sac_throughput  # noqa: E402
 import bench_traces_loop  # noqa: E402
 import bench_worker  # noqa: E402
 
@@ -94,3 +95,11 @@ def test_resolve_clients_benchmark_runs_raw_and_capevo_over_real_zenoh(results_i
     assert row["clients"] == 2 and set(row["rounds"]) == {"raw", "capevo"}
     assert all(row[kind]["throughput_per_s"] > 0 and row[kind]["p50_ms"] > 0 for kind in ("raw", "capevo"))
     assert saved["server_exit_code"] == 0 and saved["reply_bytes"] > 100
+
+
+def test_sac_throughput_benchmark_measures_each_part_and_estimates_the_paper_budget(results_in: Path) -> None:
+    result = bench_sac_throughput.main(["--steps", "20"])
+    assert set(result["rates_per_s"]) == {"sim", "grad", "sac_1env", "sac_2env"}
+    assert all(r > 0 for r in result["rates_per_s"].values())
+    assert all(h > 0 for h in result["estimates_hours"].values())  # no timing is judged, only that it ran
+    assert json.loads((results_in / "sac_throughput.json").read_text())["steps"] == 20
