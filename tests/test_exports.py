@@ -13,6 +13,10 @@ PUBLIC = {
         "Provenance", "PublishSpec", "Registry", "State", "VerifyReport", "dump_publish_spec", "open_registry",
         "parse_publish_spec", "serve",
     },
+    "capevo.baselines": {
+        "AgentModification", "AgentModificationBC", "Budget", "CellSpec", "Emit", "EpisodeResult", "GovernedTaskEnv",
+        "IterationRecord", "Method", "evaluate_policy",
+    },
     "capevo.storage": {"AbstractStore", "BlobStore", "SqliteStore"},
     "capevo.runtime": {
         "ActionLayout", "ArmActionLayout", "ArmState", "Decision", "DecisionContext", "DecisionPolicy",

@@ -1,8 +1,37 @@
 """The methods capevo is compared against (issue 20, paper §5.2), one module per method, and the
-record types every method of the experiment harness shares (:mod:`capevo.baselines.base`)."""
+record types every method of the experiment harness shares (:mod:`capevo.baselines.base`).
+
+The methods and the governed whole-task env load robosuite (and torch when they run) only when
+one of their names is first used.
+"""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+from capevo._lazy import lazy_getattr
 from capevo.baselines.base import Budget, CellSpec, Emit, EpisodeResult, IterationRecord, Method
 
-__all__ = ["Budget", "CellSpec", "Emit", "EpisodeResult", "IterationRecord", "Method"]
+if TYPE_CHECKING:
+    from capevo.baselines.am import AgentModification, AgentModificationBC
+    from capevo.baselines.governed_env import GovernedTaskEnv, evaluate_policy
+
+_HOMES = {
+    "AgentModification": "capevo.baselines.am",
+    "AgentModificationBC": "capevo.baselines.am",
+    "GovernedTaskEnv": "capevo.baselines.governed_env",
+    "evaluate_policy": "capevo.baselines.governed_env",
+}
+__all__ = [
+    "AgentModification",
+    "AgentModificationBC",
+    "Budget",
+    "CellSpec",
+    "Emit",
+    "EpisodeResult",
+    "GovernedTaskEnv",
+    "IterationRecord",
+    "Method",
+    "evaluate_policy",
+]
+__getattr__ = lazy_getattr(__name__, _HOMES)
