@@ -42,6 +42,9 @@ Invariants:
 4. The returned source differs from the parent's only inside the ``PARAMS`` literal.
 5. The returned θ is one of the last iteration's ``validate_top`` best (its best when
    validation is off).
+6. With ``max_env_steps`` set, the search's episodes take at most that many env steps in all
+   (``CemResult.env_steps_run``); the first iteration runs as many candidates as fit (at least
+   the parent's θ, or :class:`Invalid`), a later one runs whole or not at all.
 """
 
 from __future__ import annotations
@@ -106,9 +109,15 @@ class CemConfig:
         validate_top: How many of the last iteration's best candidates are validated.
         validation_episodes: Extra episodes (on training seeds after the iterations' ones)
             for each of them; the candidate is the best on all its episodes. 0 skips this.
+        max_env_steps: Env steps the whole search (iterations and validation) may spend; None
+            for no cap. A candidate whose episodes could take it past the cap (each episode
+            counted at ``episode_steps_max``, the horizon) is not run: the search stops there
+            and returns the best candidate evaluated (issue 20: budget parity).
+        episode_steps_max: Most env steps one episode can take (the horizon); needed with
+            ``max_env_steps``.
 
     Raises:
-        Invalid: a value out of range.
+        Invalid: a value out of range, or a cap without ``episode_steps_max``.
     """
 
     population: int = 8
@@ -127,8 +136,16 @@ class CemConfig:
     smoothing: float = 0.7
     validate_top: int = 2
     validation_episodes: int = 0
+    max_env_steps: int | None = None
+    episode_steps_max: int | None = None
 
     def __post_init__(self) -> None:
+        for name in ("max_env_steps", "episode_steps_max"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+                raise _bad(name, f"must be a positive integer or None, got {v!r}")
+        if self.max_env_steps is not None and self.episode_steps_max is None:
+            raise _bad("episode_steps_max", "is needed with max_env_steps (the most steps one episode can take)")
         ints = {
             "population": (self.population, 2, 10_000),
             "iterations": (self.iterations, 1, 10_000),
@@ -181,6 +198,9 @@ class CemConfig:
             "smoothing": self.smoothing,
             "validate_top": self.validate_top,
             "validation_episodes": self.validation_episodes,
+            # only when set: the provenance hashes of uncapped searches stay what they were
+            **({"max_env_steps": self.max_env_steps} if self.max_env_steps is not None else {}),
+            **({"episode_steps_max": self.episode_steps_max} if self.episode_steps_max is not None else {}),
         }
 
 
@@ -417,6 +437,10 @@ class CemResult:
     """The parent's θ, first candidate of the first iteration."""
     iterations_run: int
     episodes_run: int
+    env_steps_run: int = 0
+    """Env steps of every episode the search ran (≤ ``max_env_steps`` when capped)."""
+    stopped_by_budget: bool = False
+    """The step cap ended the search before its iterations (or validation) were done."""
     history: tuple[CemEvent, ...] = field(default_factory=tuple)
     experience: tuple[Any, ...] = ()
     """The best candidate's own episodes (iteration and validation), with their traces."""
@@ -501,6 +525,8 @@ class CemSearch:
         smoothing: float = 0.7,
         validate_top: int = 2,
         validation_episodes: int = 0,
+        max_env_steps: int | None = None,
+        episode_steps_max: int | None = None,
         origin: Origin = Origin.CLONE,
         learner_id: str = "cem",
         progress: Callable[[CemEvent], Any] | None = None,
@@ -522,6 +548,8 @@ class CemSearch:
             smoothing=smoothing,
             validate_top=validate_top,
             validation_episodes=validation_episodes,
+            max_env_steps=max_env_steps,
+            episode_steps_max=episode_steps_max,
         )
         self.evaluator = evaluator
         self.origin = Origin(origin)
@@ -557,6 +585,8 @@ class CemSearch:
             smoothing=config.smoothing,
             validate_top=config.validate_top,
             validation_episodes=config.validation_episodes,
+            max_env_steps=config.max_env_steps,
+            episode_steps_max=config.episode_steps_max,
             origin=origin,
             learner_id=learner_id,
             progress=progress,
@@ -598,10 +628,25 @@ class CemSearch:
         baseline: Score | None = None
         finalists: list[_Finalist] = []
         episodes = 0
+        env_steps = 0
         iterations_run = 0
+        stopped_by_budget = False
+
+        def affordable(n_episodes: int) -> bool:
+            # the worst case (every episode to the horizon) must fit under the cap
+            if cfg.max_env_steps is None or cfg.episode_steps_max is None:
+                return True
+            return env_steps + n_episodes * cfg.episode_steps_max <= cfg.max_env_steps
+
+        if not affordable(len(slices[0])):
+            raise Invalid(
+                f"a step cap of {cfg.max_env_steps} env steps cannot cover one candidate "
+                f"({len(slices[0])} episodes of up to {cfg.episode_steps_max} steps)",
+                details={"field": "max_env_steps"},
+            )
 
         def run(theta: dict[str, float], seeds: Sequence[int]) -> tuple[list[Any], list[EpisodeEnd], str]:
-            nonlocal episodes
+            nonlocal episodes, env_steps
             cand = with_params(src, theta, filename=f"<{request.ecm}>")
             outcomes = self.evaluator.evaluate(
                 request.task,
@@ -611,15 +656,24 @@ class CemSearch:
                 override_origin=evaluation_origin or self.origin,
             )
             episodes += len(outcomes)
+            env_steps += sum(int(o.steps) for o in outcomes)
             return list(outcomes), episode_ends(outcomes), cand
 
         for it in range(cfg.iterations):
             seeds = slices[it]
+            if it > 0 and not affordable(cfg.population * len(seeds)):
+                # a later iteration runs whole or not at all: its candidates replace the
+                # finalists, and a few of them on fresh seeds are no better evidence
+                stopped_by_budget = True
+                break
             zs = [mean.copy()]
             for _ in range(cfg.population - 1):
                 zs.append(np.clip(mean + sigma * rng.standard_normal(space.dim), zlo, zhi))
             scored: list[_Finalist] = []
             for i, z in enumerate(zs):
+                if not affordable(len(seeds)):
+                    stopped_by_budget = True
+                    break
                 theta = {**start, **space.params(z)}
                 outcomes, ends, cand = run(theta, seeds)
                 score = score_outcomes(outcomes, decomposition, ends=ends)
@@ -643,6 +697,8 @@ class CemSearch:
                     baseline = score
                 if self.progress is not None:
                     self.progress(event)
+            if not scored:
+                break
             iterations_run += 1
             order = sorted(scored, key=lambda f: (f.rank(), -f.index), reverse=True)
             # the latest iteration's best are the finalists: later iterations sample around
@@ -663,6 +719,8 @@ class CemSearch:
                 top_passed,
                 space.params(mean),
             )
+            if stopped_by_budget:
+                break
             if cfg.stop_when_passed and it + 1 >= cfg.min_iterations and top_passed >= 1.0:
                 break
         if not finalists or baseline is None:  # pragma: no cover - iterations >= 1 always runs one
@@ -674,6 +732,9 @@ class CemSearch:
             vseeds = _validation_seeds(request.train_seeds, cfg)
             judged = []
             for f in finalists[: cfg.validate_top]:
+                if not affordable(len(vseeds)):
+                    stopped_by_budget = True
+                    break
                 outcomes, ends, _ = run(f.theta, vseeds)
                 all_out, all_ends = f.outcomes + outcomes, f.ends + ends
                 judged.append(
@@ -689,8 +750,10 @@ class CemSearch:
                         unsafe=_unsafe_in(all_ends, request.ecm),
                     )
                 )
+            # finalists the cap left unvalidated compete on their iteration episodes alone
+            judged.extend(finalists[len(judged) : cfg.validate_top] if judged else ())
             judged.sort(key=lambda f: (f.rank(), -f.index), reverse=True)
-            best = judged[0]
+            best = judged[0] if judged else best
         return CemResult(
             params=best.theta,
             source=best.source,
@@ -698,6 +761,8 @@ class CemSearch:
             baseline=baseline,
             iterations_run=iterations_run,
             episodes_run=episodes,
+            env_steps_run=env_steps,
+            stopped_by_budget=stopped_by_budget,
             history=tuple(history),
             experience=tuple(best.outcomes),
         )
@@ -737,6 +802,8 @@ class CemSearch:
                 "params": dict(result.params),
                 "iterations_run": result.iterations_run,
                 "episodes_run": result.episodes_run,
+                "env_steps_run": result.env_steps_run,
+                "stopped_by_budget": result.stopped_by_budget,
             },
             experience=result.experience,
         )

@@ -648,3 +648,28 @@ def test_an_episode_out_of_time_blames_the_step_that_spent_it() -> None:
     # an episode the policy ended (not the horizon) is judged by its plan alone
     gave_up = dataclasses.replace(slow_reach, end_reason="policy: stack.lift reached its attempt limit")
     assert failed_activations(gave_up, STACK) == ["stack.lift"]
+
+
+def test_step_cap_bounds_the_env_steps_a_search_spends(registry) -> None:
+    """Invariant 6: with max_env_steps the search's episodes stay under the cap, counted at the
+    horizon; the first iteration runs what fits, a later one whole or not at all."""
+    request = _request(registry)
+    base = read_params(request.source)
+    fake = SyntheticEvaluator("pick.reach", base, TARGET)  # every episode takes 50 steps
+    common = {"population": 4, "iterations": 3, "episodes_per_candidate": 2, "seed": 1, "stop_when_passed": False}
+    free = CemSearch(fake, **common).search(request)
+    assert free.env_steps_run == 4 * 3 * 2 * 50 and not free.stopped_by_budget
+    # a cap of 1000 steps at a horizon of 60: iteration 0 (4 x 2 x 60 = 480 worst case) fits,
+    # iteration 1 would reach 400 + 480 = 880 <= 1000, iteration 2 would reach 800 + 480 > 1000
+    capped = CemSearch(fake, **common, max_env_steps=1000, episode_steps_max=60).search(request)
+    assert capped.iterations_run == 2 and capped.stopped_by_budget
+    assert capped.env_steps_run == 800 <= 1000
+    # the first iteration runs as many candidates as fit: 3 of 4 under 400 steps at horizon 60
+    few = CemSearch(fake, **common, max_env_steps=400, episode_steps_max=60).search(request)
+    assert few.episodes_run == 6 and few.env_steps_run == 300 and few.stopped_by_budget
+    with pytest.raises(Invalid) as info:
+        CemSearch(fake, **common, max_env_steps=100, episode_steps_max=60).search(request)
+    assert info.value.details["field"] == "max_env_steps"
+    with pytest.raises(Invalid) as info:
+        CemConfig(max_env_steps=100)
+    assert "episode_steps_max" in info.value.message
