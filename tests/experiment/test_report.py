@@ -1,0 +1,255 @@
+"""The experiment report over constructed run directories: the tables hold the values computed here
+independently (numpy, scipy), every figure is a valid PNG, failed/unfinished/unreadable cells are
+listed, and the paper's figures stand beside the run's (capevo.experiment.report invariants)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from matplotlib import image as mpimg
+from run_builder import BUDGET, Raw, gen_raw, write_cell, write_run_files
+from scipy import stats
+
+from capevo.errors import NotFound
+from capevo.experiment.report import benchmark_overhead, load_run, paper_ablation_row, write_report
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+OURS_SEEDS = (42, 7, 123)
+AM_SEEDS = (42, 7)
+
+
+def _peak_success(raw: Raw) -> float:
+    return max(float(np.mean(s)) for s in raw.successes)
+
+
+def _rewards(raw: Raw) -> list[float]:
+    return [float(np.mean(r)) for r in raw.rewards]
+
+
+@pytest.fixture
+def run(tmp_path: Path) -> tuple[Path, dict[str, Raw]]:
+    return build_run(tmp_path / "run")
+
+
+def build_run(root: Path) -> tuple[Path, dict[str, Raw]]:
+    """T6 ours-code × 3 seeds, am × 2 seeds, T1 s-ecm × 1, T3 ablation cells, explorer on/off on T1,
+    and a failed, an unfinished and an unreadable cell."""
+    root.mkdir()
+    write_run_files(root)
+    raws: dict[str, Raw] = {}
+    for i, s in enumerate(OURS_SEEDS):
+        raw = gen_raw(100 + i, iterations=3, episodes=10, p_success=(0.1, 0.5, 0.9), reward_scale=3.0)
+        raws[f"T6-ours-code-s{s}"] = raw
+        write_cell(root, task="T6", method="ours-code", seed=s, raw=raw, knowledge="hand-written skills")
+    for i, s in enumerate(AM_SEEDS):
+        raw = gen_raw(200 + i, iterations=3, episodes=10, p_success=(0.0, 0.2, 0.3), drift=0.6)
+        raws[f"T6-am-s{s}"] = raw
+        write_cell(root, task="T6", method="am", seed=s, raw=raw)
+    raw = gen_raw(300, iterations=3, episodes=10, p_success=(0.0, 0.0, 0.0), train=0)
+    raws["T1-s-ecm-s42"] = raw
+    write_cell(root, task="T1", method="s-ecm", seed=42, raw=raw, knowledge="v0 ECMs")
+    raw = gen_raw(301, iterations=3, episodes=10, p_success=(0.0, 0.0, 0.1))
+    raws["T3-ours-code-s42"] = raw
+    write_cell(root, task="T3", method="ours-code", seed=42, raw=raw, options={"modality": "rl"})
+    # over budget in its second iteration
+    raw = gen_raw(302, iterations=2, episodes=10, p_success=(0.0, 0.1))
+    raw.train[1] = BUDGET.env_steps_per_iteration + 1
+    raws["T3-am-s42"] = raw
+    write_cell(root, task="T3", method="am", seed=42, raw=raw)
+    for on in (True, False):
+        raw = gen_raw(400 + on, iterations=1, episodes=20, p_success=(0.0,), train=0, p_unsafe=0.0 if on else 0.6,
+                      p_block=0.4 if on else 0.0)  # fmt: skip
+        raws[f"T1-explorer-{'on' if on else 'off'}"] = raw
+        write_cell(root, task="T1", method="explorer", seed=1, raw=raw, governance=on, knowledge="scripted")
+    write_cell(root, task="T1", method="spirl", seed=42, raw=gen_raw(5, iterations=1, episodes=10, p_success=(1.0,)),
+               status="failed", iterations=2)  # fmt: skip
+    write_cell(root, task="T1", method="skimo", seed=42, raw=gen_raw(6, iterations=1, episodes=10, p_success=(1.0,)),
+               status="unfinished", iterations=2)  # fmt: skip
+    write_cell(root, task="T1", method="am-bc", seed=42, raw=None, status="no-cell-json")
+    return root, raws
+
+
+def _numbers(root: Path) -> dict[str, object]:
+    doc = json.loads((root / "report" / "numbers.json").read_text())
+    return {n["name"]: n for n in doc["numbers"]}
+
+
+def test_tables_hold_independently_computed_values(run: tuple[Path, dict[str, Raw]]) -> None:
+    root, raws = run
+    files = write_report(root)
+    md = (root / "report" / "report.md").read_text()
+    nums = _numbers(root)
+
+    ours = [raws[f"T6-ours-code-s{s}"] for s in OURS_SEEDS]
+    am = [raws[f"T6-am-s{s}"] for s in AM_SEEDS]
+    ours_peak = [_peak_success(r) for r in ours]
+    am_peak = [_peak_success(r) for r in am]
+    m, sd = np.mean(ours_peak), np.std(ours_peak, ddof=1)
+    assert nums["group/T6/ours-code/succ_peak/mean"]["value"] == pytest.approx(m)
+    assert nums["group/T6/ours-code/succ_peak/std"]["value"] == pytest.approx(sd)
+    assert f"{100 * m:.1f} ± {100 * sd:.1f} %" in md
+    # the numbers name the cell files they came from
+    assert set(nums["group/T6/ours-code/succ_peak/mean"]["sources"]) == {
+        f"cells/T6-ours-code-s{s}/metrics.jsonl" for s in OURS_SEEDS
+    }
+    assert "[s42](../cells/T6-ours-code-s42/metrics.jsonl)" in md
+
+    t = stats.ttest_ind(ours_peak, am_peak, equal_var=False)
+    assert nums["welch/T6/ours-code|am/succ_peak/t"]["value"] == pytest.approx(float(t.statistic))
+    assert nums["welch/T6/ours-code|am/succ_peak/p"]["value"] == pytest.approx(float(t.pvalue))
+    assert f"t = {float(t.statistic):.2f}, p = {float(t.pvalue):.3g}" in md
+    r_peaks_o = [max(_rewards(r)) for r in ours]
+    r_peaks_a = [max(_rewards(r)) for r in am]
+    t_r = stats.ttest_ind(r_peaks_o, r_peaks_a, equal_var=False)
+    assert nums["welch/T6/ours-code|am/r_peak/p"]["value"] == pytest.approx(float(t_r.pvalue))
+
+    # H1: R1, R_peak, R_last, ratio of one seed; their means
+    r = _rewards(ours[0])
+    assert nums["cell/T6-ours-code-s42/r_first"]["value"] == pytest.approx(r[0])
+    assert nums["cell/T6-ours-code-s42/r_peak"]["value"] == pytest.approx(max(r))
+    assert nums["cell/T6-ours-code-s42/r_last"]["value"] == pytest.approx(r[-1])
+    assert nums["cell/T6-ours-code-s42/ratio"]["value"] == pytest.approx(max(r) / r[0])
+    assert nums["group/T6/ours-code/r_first/mean"]["value"] == pytest.approx(np.mean([_rewards(x)[0] for x in ours]))
+
+    # sample efficiency: cumulative training steps to the first iteration at >= 50 %
+    for s, raw in zip(OURS_SEEDS, ours, strict=True):
+        rates = [float(np.mean(x)) for x in raw.successes]
+        first = next((i for i, v in enumerate(rates) if v >= 0.5), None)
+        expect = None if first is None else int(np.sum(raw.train[: first + 1]))
+        assert nums[f"cell/T6-ours-code-s{s}/steps_to_0.5"]["value"] == expect
+    s_ecm = nums["cell/T1-s-ecm-s42/steps_to_0.5"]["value"]
+    assert s_ecm is None
+    assert "not reached" in md
+
+    # identity: mean Δπ of the last iteration, over every task's cells of the method
+    am_all = [*am, raws["T3-am-s42"]]
+    assert nums["identity/am/mean"]["value"] == pytest.approx(np.mean([r.delta_pi[-1] for r in am_all]))
+    assert nums["group/T6/am/delta_pi/mean"]["value"] == pytest.approx(np.mean([r.delta_pi[-1] for r in am]))
+    assert nums["identity/ours-code/mean"]["value"] == 0.0
+
+    # n < 2 seeds: no test (T3: one ours seed, one am seed)
+    assert "n < 2 seeds: no test" in md
+    assert nums["welch/T3/ours-code (modality=rl)|am/succ_peak/t"]["value"] is None
+
+    # parity: the over-budget cell is flagged, S-ECM spent nothing
+    assert nums["parity/am/cells_over_budget"]["value"] == 1
+    assert nums["parity/am/iterations_over_budget"]["value"] == 1
+    assert nums["parity/s-ecm/spent_max"]["value"] == 0
+    assert "OVER BUDGET" in md and "[`T3-am-s42`](../cells/T3-am-s42/metrics.jsonl)" in md
+    # fairness column from cell.json
+    assert nums["knowledge/ours-code"]["value"] == "hand-written skills | random weights"
+    assert "| s-ecm | v0 ECMs |" in md
+
+    # every figure is written and decodes as a PNG
+    pngs = [p for p in files if p.suffix == ".png"]
+    assert {p.name for p in pngs} == {
+        "evolution.png", "sample_efficiency.png", "t6_seeds.png", "identity.png", "governance.png", "ablation.png",
+    }  # fmt: skip
+    for p in pngs:
+        assert p.read_bytes()[:8] == PNG_MAGIC
+        img = mpimg.imread(p)
+        assert img.shape[0] > 100 and img.shape[1] > 100
+        assert f"]({p.name})" in md
+
+
+def test_governance_rates_and_wilson_intervals(run: tuple[Path, dict[str, Raw]]) -> None:
+    root, raws = run
+    write_report(root)
+    nums = _numbers(root)
+    md = (root / "report" / "report.md").read_text()
+    for side in ("on", "off"):
+        raw = raws[f"T1-explorer-{side}"]
+        n = len(raw.unsafe[0])
+        k = sum(u > 0 for u in raw.unsafe[0])
+        ci = stats.binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
+        assert nums[f"h3/T1/{side}/unsafe_episodes"]["value"] == k
+        assert nums[f"h3/T1/{side}/unsafe_low"]["value"] == pytest.approx(min(ci.low, k / n), abs=1e-12)
+        assert nums[f"h3/T1/{side}/unsafe_high"]["value"] == pytest.approx(max(ci.high, k / n), abs=1e-12)
+        assert f"{k}/{n} = {100 * k / n:.1f} %" in md
+    on = raws["T1-explorer-on"]
+    assert nums["h3/T1/on/blocking_rate"]["value"] == pytest.approx(sum(on.interventions[0]) / sum(on.steps[0]))
+    assert raws["T1-explorer-off"].unsafe[0].count(0) < 20  # the off side has unsafe episodes to show
+    # the overhead is quoted, and says from where
+    quoted = benchmark_overhead(root)
+    assert quoted is not None and "BENCHMARKS.md" in quoted.source
+    assert "this run records no timing per action, so the figure is quoted from BENCHMARKS.md" in md
+    # explorer cells are not methods of the comparison
+    assert not any(k.startswith("group/T1/explorer") for k in nums)
+
+
+def test_unfinished_failed_and_unreadable_cells_are_listed_not_counted(run: tuple[Path, dict[str, Raw]]) -> None:
+    root, _ = run
+    write_report(root)
+    nums = _numbers(root)
+    md = (root / "report" / "report.md").read_text()
+    assert nums["cells/failed"]["value"] == 1
+    assert nums["cells/unfinished"]["value"] == 1
+    assert nums["cells/unreadable"]["value"] == 1
+    assert nums["cells/failed"]["sources"] == ["cells/T1-spirl-s42"]
+    assert "| `T1-spirl-s42` | **failed** | 1/2 | 3 |" in md and "RuntimeError: boom" in md
+    assert "| `T1-skimo-s42` | **unfinished** | 1/2 |" in md and "not finished: 1 of 2 iteration(s) recorded" in md
+    assert "| `T1-am-bc-s42` | **unreadable** |" in md and "no cell.json" in md
+    # not in the statistics, but their steps were spent
+    assert not any(k.startswith(("group/T1/spirl", "group/T1/skimo", "cell/T1-spirl")) for k in nums)
+    assert nums["parity/spirl/iterations"]["value"] == 1
+    run_state = load_run(root)
+    total = sum(r.env_steps_train for c in run_state.cells for r in c.records)
+    assert nums["totals/env_steps_train"]["value"] == total
+
+
+def test_paper_figures_stand_beside_the_run(run: tuple[Path, dict[str, Raw]]) -> None:
+    root, _ = run
+    write_report(root)
+    md = (root / "report" / "report.md").read_text()
+    assert "**paper** Ours: 63.3 ± 27.6 %" in md
+    assert "**paper** AM: 10.8 ± 8.8 %" in md
+    assert "**paper** Ours vs AM: t = 3.62, p = 0.027" in md
+    assert "**paper** AM: 1.28" in md
+    assert "0.021–0.029 ms" in md
+    assert "**paper** 100.0 %, 80.0 %, 0.0 %" in md  # T1 blocking, unsafe off, unsafe on
+    assert "**paper** RL only: 12.81, 16.55, 3.3 %, 34.96" in md
+    assert "| T3 Stack | 3.3 | 3.3 | 0.0 | 0.0 | 6.7 |" in md.replace("stack", "Stack")
+
+
+def test_paper_t6_figures_agree_with_the_per_seed_values_the_paper_gives() -> None:
+    from capevo.experiment.report import PAPER_T6_SEEDS, PAPER_T6_WELCH
+
+    ours, am = PAPER_T6_SEEDS["Ours"], PAPER_T6_SEEDS["AM"]
+    assert (round(float(np.mean(ours)), 1), round(float(np.std(ours, ddof=1)), 1)) == (63.3, 27.6)
+    assert (round(float(np.mean(am)), 1), round(float(np.std(am, ddof=1)), 1)) == (10.8, 8.8)
+    t = stats.ttest_ind(ours, am, equal_var=False)
+    assert (round(float(t.statistic), 2), round(float(t.pvalue), 3)) == PAPER_T6_WELCH
+
+
+def test_ablation_rows_map_to_the_papers() -> None:
+    assert paper_ablation_row("rl") == "RL only"
+    assert paper_ablation_row("rl+il") == "RL + IL"
+    assert paper_ablation_row("il-code") == "IL + LLM"
+    assert paper_ablation_row("rl,il,llm") == "All three (Ours)"
+    assert paper_ablation_row("dreamer") is None
+
+
+def test_small_runs_say_what_they_cannot_show(tmp_path: Path) -> None:
+    root = tmp_path / "tiny"
+    write_cell(root, task="T1", method="ours-code", seed=1, raw=gen_raw(1, iterations=1, episodes=3, p_success=(0,)))
+    write_cell(root, task="T1", method="am", seed=1, raw=gen_raw(2, iterations=1, episodes=3, p_success=(0,)))
+    files = write_report(root)
+    md = (root / "report" / "report.md").read_text()
+    assert "single iteration" in md
+    assert "as few as 3 episode(s)" in md
+    assert "one seed per task" in md
+    assert "No method succeeded on any held-out episode" in md
+    assert "No finished `explorer` cell" in md
+    assert "no ablation in this run" in md
+    assert "No readable `provenance.json`" in md
+    for p in files:
+        assert p.exists()
+
+
+def test_no_run_is_not_found(tmp_path: Path) -> None:
+    with pytest.raises(NotFound, match="no experiment run") as exc:
+        write_report(tmp_path)
+    assert exc.value.code.value == "not_found"
