@@ -161,6 +161,7 @@ def finish_task(run: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]
     }
     if args.heldout:
         out["heldout"] = heldout_evaluation(task, work / task / "data", args)
+        out["hand_set_heldout"] = hand_set_evaluation(task, work / task, args)
     print(
         f"[{task}] v0 {out['v0_successes']} -> final {out['final_successes']}; "
         f"{out['promoted']} promoted, {out['rejected']} rejected; {wall:.0f} s wall, {cpu:.0f} s CPU",
@@ -201,6 +202,22 @@ def heldout_evaluation(task: str, root: Path, args: argparse.Namespace) -> dict[
     }
 
 
+def hand_set_evaluation(task: str, work: Path, args: argparse.Namespace) -> dict[str, Any]:
+    """The best hand-set parameters (:mod:`capevo.learner.skills.hand_set`: v0's listed weaknesses
+    fixed by hand, no search) on the same held-out seeds, in a registry of their own: what search
+    adds beyond them (issue 19)."""
+    from capevo.learner.skills.hand_set import hand_set_overrides, seed_hand_set
+    from capevo.registry.local import LocalRegistry
+
+    root = work / "hand-set"
+    shutil.rmtree(root, ignore_errors=True)
+    with LocalRegistry(root, actor="bench-hand-set") as registry:
+        seed_hand_set(registry, task)
+    out = heldout_evaluation(task, root, args)
+    out["overrides"] = hand_set_overrides(task)
+    return out
+
+
 def _comparison(report: Path) -> dict[str, Any] | None:
     """The paired start-vs-final statistics the report computed (None without a final run)."""
     journal = report / "journal.jsonl"
@@ -228,6 +245,8 @@ def table(results: list[dict[str, Any]]) -> str:
         "paired p",
         "held-out success [95% Wilson]",
         "held-out unsafe episodes",
+        "hand-set params, held-out [95% Wilson]",
+        "hand-set unsafe episodes",
         "promoted",
         "rejected",
         "rollbacks",
@@ -252,6 +271,8 @@ def table(results: list[dict[str, Any]]) -> str:
                     "",
                     "",
                     "",
+                    "",
+                    "",
                     f"{r['wall_s']:.0f}",
                     f"{r['cpu_s']:.0f}",
                     _load(r),
@@ -266,7 +287,8 @@ def table(results: list[dict[str, Any]]) -> str:
                 r["v0_successes"],
                 r["final_successes"],
                 "-" if p is None else f"{p:.3g}",
-                *_heldout(r),
+                *_heldout(r.get("heldout")),
+                *_heldout(r.get("hand_set_heldout")),
                 r["promoted"],
                 r["rejected"],
                 r["rollbacks"],
@@ -279,8 +301,7 @@ def table(results: list[dict[str, Any]]) -> str:
     return markdown_table(headers, rows)
 
 
-def _heldout(r: dict[str, Any]) -> list[str]:
-    h = r.get("heldout")
+def _heldout(h: dict[str, Any] | None) -> list[str]:
     if not h:
         return ["-", "-"]
     if "error" in h:
@@ -292,6 +313,30 @@ def _heldout(r: dict[str, Any]) -> list[str]:
 def _load(r: dict[str, Any]) -> str:
     a, b = r.get("loadavg_start"), r.get("loadavg_end")
     return f"{a[0]:.1f}-{b[0]:.1f}" if a and b else "-"
+
+
+def _write(name: str, params: dict[str, Any], results: list[dict[str, Any]]) -> None:
+    save_results(name, {"params": params, "results": results})
+    (RESULTS_DIR / f"{name}.md").write_text(
+        f"# capevo evolve, preset {params['preset']}, perturbations {'on' if params['perturbations'] else 'off'}, "
+        f"Φ {params['phi']}\n\n`.venv/bin/python {params['command']}`, {params['date']}, "
+        f"{params['cores']} cores.\n\n" + table(results) + "\n"
+    )
+
+
+def add_hand_set_rows(args: argparse.Namespace) -> None:
+    """Add the hand-set row to results saved by a run made before that row existed."""
+    if args.work_dir is None:
+        raise SystemExit("--hand-set-only needs the --work-dir of the earlier run")
+    saved = json.loads((RESULTS_DIR / f"{args.name}.json").read_text())
+    params = saved["params"]
+    args.phi, args.seed = params["phi"], params["seed"]
+    for r in saved["results"]:
+        if r["task"] in args.tasks and "error" not in r:
+            r["hand_set_heldout"] = hand_set_evaluation(r["task"], args.work_dir / r["task"], args)
+    params["hand_set_command"] = " ".join(["benchmarks/bench_evolution.py", *sys.argv[1:]])
+    _write(args.name, params, saved["results"])
+    print(table(saved["results"]))
 
 
 def main() -> None:
@@ -310,7 +355,15 @@ def main() -> None:
     parser.add_argument(
         "--heldout", type=int, default=30, help="episodes of the final set on fresh held-out seeds (0: none)"
     )
+    parser.add_argument(
+        "--hand-set-only",
+        action="store_true",
+        help="only add the hand-set row to the existing results --name (from --work-dir's runs)",
+    )
     args = parser.parse_args()
+    if args.hand_set_only:
+        add_hand_set_rows(args)
+        return
     args.keep = args.work_dir is not None
     work = args.work_dir or Path(tempfile.mkdtemp(prefix="capevo-bench-evolution-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -335,13 +388,7 @@ def main() -> None:
         for i, task in enumerate(args.tasks):
             run = started[i] if args.parallel else start_task(task, args, work)
             results.append(finish_task(run, args))
-            save_results(args.name, {"params": params, "results": results})
-            md = table(results)
-            (RESULTS_DIR / f"{args.name}.md").write_text(
-                f"# capevo evolve, preset {args.preset}, perturbations {'on' if args.perturbations else 'off'}, "
-                f"Φ {args.phi}\n\n`.venv/bin/python {params['command']}`, {params['date']}, "
-                f"{params['cores']} cores.\n\n" + md + "\n"
-            )
+            _write(args.name, params, results)
     finally:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
