@@ -85,6 +85,24 @@ class TaskSpec:
     def ecm_names(self) -> tuple[str, ...]:
         return tuple(s.ecm for s in self.decomposition)
 
+    @property
+    def handoff_signals(self) -> tuple[str, ...]:
+        """The signals the decomposition's termination and applicability predicates read, in
+        spec order. Signals are exact simulator state (``TaskEnv.signals``), not the noisy
+        observations the skills see: the hand-offs between ECMs use this oracle, and a report
+        comparing methods must name it (issue 19)."""
+        used = {c.signal for step in self.decomposition for p in (step.termination, step.applicability) for c in p.all}
+        return tuple(name for name in self.signal_names if name in used)
+
+    @property
+    def handoff_text(self) -> str:
+        """One sentence naming the hand-off oracle, for reports."""
+        names = ", ".join(self.handoff_signals) or "none"
+        return (
+            f"hand-offs between ECMs read exact simulator state, not the noisy observations the skills "
+            f"see (signals: {names})"
+        )
+
 
 def cond(signal: str, op: str, value: float) -> Condition:
     """Shorthand for a :class:`Condition`; refuses unknown operators.

@@ -487,3 +487,11 @@ def test_quadrant_margin_agrees_with_robosuites_bin_check(envs: dict[str, TaskEn
             if not offset.any():
                 assert margin == pytest.approx(half, abs=0.006)
         _teleport(env, _objects(env)[o].joints[0], goal + np.array([0.0, 0.0, 0.3]))
+
+
+@pytest.mark.parametrize("name", TASKS)
+def test_handoff_signals_are_exactly_what_the_predicates_read(name: str) -> None:
+    spec = task_spec(name)
+    read = {c.signal for s in spec.decomposition for p in (s.termination, s.applicability) for c in p.all}
+    assert set(spec.handoff_signals) == read and set(read) <= set(spec.signal_names)
+    assert all(f" {s}" in spec.handoff_text or f"({s}" in spec.handoff_text for s in read)
