@@ -22,8 +22,11 @@ ours runs. One iteration:
    nearest the ``n_steps`` option (SB3's 2048): every iteration is a whole number of
    rollouts. When an iteration's learning steps are not a multiple of it (only iteration 1
    with ``warm_start: bc``), the last rollout is cut at the budget and PPO does not train on
-   it: those steps are spent, not used, and the record's ``notes`` say how many. SAC trains
-   on every step (one gradient step per env step).
+   it: those steps are spent, not used, and the record's ``notes`` say how many (SB3 also
+   keeps the observation from before the cut step, so the next iteration's first action sees
+   one stale observation). SAC stores every step and, after SB3's 100 random warm-up steps
+   (``learning_starts``), takes one gradient step per env step: with fewer than 100 steps in
+   all it does not train, and Δπ stays 0.
 2. Save a checkpoint, ``checkpoints/iteration-NNN.zip`` (``iteration-000``: the initial weights).
 3. The held-out evaluation: one episode per seed of :meth:`CellSpec.eval_seeds` with the
    deterministic policy (:func:`~capevo.baselines.governed_env.evaluate_policy`); its steps are
@@ -50,8 +53,9 @@ demonstrated one); for PPO through an adapter that shows it the actor under SAC'
 names (:func:`bc_view`).
 
 Simplified for CPU budgets: one environment (no ``SubprocVecEnv``), no observation
-normalisation, SB3's default hyperparameters except where named here (SAC's replay buffer holds
-the whole run, at most 10^6 steps). A budget of a few thousand steps per iteration is far below
+normalisation, SB3's default hyperparameters except where named here (PPO's rollout length and
+minibatch divide the budget and the rollout; SAC's replay buffer holds the whole run, at most
+10^6 steps; the paper names none for its PPO). A budget of a few thousand steps per iteration is far below
 what a monolithic policy needs on these tasks; such runs show the accounting and Δπ, not a
 learning curve.
 
@@ -94,6 +98,8 @@ DEMO_SEED_BASE = 1_500_000_000
 """Task seeds of the warm start's demonstration episodes: ``DEMO_SEED_BASE + 1000 * s + j``,
 above every training seed and below the held-out ones."""
 MAX_REPLAY = 1_000_000
+PPO_MINIBATCH = 64
+"""SB3's default PPO minibatch size."""
 DECISION_TENSORS: Mapping[str, tuple[str, ...]] = {
     "ppo": ("mlp_extractor.policy_net.", "action_net."),
     "sac": ("actor.latent_pi.", "actor.mu."),
@@ -173,8 +179,14 @@ class AmOptions:
         return cls(**dict(options))
 
 
+def nearest_divisor(n: int, target: int) -> int:
+    """The divisor of ``n`` (at least 2) nearest ``target`` on a log scale, the larger on a tie; ``n`` for ``n < 2``."""
+    divisors = [d for i in range(1, math.isqrt(n) + 1) if n % i == 0 for d in (i, n // i) if d >= 2]
+    return min(divisors, key=lambda d: (abs(math.log(d / target)), -d)) if divisors else n
+
+
 def rollout_length(budget: int, target: int) -> int:
-    """The divisor of ``budget`` nearest ``target`` on a log scale (the larger on a tie), at least 2.
+    """PPO's ``n_steps`` for ``budget`` steps per iteration: the divisor of ``budget`` nearest ``target``.
 
     Raises:
         Invalid: ``budget`` below 2 (PPO needs two steps per rollout).
@@ -184,8 +196,14 @@ def rollout_length(budget: int, target: int) -> int:
             f"budget.env_steps_per_iteration {budget} is too small for PPO (2 steps per rollout at least)",
             details={"field": "budget.env_steps_per_iteration"},
         )
-    divisors = {d for i in range(1, math.isqrt(budget) + 1) if budget % i == 0 for d in (i, budget // i)}
-    return min((d for d in divisors if d >= 2), key=lambda d: (abs(math.log(d / target)), -d))
+    return nearest_divisor(budget, target)
+
+
+def minibatch_size(n_steps: int) -> int:
+    """PPO's minibatch for rollouts of ``n_steps``: a divisor near SB3's 64 when there is one
+    from 16 to 256 (no truncated last minibatch), else ``min(64, n_steps)``."""
+    size = nearest_divisor(n_steps, PPO_MINIBATCH)
+    return size if 16 <= size <= 256 else min(PPO_MINIBATCH, n_steps)
 
 
 def decision_names(model: Any, algo: str) -> tuple[str, ...]:
@@ -241,13 +259,13 @@ def _make_model(opts: AmOptions, env: GovernedTaskEnv, *, seed: int, budget: int
             "MlpPolicy",
             env,
             n_steps=n_steps,
-            batch_size=min(64, n_steps),
+            batch_size=minibatch_size(n_steps),
             policy_kwargs=policy_kwargs,
             seed=seed,
             device="cpu",
             verbose=0,
         )
-        return model, f"ppo, n_steps {n_steps}"
+        return model, f"ppo, n_steps {n_steps}, minibatch {model.batch_size}"
     from stable_baselines3 import SAC
 
     buffer = min(MAX_REPLAY, budget * iterations)

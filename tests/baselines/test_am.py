@@ -23,6 +23,7 @@ from capevo.baselines.am import (
     bc_view,
     decision_names,
     decision_vector,
+    minibatch_size,
     rollout_length,
 )
 from capevo.baselines.demos import v0_demos
@@ -85,6 +86,28 @@ def test_sac_spends_the_budget(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_sac_within_its_warm_up_does_not_move_the_policy(tmp_path: Path) -> None:
+    # 50 steps: all inside SAC's 100 random warm-up steps, so no gradient step is taken.
+    (record,) = _run(AgentModification(), _cell(budget=50, iterations=1, algo="sac"), tmp_path)
+    assert record.env_steps_train == 50
+    assert record.delta_pi == 0.0
+
+
+@pytest.mark.slow
+def test_t6_twelve_dimensional_actions(tmp_path: Path) -> None:
+    cell = CellSpec(
+        task="T6",
+        method="am",
+        seed=0,
+        iterations=1,
+        budget=Budget(env_steps_per_iteration=32, eval_episodes=1, horizon=10),
+    )
+    (record,) = _run(AgentModification(), cell, tmp_path)
+    assert record.env_steps_train == 32 and record.env_steps_eval == 10
+    assert record.delta_pi > 0.0
+
+
+@pytest.mark.slow
 def test_bc_warm_start_charges_its_demonstrations_to_iteration_one(tmp_path: Path) -> None:
     cell = _cell("am-bc", budget=50, iterations=1, bc_episodes=2, bc_epochs=5)
     (record,) = _run(AgentModificationBC(), cell, tmp_path)
@@ -103,6 +126,10 @@ def test_cloning_the_v0_skills_fits_held_out_demonstrations(tmp_path: Path, algo
 
     demos = v0_demos("T1", tmp_path, seeds=[1_500_000_000 + j for j in range(4)], horizon=30)
     assert len(demos.demos) == demos.env_steps == sum(o.steps for o in demos.outcomes)
+    assert demos.demos.obs.dtype == demos.demos.action.dtype == np.float32
+    assert demos.demos.obs.shape[1] == 46 and demos.demos.action.shape[1] == 7
+    assert np.abs(demos.demos.action).max() <= 1.0
+    assert sorted(set(demos.episode.tolist())) == [0, 1, 2, 3]
     train, held_out = demos.split([0, 1, 2])
     assert len(held_out) and len(train) + len(held_out) == len(demos.demos)
     env = GovernedTaskEnv("T1", horizon=30)
@@ -159,6 +186,10 @@ def test_rollout_length_divides_the_budget() -> None:
     for budget in (2, 3, 1000, 4096, 99_991, 120_000):
         n = rollout_length(budget, 2048)
         assert n >= 2 and budget % n == 0
+    assert minibatch_size(2000) == 80 and 2000 % 80 == 0
+    assert minibatch_size(64) == 64
+    assert minibatch_size(50_021) == 64  # no divisor from 16 to 256: SB3's default
+    assert minibatch_size(7) == 7
 
 
 def test_methods_and_their_knowledge() -> None:
