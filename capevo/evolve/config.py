@@ -35,6 +35,10 @@ Invariants:
 3. ``EvolveConfig.from_dict(c.to_dict()) == c``.
 4. :meth:`EvolveConfig.resume_mismatches` ignores ``iterations`` only: a resumed run may be
    extended or shortened, nothing else may change under it.
+5. With ``env_steps_per_iteration`` set, an iteration's live, gate and learner episodes take at
+   most that many env steps (the loop reserves the live episodes and each gate at the horizon
+   and caps the learners with the rest); :meth:`EvolveConfig.check_budget` refuses a budget
+   that cannot cover one update.
 """
 
 from __future__ import annotations
@@ -101,8 +105,11 @@ class CemSettings:
             name = f"cem.{exc.details.get('field', '')}"
             raise Invalid(f"cem.{exc.message}", details={"field": name}) from None
 
-    def search_config(self, *, seed: int = 0) -> CemConfig:
-        """The :class:`~capevo.learner.search.CemConfig` one update searches with (sampler ``seed``).
+    def search_config(
+        self, *, seed: int = 0, max_env_steps: int | None = None, episode_steps_max: int | None = None
+    ) -> CemConfig:
+        """The :class:`~capevo.learner.search.CemConfig` one update searches with (sampler ``seed``;
+        at most ``max_env_steps`` env steps with episodes of up to ``episode_steps_max``).
 
         Raises:
             Invalid: a value out of range.
@@ -119,6 +126,8 @@ class CemSettings:
             validation_episodes=self.validation_episodes,
             min_iterations=min(self.min_iterations, self.iterations),
             seed=seed,
+            max_env_steps=max_env_steps,
+            episode_steps_max=episode_steps_max if max_env_steps is not None else None,
         )
 
     @property
@@ -187,6 +196,11 @@ class EvolveConfig:
         phi: The safety envelope every episode of the run (live, learner, gate, final) runs
             under, fixed for the run: ``"task"`` (default: the task's scene-aware Φ),
             ``"paper"`` (the paper's Φ alone) or a Φ YAML path (:mod:`capevo.runtime.envelope`).
+        env_steps_per_iteration: Env steps one iteration may spend on live, gate and learner
+            episodes together (issue 20: every method of a comparison gets the same budget);
+            None for no cap. The live episodes and a gate per update are reserved at the horizon
+            (:meth:`step_reserve`), the learner gets what is left (a CEM step cap, SAC's total
+            steps). Checked against a task by :meth:`learner_step_cap`.
 
     Raises:
         Invalid: a value out of range.
@@ -205,9 +219,12 @@ class EvolveConfig:
     final_evaluation: bool = True
     updates_per_iteration: int = 1
     phi: str = DEFAULT_PHI
+    env_steps_per_iteration: int | None = None
 
     def __post_init__(self) -> None:
         check_phi_choice(self.phi)
+        if self.env_steps_per_iteration is not None:
+            _int("env_steps_per_iteration", self.env_steps_per_iteration, low=1, high=10**12)
         _int("iterations", self.iterations, low=0, high=100_000)
         _int("updates_per_iteration", self.updates_per_iteration, low=0, high=10_000)
         _int("live_episodes", self.live_episodes, low=1, high=10_000)
@@ -254,6 +271,7 @@ class EvolveConfig:
             "final_evaluation": self.final_evaluation,
             "updates_per_iteration": self.updates_per_iteration,
             "phi": self.phi,
+            "env_steps_per_iteration": self.env_steps_per_iteration,
         }
 
     @classmethod
@@ -279,9 +297,66 @@ class EvolveConfig:
                 updates_per_iteration=d.get("updates_per_iteration", 1),
                 # Runs recorded before the envelope was a setting ran under the paper's Φ.
                 phi=d.get("phi", PHI_PAPER),
+                env_steps_per_iteration=d.get("env_steps_per_iteration"),
             )
         except (KeyError, TypeError) as exc:
             raise Invalid(f"bad evolve config: {exc}", details={"field": "config"}) from None
+
+    def episode_steps_max(self, task: str) -> int:
+        """Most env steps one episode of ``task`` can take under this config (its horizon)."""
+        from capevo.runtime.tasks import task_spec
+
+        return int(self.horizon if self.horizon is not None else task_spec(task).default_horizon)
+
+    def step_reserve(self, task: str, *, updates: int = 1) -> int:
+        """Env steps reserved for one iteration's live episodes and the gates of ``updates``
+        candidates (both sides of each pair), every episode at the horizon."""
+        h = self.episode_steps_max(task)
+        return self.live_episodes * h + updates * 2 * self.gate_episodes * h
+
+    def learner_step_cap(self, task: str, *, updates: int = 1) -> int | None:
+        """Env steps the learners of one iteration may spend on ``task`` (None: no cap).
+
+        Raises:
+            Invalid: :attr:`env_steps_per_iteration` cannot cover the live episodes and one gate
+                at the horizon (the message gives the numbers).
+        """
+        if self.env_steps_per_iteration is None:
+            return None
+        reserve = self.step_reserve(task, updates=updates)
+        if self.env_steps_per_iteration <= reserve:
+            h = self.episode_steps_max(task)
+            raise Invalid(
+                f"env_steps_per_iteration ({self.env_steps_per_iteration}) cannot cover one iteration's "
+                f"{self.live_episodes} live and {updates} x 2 x {self.gate_episodes} gate episodes of up to "
+                f"{h} steps ({reserve} steps) and leave any for learning",
+                details={"field": "env_steps_per_iteration"},
+            )
+        return self.env_steps_per_iteration - reserve
+
+    def smallest_update(self, task: str, *, modality: str) -> int:
+        """Env steps one learner needs at the least: one CEM candidate's episodes at the horizon
+        (code modalities), one SAC step (neural)."""
+        if modality in NEURAL_MODALITIES:
+            return 1
+        return self.cem.episodes_per_candidate * self.episode_steps_max(task)
+
+    def check_budget(self, task: str, *, modality: str) -> None:
+        """Check that :attr:`env_steps_per_iteration` covers one iteration of ``task``.
+
+        Raises:
+            Invalid: it cannot cover the live episodes, one gate and the smallest update, all
+                at the horizon (the message gives the numbers).
+        """
+        cap = self.learner_step_cap(task)
+        need = self.smallest_update(task, modality=modality)
+        if cap is not None and cap < need:
+            raise Invalid(
+                f"env_steps_per_iteration ({self.env_steps_per_iteration}) leaves {cap} env steps for learning "
+                f"after the live episodes and one gate at the horizon ({self.step_reserve(task)} steps), "
+                f"fewer than one update needs ({need})",
+                details={"field": "env_steps_per_iteration"},
+            )
 
     def resume_mismatches(self, other: EvolveConfig) -> list[str]:
         """Fields (other than ``iterations``) where ``other`` differs from this config."""

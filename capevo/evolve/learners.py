@@ -72,6 +72,9 @@ class UpdateRequest:
     """Which stretch of training seeds (and sampler seed) this update uses; distinct updates
     of one run get distinct slots. Default: ``iteration``."""
 
+    max_env_steps: int | None = None
+    """Env steps this update's learner may spend (None: its preset's budget)."""
+
     @property
     def seed_slot(self) -> int:
         return self.iteration if self.slot is None else self.slot
@@ -87,7 +90,9 @@ class Proposal:
     episodes: int = 0
     """Training episodes the learner ran."""
     steps: int = 0
-    """Learner steps: environment steps (SAC), epochs (BC) or candidates evaluated (CEM)."""
+    """Env steps the learner's own episodes took: every CEM episode's, SAC's training steps
+    (not the scripted rollouts that warm-start a random v0), BC's demonstration rows (a lower
+    bound)."""
     notes: Mapping[str, Any] = field(default_factory=dict)
     experience: tuple[EpisodeOutcome, ...] = ()
     """The candidate's own training episodes (traced), when the learner kept them."""
@@ -219,7 +224,12 @@ class CemUpdater:
             episodes += len(event.seeds)
             progress.learner_advance(len(event.seeds))
 
-        search = CemSearch.from_config(self.scratch, cem.search_config(seed=request.seed + slot), progress=on_event)
+        config = cem.search_config(
+            seed=request.seed + slot,
+            max_env_steps=request.max_env_steps,
+            episode_steps_max=self.context.config.episode_steps_max(request.task),
+        )
+        search = CemSearch.from_config(self.scratch, config, progress=on_event)
         learner: Any = search
         if self.hybrid:
             learner = _hybrid(search, self.scratch)
@@ -229,12 +239,13 @@ class CemUpdater:
             learner=str(notes.get("learner") or getattr(learner, "learner_id", self.name)),
             candidate=candidate,
             episodes=int(notes.get("episodes_run") or episodes),
-            steps=int(notes.get("episodes_run") or episodes),
+            steps=int(notes.get("env_steps_run") or 0),
             notes={
                 "params": notes.get("params"),
                 "train_score": candidate.score.to_dict() if candidate.score else None,
                 "train_baseline": candidate.baseline.to_dict() if candidate.baseline else None,
                 **({"fallback": notes["fallback"]} if "fallback" in notes else {}),
+                **({"stopped_by_budget": True} if notes.get("stopped_by_budget") else {}),
             },
             experience=tuple(candidate.experience),
         )
@@ -314,6 +325,11 @@ class NeuralUpdater:
         env = dataclasses.replace(preset.env, seed_base=base, seed=offset, phi=self.context.config.phi)
         learn_request = self._request(request)
         if self.modality == "rl":
+            if request.max_env_steps is not None and request.max_env_steps < preset.sac.total_steps:
+                # the iteration's step budget (issue 20): SAC trains for what is left of it
+                preset = dataclasses.replace(
+                    preset, sac=dataclasses.replace(preset.sac, total_steps=request.max_env_steps)
+                )
             progress.learner_started(total=preset.sac.total_steps, unit="SAC steps")
             # a random-init v0 is first cloned from the scripted reference and the set's successes
             clone_from = BcLearner(
@@ -357,7 +373,9 @@ class NeuralUpdater:
             learner=bc.learner_id,
             candidate=candidate,
             episodes=int(demos.get("episodes_seen") or 0),
-            steps=preset.bc.epochs,
+            # the demonstration rows gathered: a lower bound of the env steps BC's scripted
+            # rollouts took (the steps of failed scripted episodes are not kept, so not counted)
+            steps=int(demos.get("new_samples") or demos.get("samples") or 0),
             notes={"demos": demos, "bc": candidate.notes.get("bc")},
         )
 

@@ -188,6 +188,8 @@ class PhaseEvaluator:
         """Versions run in place of the active ones unless ``versions`` names the ECM: while a
         chain is gated, the candidates after the gated one (both sides of the pair run them)."""
         self._local = hasattr(inner, "trace_dir") and hasattr(inner, "progress")
+        self.env_steps: dict[str, int] = {}
+        """Env steps of the episodes run, by phase (the loop resets it every iteration)."""
 
     def evaluate(self, task: str, versions: Mapping[str, int], seeds: Sequence[int]) -> list[EpisodeOutcome]:
         versions = {**self.overlay, **versions}
@@ -209,6 +211,7 @@ class PhaseEvaluator:
                 time.sleep(1.0)
         if not self._local:
             self.progress.episodes_done(len(out))
+        self.env_steps[self.phase] = self.env_steps.get(self.phase, 0) + sum(int(o.steps) for o in out)
         return out
 
 
@@ -301,6 +304,7 @@ class EvolutionLoop:
         self.progress: ProgressSink = progress if progress is not None else RecordingProgress()
         self.write_report = write_report
         self.created = tuple(created)
+        config.check_budget(self.task, modality=modality)
         on_disk = load_manifest(self.report_dir)
         if on_disk is not None:
             on_disk.check_resume(manifest)
@@ -414,6 +418,7 @@ class EvolutionLoop:
                 "start", i, capability_set=caps, revision=self.registry.capability_set().revision
             )
         caps = {str(k): int(v) for k, v in start["capability_set"].items()}
+        self.evaluator.env_steps = {}
 
         # 1-2. execute and collect
         seeds = self.plan.live(self.config.live_episodes, offset=i * self.config.live_episodes)
@@ -452,6 +457,8 @@ class EvolutionLoop:
             learner=update.learner,
             learner_episodes=update.episodes,
             learner_steps=update.steps,
+            env_steps_live=self.evaluator.env_steps.get("live", 0),
+            env_steps_gate=self.evaluator.env_steps.get("gate", 0),
             gate=update.gate,
             further=tuple(u.summary() for u in update.further),
             update_note=update.note,
@@ -637,8 +644,23 @@ class EvolutionLoop:
             companions = {e: p.candidate.artifact for e, p in members.items() if e != nxt and p.candidate is not None}
             start = members.get(nxt)
             source = start.candidate.source if start is not None and start.candidate is not None else None
+            spent = sum(p.steps for p in members.values()) + dropped[1]
+            updates = len(members) + (0 if nxt in members else 1)
+            cap = self._learner_cap(learner_spent=spent, updates=updates)
+            if cap is not None and cap < self._smallest_update():
+                why = "chain stopped: the iteration's env-step budget is spent"
+                break
             self.progress.message(f"  learn: {nxt} with {self.updater.name} (chain step {k + 1})")
-            request = self._update_request(i, nxt, outcomes, slot=i * limit + k, companions=companions, source=source)
+            request = self._update_request(
+                i,
+                nxt,
+                outcomes,
+                slot=i * limit + k,
+                companions=companions,
+                source=source,
+                learner_spent=spent,
+                updates=updates,
+            )
             try:
                 proposal = self.updater.propose(request, self.progress)
             except (IdentityViolation, KeyboardInterrupt):
@@ -677,8 +699,11 @@ class EvolutionLoop:
         slot: int,
         companions: Mapping[str, bytes] | None = None,
         source: str | None = None,
+        learner_spent: int = 0,
+        updates: int = 1,
     ) -> UpdateRequest:
         return UpdateRequest(
+            max_env_steps=self._learner_cap(learner_spent=learner_spent, updates=updates),
             task=self.task,
             ecm=ecm,
             iteration=i,
@@ -689,6 +714,20 @@ class EvolutionLoop:
             source=source,
             slot=slot,
         )
+
+    def _smallest_update(self) -> int:
+        return self.config.smallest_update(self.task, modality=self.modality)
+
+    def _learner_cap(self, *, learner_spent: int, updates: int) -> int | None:
+        """Env steps the next learner may spend: the iteration's budget less the live steps
+        taken, the learner steps the chain took already, and a gate at the horizon for each of
+        the ``updates`` candidates the iteration would then gate (None: no budget)."""
+        budget = self.config.env_steps_per_iteration
+        if budget is None:
+            return None
+        h = self.config.episode_steps_max(self.task)
+        live = self.evaluator.env_steps.get("live", 0)
+        return budget - live - learner_spent - updates * 2 * self.config.gate_episodes * h
 
     def _publish_chain(
         self, i: int, chain: Sequence[tuple[str, Proposal]], *, note: str, spent: tuple[int, int] = (0, 0)

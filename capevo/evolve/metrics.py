@@ -315,6 +315,11 @@ class IterationMetrics:
     learner: str | None = None
     learner_episodes: int = 0
     learner_steps: int = 0
+    """Env steps of the learners' training episodes (see :attr:`capevo.evolve.learners.Proposal.steps`)."""
+    env_steps_live: int = 0
+    """Env steps of the iteration's live episodes."""
+    env_steps_gate: int = 0
+    """Env steps of the iteration's gate episodes (both sides of every pair)."""
     gate: GateSummary | None = None
     further: tuple[ChainUpdate, ...] = ()
     """The chain's later updates, when the iteration learned several ECMs (``ecm_updated``,
@@ -327,6 +332,11 @@ class IterationMetrics:
     wall_gate_s: float = 0.0
     wall_s: float = 0.0
     traces: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def env_steps(self) -> int:
+        """Every env step the iteration spent: live, learner and gate episodes (issue 20's budget)."""
+        return self.env_steps_live + self.learner_steps + self.env_steps_gate
 
     @property
     def gate_decision(self) -> str:
@@ -354,6 +364,8 @@ class IterationMetrics:
             "learner": self.learner,
             "learner_episodes": self.learner_episodes,
             "learner_steps": self.learner_steps,
+            "env_steps_live": self.env_steps_live,
+            "env_steps_gate": self.env_steps_gate,
             "gate": self.gate.to_dict() if self.gate is not None else None,
             "further": [u.to_dict() for u in self.further],
             "update_note": self.update_note,
@@ -388,6 +400,8 @@ class IterationMetrics:
                 learner=d.get("learner"),
                 learner_episodes=int(d.get("learner_episodes") or 0),
                 learner_steps=int(d.get("learner_steps") or 0),
+                env_steps_live=int(d.get("env_steps_live") or 0),
+                env_steps_gate=int(d.get("env_steps_gate") or 0),
                 gate=GateSummary.from_dict(d["gate"]) if d.get("gate") else None,
                 further=tuple(ChainUpdate.from_dict(u) for u in d.get("further") or ()),
                 update_note=str(d.get("update_note") or ""),

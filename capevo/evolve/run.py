@@ -177,6 +177,7 @@ def run_evolution(
 
     spec = task_spec(options.task)
     config = options.resolved_config()
+    config.check_budget(spec.name, modality=options.modality)
     report_dir = options.resolved_report_dir()
     report_dir.mkdir(parents=True, exist_ok=True)
     sink: ProgressSink = progress if progress is not None else RecordingProgress()
