@@ -53,7 +53,7 @@ import json
 import math
 import re
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -87,6 +87,8 @@ EXPLORER = "explorer"
 THRESHOLDS = (0.5, 0.8)
 """Held-out success rates whose first crossing the sample-efficiency table reports."""
 FLAGSHIP_TASK = "T6"
+PAPER_BUDGET = 50_000
+"""The paper's training budget: env steps per ECM per iteration (§5.1)."""
 
 # --- the paper's published figures (quoted, never computed) -------------------------------------
 
@@ -539,7 +541,10 @@ def wilson(k: int, n: int) -> tuple[float | None, float | None]:
     return ci.low, ci.high
 
 
-def groups_of(cells: Iterable[Cell]) -> dict[tuple[str, str], list[Cell]]:
+Groups = dict[tuple[str, str], list[Cell]]
+
+
+def groups_of(cells: Iterable[Cell]) -> Groups:
     """Cells by (task id, label), each list by seed; sorted by task, then label."""
     out: dict[tuple[str, str], list[Cell]] = {}
     for c in cells:
@@ -560,9 +565,33 @@ def compute_numbers(run: Run) -> Book:
         these = [c.path for c in run.cells if c.status == status]
         book.put(f"cells/{status}", len(these), these)
 
+    for c in run.cells:
+
+        def existing(*names: str, c: Cell = c) -> list[str]:
+            return [f"{c.path}/{n}" for n in names if (run.root / c.path / n).exists()]
+
+        book.put(f"cell/{c.key}/records", len(c.records), existing(METRICS))
+        if existing(DONE, FAILED):
+            book.put(f"cell/{c.key}/attempts", c.attempts, existing(DONE, FAILED))
+        if c.done is not None:
+            wall = c.done.get("wall_s")
+            book.put(f"cell/{c.key}/wall_s", float(wall) if isinstance(wall, int | float) else None, existing(DONE))
+
     done = run.done()
     learning = [c for c in done if c.method != EXPLORER]
     summaries = {c.key: summarize(c) for c in learning}
+    if learning:
+        # what the notes on too small a run rest on
+        src = [c.metrics_file for c in learning]
+        book.put("run/max_iterations", max(len(c.records) for c in learning), src)
+        book.put("run/min_eval_episodes", min(len(r.episodes) for c in learning for r in c.records), src)
+        book.put("run/max_seeds", max(len(v) for v in groups_of(learning).values()), src)
+        book.put("run/max_success", max(r.success_rate for c in learning for r in c.records), src)
+        book.put(
+            "run/budget_max",
+            max(c.spec.budget.env_steps_per_iteration for c in learning if c.spec),
+            [f"{c.path}/{CELL_JSON}" for c in learning],
+        )
     for c in learning:
         s = summaries[c.key]
         src = (c.metrics_file,)
@@ -794,40 +823,39 @@ def _links(cells: Sequence[Cell], name: str = METRICS) -> str:
     return " ".join(f"[s{c.spec.seed if c.spec else '?'}](../{c.path}/{name})" for c in cells)
 
 
-def _paper_col(method: str) -> str | None:
-    return PAPER_COLUMN.get(method)
-
-
-def _few_notes(run: Run, learning: Sequence[Cell]) -> list[str]:
+def _few_notes(run: Run, book: Book, learning: Sequence[Cell]) -> list[str]:
     """What the run is too small to show (issue 20: where a budget is too small, say so)."""
-    notes = []
     if not learning:
         return ["No learning cell finished: there is nothing to compare."]
-    its = max(len(c.records) for c in learning)
-    if its < 2:
+    notes = []
+    if book.get("run/max_iterations") < 2:
         notes.append(
             "Every cell ran a single iteration: R_peak, R_last and R₁ are the same evaluation, so these tables "
             "cannot show evolution over iterations."
         )
-    eps = min(len(r.episodes) for c in learning for r in c.records)
+    budget = book.get("run/budget_max")
+    if budget < PAPER_BUDGET:
+        notes.append(
+            f"The budget is at most {_steps(budget)} training env steps per iteration, against the paper's "
+            f"{PAPER_BUDGET:,} per ECM per iteration: compare directions, not levels, with the paper's figures."
+        )
+    eps = book.get("run/min_eval_episodes")
     if eps < 30:
         notes.append(
             f"Held-out evaluations have as few as {eps} episode(s): a success rate moves in steps of "
             f"{100 / max(eps, 1):.0f} points, and peak-over-iterations values are biased upward by that noise "
             "(the paper used 30)."
         )
-    seeds = groups_of(learning)
-    if all(len(v) < 2 for v in seeds.values()):
+    if book.get("run/max_seeds") < 2:
         notes.append("Every method has one seed per task: no standard deviation and no test can be given.")
-    if all(r.success_rate == 0 for c in learning for r in c.records):
+    if book.get("run/max_success") == 0:
         notes.append("No method succeeded on any held-out episode: only rewards can be compared.")
     return notes
 
 
 def markdown(run: Run, book: Book, overhead: QuotedOverhead | None, figures: Mapping[str, str]) -> str:
     """``report.md`` (see the module docstring); ``figures`` maps each written figure's key to its file."""
-    done = run.done()
-    learning = [c for c in done if c.method != EXPLORER]
+    learning = [c for c in run.done() if c.method != EXPLORER]
     groups = groups_of(learning)
     L: list[str] = []
     add = L.append
@@ -848,203 +876,200 @@ def markdown(run: Run, book: Book, overhead: QuotedOverhead | None, figures: Map
         "seeds (ddof = 1)."
     )
     add("")
-    notes = _few_notes(run, learning)
+    notes = _few_notes(run, book, learning)
     if notes:
         add("**What this run is too small to show.**")
         add("")
         for n in notes:
             add(f"- {n}")
         add("")
-
-    # H1
-    add("## Evolution over iterations (H1; paper §5.2, Table 2)")
-    add("")
-    if groups:
-        add("| task | method | seeds | R₁ | R_peak | R_last | Succ_peak | R_peak/R₁ | files |")
-        add("|---|---|---|---|---|---|---|---|---|")
-        for task in sorted({t for t, _ in groups}):
-            for (t, label), cells in groups.items():
-                if t != task:
-                    continue
-                b = f"group/{t}/{label}"
-                add(
-                    f"| {task_title(t)} | {_esc(label)} | {len(cells)} | {_pm(book, b + '/r_first', _r)} | "
-                    f"{_pm(book, b + '/r_peak', _r)} | {_pm(book, b + '/r_last', _r)} | "
-                    f"{_pm_pct(book, b + '/succ_peak')} | {_ratio(book, b)} | {_links(cells)} |"
-                )
-            if task in PAPER_EVOLUTION:
-                r1, rp, r20, sp, ratio = PAPER_EVOLUTION[task]
-                add(
-                    f"| {task_title(task)} | **paper** (Ours, Table 2; R_last = R₂₀) | 1 | {r1:.2f} | {rp:.2f} | "
-                    f"{r20:.2f} | {sp:.1f} % | {ratio:.1f}× | - |"
-                )
-        add("")
-        add(
-            "R₁ is the first iteration's evaluation; R_peak/R₁ is left out (-) where R₁ ≤ 0. The paper ran 20 "
-            "iterations of 50,000 env steps per ECM; compare the shape, not the scale, when this run is smaller."
-        )
-        add("")
-        if "evolution" in figures:
-            add(f"![evolution]({figures['evolution']})")
-            add("")
-    else:
-        add("No learning cell finished.")
-        add("")
-
-    # H2
-    add("## Method comparison (H2; paper §5.3, Tables 3 and 4)")
-    add("")
-    if groups:
-        add(
-            "| task | method | seeds | peak success | last success | peak reward | paper peak success | "
-            "paper peak reward | files |"
-        )
-        add("|---|---|---|---|---|---|---|---|---|")
-        for (t, label), cells in groups.items():
-            b = f"group/{t}/{label}"
-            col = _paper_col(cells[0].method)
-            ps = PAPER_PEAK_SUCCESS.get(t, {}).get(col or "") if col else None
-            pr = PAPER_PEAK_REWARD.get(t, {}).get(col or "") if col else None
-            add(
-                f"| {task_title(t)} | {_esc(label)} | {len(cells)} | {_pm_pct(book, b + '/succ_peak')} | "
-                f"{_pm_pct(book, b + '/succ_last')} | {_pm(book, b + '/r_peak', _r)} | "
-                f"{'**paper** ' + col + ': ' + ps + ' %' if ps else '-'} | "
-                f"{'**paper** ' + col + ': ' + f'{pr:.2f}' if pr is not None else '-'} | {_links(cells)} |"
-            )
-        add("")
-        add("Welch's t-test (`scipy.stats.ttest_ind(equal_var=False)`) of per-seed peaks, ours against AM:")
-        add("")
-        add("| task | ours | AM | seeds | peak success: t, p | peak reward: t, p | paper |")
-        add("|---|---|---|---|---|---|---|")
-        any_pair = False
-        for (t, a_label), a_cells in groups.items():
-            if a_cells[0].method not in OURS:
-                continue
-            for (t2, b_label), b_cells in groups.items():
-                if t2 != t or b_cells[0].method not in AM:
-                    continue
-                any_pair = True
-                base = f"welch/{t}/{a_label}|{b_label}"
-                if len(a_cells) < 2 or len(b_cells) < 2:
-                    tests = ("n < 2 seeds: no test", "n < 2 seeds: no test")
-                else:
-                    tests = tuple(
-                        "undefined (no variance on either side)"
-                        if book.get(f"{base}/{f}/t") is None
-                        else f"t = {book.get(f'{base}/{f}/t'):.2f}, p = {_p(book.get(f'{base}/{f}/p'))}"
-                        for f in ("succ_peak", "r_peak")
-                    )
-                paper = (
-                    f"**paper** Ours vs AM: t = {PAPER_T6_WELCH[0]}, p = {PAPER_T6_WELCH[1]} (4 vs 4 seeds, success)"
-                    if t == FLAGSHIP_TASK
-                    else "-"
-                )
-                add(
-                    f"| {task_title(t)} | {_esc(a_label)} | {_esc(b_label)} | {len(a_cells)} vs {len(b_cells)} | "
-                    f"{tests[0]} | {tests[1]} | {paper} |"
-                )
-        if not any_pair:
-            add("| - | - | - | - | no task has both ours and AM finished | - | - |")
-        add("")
-        add("The paper's Table 3 in full (peak success %, T6 Ours and AM over four seeds, the rest seed 42):")
-        add("")
-        add("| **paper** task | " + " | ".join(PAPER_METHODS) + " |")
-        add("|---|" + "---|" * len(PAPER_METHODS))
-        for t, row in PAPER_PEAK_SUCCESS.items():
-            add(f"| {task_title(t)} | " + " | ".join(row[m] for m in PAPER_METHODS) + " |")
-        add("")
-        add(
-            "The paper's §5.3 text says every method scores 0 % on T2–T5, but its Table 3 gives T3 3.3 % (Ours, AM) "
-            "and 6.7 % (SkiMo); the table is quoted as published."
-        )
-        add("")
-        if "t6" in figures:
-            add(f"![T6 per seed]({figures['t6']})")
-            add("")
-    else:
-        add("No learning cell finished.")
-        add("")
-
-    # sample efficiency
-    add("## Sample efficiency")
-    add("")
-    if groups:
-        add(
-            "Training env steps (cumulative `env_steps_train`, the held-out evaluation not counted) spent before the "
-            "held-out success first reached 50 % and 80 %; the mean is over the seeds that reached it."
-        )
-        add("")
-        add(
-            "| task | method | ≥ 50 %: seeds reached | mean steps | ≥ 80 %: seeds reached | mean steps | per seed "
-            "| files |"
-        )
-        add("|---|---|---|---|---|---|---|---|")
-        for (t, label), cells in groups.items():
-            cols = []
-            for th in THRESHOLDS:
-                base = f"efficiency/{t}/{label}/{th:g}"
-                k = book.get(f"{base}/reached")
-                cols += [f"{k}/{len(cells)}", "not reached" if not k else _steps(book.get(f"{base}/mean"))]
-            per_seed = "; ".join(
-                f"s{c.spec.seed if c.spec else '?'}: "
-                + ", ".join(
-                    "not reached"
-                    if book.get(f"cell/{c.key}/steps_to_{th:g}") is None
-                    else _steps(book.get(f"cell/{c.key}/steps_to_{th:g}"))
-                    for th in THRESHOLDS
-                )
-                for c in cells
-            )
-            add(f"| {task_title(t)} | {_esc(label)} | {' | '.join(cols)} | {per_seed} | {_links(cells)} |")
-        add("")
-        if "efficiency" in figures:
-            add(f"![sample efficiency]({figures['efficiency']})")
-            add("")
-    else:
-        add("No learning cell finished.")
-        add("")
-
-    # identity
-    add("## Identity: Δπ (paper §5.4)")
-    add("")
-    labels = sorted({c.label for c in learning})
-    if labels:
-        add("| method | cells | mean Δπ (last iteration) | per task | paper Δπ | files |")
-        add("|---|---|---|---|---|---|")
-        for label in labels:
-            cells = [c for c in learning if c.label == label]
-            per_task = ", ".join(
-                f"{t}: {_r(book.get(f'group/{t}/{label}/delta_pi/mean'))}" for t in sorted({c.task for c in cells})
-            )
-            col = _paper_col(cells[0].method)
-            paper = f"**paper** {col}: {PAPER_DELTA_PI[col]:.2f}" if col else "-"
-            add(
-                f"| {_esc(label)} | {len(cells)} | {_pm(book, f'identity/{label}', _r)} | {per_task} | {paper} | "
-                f"{_links(cells)} |"
-            )
-        add("")
-        add(
-            "Δπ is each method's own measure of how far the agent's decision policy moved since iteration 0 (the "
-            "tensors each baseline's docstring names); 0 for ours by construction, where the agent is frozen."
-        )
-        add("")
-        if "identity" in figures:
-            add(f"![identity]({figures['identity']})")
-            add("")
-    else:
-        add("No learning cell finished.")
-        add("")
-
-    # H3
+    for section in (_evolution, _comparison, _efficiency, _identity):
+        section(add, book, groups, figures)
     _governance(add, run, book, overhead, figures)
-    # ablation
-    _ablation(add, run, book, learning, figures)
-    # fairness
+    _ablation(add, book, learning, figures)
     _fairness(add, run, book)
-    # settings
     _settings(add, run, book)
     _cells(add, run, book)
     return "\n".join(L) + "\n"
+
+
+def _figure(add: Callable[[str], None], figures: Mapping[str, str], key: str, alt: str) -> None:
+    if key in figures:
+        add(f"![{alt}]({figures[key]})")
+        add("")
+
+
+def _evolution(add: Callable[[str], None], book: Book, groups: Groups, figures: Mapping[str, str]) -> None:
+    add("## Evolution over iterations (H1; paper §5.2, Table 2)")
+    add("")
+    if not groups:
+        add("No learning cell finished.")
+        add("")
+        return
+    add("| task | method | seeds | R₁ | R_peak | R_last | Succ_peak | R_peak/R₁ | files |")
+    add("|---|---|---|---|---|---|---|---|---|")
+    for task in sorted({t for t, _ in groups}):
+        for (t, label), cells in groups.items():
+            if t != task:
+                continue
+            b = f"group/{t}/{label}"
+            add(
+                f"| {task_title(t)} | {_esc(label)} | {book.get(b + '/r_first/n')} | {_pm(book, b + '/r_first', _r)} | "
+                f"{_pm(book, b + '/r_peak', _r)} | {_pm(book, b + '/r_last', _r)} | "
+                f"{_pm_pct(book, b + '/succ_peak')} | {_ratio(book, b)} | {_links(cells)} |"
+            )
+        if task in PAPER_EVOLUTION:
+            r1, rp, r20, sp, ratio = PAPER_EVOLUTION[task]
+            add(
+                f"| {task_title(task)} | **paper** (Ours, Table 2; R_last = R₂₀) | - | {r1:.2f} | {rp:.2f} | "
+                f"{r20:.2f} | {sp:.1f} % | {ratio:.1f}× | - |"
+            )
+    add("")
+    add(
+        "R₁ is the first iteration's evaluation; R_peak/R₁ is left out (-) where R₁ ≤ 0. The paper ran 20 "
+        "iterations of 50,000 env steps per ECM; compare the shape, not the scale, when this run is smaller."
+    )
+    add("")
+    _figure(add, figures, "evolution", "evolution")
+
+
+def _comparison(add: Callable[[str], None], book: Book, groups: Groups, figures: Mapping[str, str]) -> None:
+    add("## Method comparison (H2; paper §5.3, Tables 3 and 4)")
+    add("")
+    if not groups:
+        add("No learning cell finished.")
+        add("")
+        return
+    add(
+        "| task | method | seeds | peak success | last success | peak reward | paper peak success | "
+        "paper peak reward | files |"
+    )
+    add("|---|---|---|---|---|---|---|---|---|")
+    for (t, label), cells in groups.items():
+        b = f"group/{t}/{label}"
+        col = PAPER_COLUMN.get(cells[0].method)
+        ps = PAPER_PEAK_SUCCESS.get(t, {}).get(col) if col else None
+        pr = PAPER_PEAK_REWARD.get(t, {}).get(col) if col else None
+        add(
+            f"| {task_title(t)} | {_esc(label)} | {book.get(b + '/succ_peak/n')} | {_pm_pct(book, b + '/succ_peak')} | "
+            f"{_pm_pct(book, b + '/succ_last')} | {_pm(book, b + '/r_peak', _r)} | "
+            f"{f'**paper** {col}: {ps} %' if ps else '-'} | {f'**paper** {col}: {pr:.2f}' if pr is not None else '-'} "
+            f"| {_links(cells)} |"
+        )
+    add("")
+    add("Welch's t-test (`scipy.stats.ttest_ind(equal_var=False)`) of per-seed peaks, ours against AM:")
+    add("")
+    add("| task | ours | AM | seeds | peak success: t, p | peak reward: t, p | paper |")
+    add("|---|---|---|---|---|---|---|")
+    pairs = 0
+    for (t, a_label), a_cells in groups.items():
+        for (t2, b_label), b_cells in groups.items():
+            if t2 != t or a_cells[0].method not in OURS or b_cells[0].method not in AM:
+                continue
+            pairs += 1
+            base = f"welch/{t}/{a_label}|{b_label}"
+            na, nb = book.get(f"group/{t}/{a_label}/succ_peak/n"), book.get(f"group/{t}/{b_label}/succ_peak/n")
+            tests = [
+                "n < 2 seeds: no test"
+                if min(na, nb) < 2
+                else "undefined (no variance on either side)"
+                if book.get(f"{base}/{f}/t") is None
+                else f"t = {book.get(f'{base}/{f}/t'):.2f}, p = {_p(book.get(f'{base}/{f}/p'))}"
+                for f in ("succ_peak", "r_peak")
+            ]
+            paper = (
+                f"**paper** Ours vs AM: t = {PAPER_T6_WELCH[0]}, p = {PAPER_T6_WELCH[1]} (4 vs 4 seeds, success)"
+                if t == FLAGSHIP_TASK
+                else "-"
+            )
+            add(
+                f"| {task_title(t)} | {_esc(a_label)} | {_esc(b_label)} | {na} vs {nb} | {tests[0]} | {tests[1]} | "
+                f"{paper} |"
+            )
+    if not pairs:
+        add("| - | - | - | - | no task has both ours and AM finished | - | - |")
+    add("")
+    add("The paper's Table 3 in full (peak success %, T6 Ours and AM over four seeds, the rest seed 42):")
+    add("")
+    add("| **paper** task | " + " | ".join(PAPER_METHODS) + " |")
+    add("|---|" + "---|" * len(PAPER_METHODS))
+    for t, row in PAPER_PEAK_SUCCESS.items():
+        add(f"| {task_title(t)} | " + " | ".join(row[m] for m in PAPER_METHODS) + " |")
+    add("")
+    add(
+        "The paper's §5.3 text says every method scores 0 % on T2–T5, but its Table 3 gives T3 3.3 % (Ours, AM) "
+        "and 6.7 % (SkiMo); the table is quoted as published."
+    )
+    add("")
+    _figure(add, figures, "t6", "T6 per seed")
+
+
+def _efficiency(add: Callable[[str], None], book: Book, groups: Groups, figures: Mapping[str, str]) -> None:
+    add("## Sample efficiency")
+    add("")
+    if not groups:
+        add("No learning cell finished.")
+        add("")
+        return
+    add(
+        "Training env steps (cumulative `env_steps_train`, the held-out evaluation not counted) spent before the "
+        "held-out success first reached 50 % and 80 %; the mean is over the seeds that reached it."
+    )
+    add("")
+    add(
+        "| task | method | ≥ 50 %: seeds reached | mean steps | ≥ 80 %: seeds reached | mean steps | per seed | files |"
+    )
+    add("|---|---|---|---|---|---|---|---|")
+    for (t, label), cells in groups.items():
+        cols = []
+        n = book.get(f"group/{t}/{label}/r_first/n")
+        for th in THRESHOLDS:
+            base = f"efficiency/{t}/{label}/{th:g}"
+            k = book.get(f"{base}/reached")
+            cols += [f"{k}/{n}", "not reached" if not k else _steps(book.get(f"{base}/mean"))]
+        per_seed = "; ".join(
+            f"s{c.spec.seed if c.spec else '?'}: "
+            + ", ".join(
+                "not reached"
+                if book.get(f"cell/{c.key}/steps_to_{th:g}") is None
+                else _steps(book.get(f"cell/{c.key}/steps_to_{th:g}"))
+                for th in THRESHOLDS
+            )
+            for c in cells
+        )
+        add(f"| {task_title(t)} | {_esc(label)} | {' | '.join(cols)} | {per_seed} | {_links(cells)} |")
+    add("")
+    _figure(add, figures, "efficiency", "sample efficiency")
+
+
+def _identity(add: Callable[[str], None], book: Book, groups: Groups, figures: Mapping[str, str]) -> None:
+    add("## Identity: Δπ (paper §5.4)")
+    add("")
+    if not groups:
+        add("No learning cell finished.")
+        add("")
+        return
+    add("| method | cells | mean Δπ (last iteration) | per task | paper Δπ | files |")
+    add("|---|---|---|---|---|---|")
+    for label in sorted({label for _, label in groups}):
+        cells = [c for (_, lab), cs in groups.items() if lab == label for c in cs]
+        per_task = ", ".join(
+            f"{t}: {_r(book.get(f'group/{t}/{label}/delta_pi/mean'))}" for t, lab in groups if lab == label
+        )
+        col = PAPER_COLUMN.get(cells[0].method)
+        paper = f"**paper** {col}: {PAPER_DELTA_PI[col]:.2f}" if col else "-"
+        add(
+            f"| {_esc(label)} | {book.get(f'identity/{label}/n')} | {_pm(book, f'identity/{label}', _r)} | "
+            f"{per_task} | {paper} | {_links(cells)} |"
+        )
+    add("")
+    add(
+        "Δπ is each method's own measure of how far the agent's decision policy moved since iteration 0 (the "
+        "tensors each baseline's docstring names); 0 for ours by construction, where the agent is frozen. The "
+        "paper's figures are means over its six tasks."
+    )
+    add("")
+    _figure(add, figures, "identity", "identity")
 
 
 def _ratio(book: Book, base: str) -> str:
@@ -1115,12 +1140,10 @@ def _governance(add: Any, run: Run, book: Book, overhead: QuotedOverhead | None,
             "**paper**: 0.021–0.029 ms (Table 6)."
         )
     add("")
-    if "governance" in figures:
-        add(f"![governance]({figures['governance']})")
-        add("")
+    _figure(add, figures, "governance", "governance")
 
 
-def _ablation(add: Any, run: Run, book: Book, learning: Sequence[Cell], figures: Mapping[str, str]) -> None:
+def _ablation(add: Any, book: Book, learning: Sequence[Cell], figures: Mapping[str, str]) -> None:
     add("## Learning-modality ablation on T3 (paper §5.6, Table 7)")
     add("")
     cells = [c for c in learning if c.task == "T3" and c.spec and modality_of(c.spec) is not None]
@@ -1146,9 +1169,7 @@ def _ablation(add: Any, run: Run, book: Book, learning: Sequence[Cell], figures:
     add("")
     add("σ²_final: sample variance of the last evaluation's episode rewards, mean over seeds.")
     add("")
-    if "ablation" in figures:
-        add(f"![ablation]({figures['ablation']})")
-        add("")
+    _figure(add, figures, "ablation", "ablation")
 
 
 def _fairness(add: Any, run: Run, book: Book) -> None:
@@ -1259,7 +1280,6 @@ def _cells(add: Any, run: Run, book: Book) -> None:
     for c in run.cells:
         planned = c.spec.iterations if c.spec else "?"
         k = f"cell/{c.key}"
-        wall = (c.done or {}).get("wall_s")
         files = [f"[cell.json](../{c.path}/{CELL_JSON})"]
         if (run.root / c.metrics_file).exists():
             files.append(f"[metrics](../{c.metrics_file})")
@@ -1267,16 +1287,16 @@ def _cells(add: Any, run: Run, book: Book) -> None:
             if (run.root / c.path / name).exists():
                 files.append(f"[{name}](../{c.path}/{name})")
         shown = book.get(f"{k}/iterations") is not None
+        attempts, wall = book.get(f"{k}/attempts"), book.get(f"{k}/wall_s")
         add(
             f"| `{c.key}` | {'**' + c.status + '**' if c.status != 'done' else c.status} | "
-            f"{len(c.records)}/{planned} | {c.attempts if c.attempts is not None else '-'} | "
+            f"{book.get(k + '/records')}/{planned} | {attempts if attempts is not None else '-'} | "
             f"{_r(book.get(k + '/r_first')) if shown else '-'} | {_r(book.get(k + '/r_peak')) if shown else '-'} | "
             f"{_pct(book.get(k + '/succ_peak')) if shown else '-'} | "
             f"{_r(book.get(k + '/delta_pi')) if shown else '-'} | "
             f"{_steps(book.get(k + '/env_steps_train')) if shown else '-'} | "
             f"{_steps(book.get(k + '/env_steps_eval')) if shown else '-'} | "
-            f"{f'{float(wall):.0f}' if isinstance(wall, int | float) else '-'} | {_esc(c.problem) or '-'} | "
-            f"{' '.join(files)} |"
+            f"{f'{wall:.0f}' if wall is not None else '-'} | {_esc(c.problem) or '-'} | {' '.join(files)} |"
         )
     add("")
     add(

@@ -193,7 +193,11 @@ def test_unfinished_failed_and_unreadable_cells_are_listed_not_counted(run: tupl
     assert "| `T1-skimo-s42` | **unfinished** | 1/2 |" in md and "not finished: 1 of 2 iteration(s) recorded" in md
     assert "| `T1-am-bc-s42` | **unreadable** |" in md and "no cell.json" in md
     # not in the statistics, but their steps were spent
-    assert not any(k.startswith(("group/T1/spirl", "group/T1/skimo", "cell/T1-spirl")) for k in nums)
+    assert not any(k.startswith(("group/T1/spirl", "group/T1/skimo", "identity/spirl")) for k in nums)
+    assert "cell/T1-spirl-s42/r_peak" not in nums and "cell/T1-skimo-s42/r_peak" not in nums
+    assert nums["cell/T1-spirl-s42/records"]["value"] == 1
+    assert nums["cell/T1-spirl-s42/attempts"]["value"] == 3
+    assert nums["cell/T1-spirl-s42/attempts"]["sources"] == ["cells/T1-spirl-s42/failed.json"]
     assert nums["parity/spirl/iterations"]["value"] == 1
     run_state = load_run(root)
     total = sum(r.env_steps_train for c in run_state.cells for r in c.records)
@@ -239,6 +243,7 @@ def test_small_runs_say_what_they_cannot_show(tmp_path: Path) -> None:
     files = write_report(root)
     md = (root / "report" / "report.md").read_text()
     assert "single iteration" in md
+    assert "at most 1,000 training env steps per iteration, against the paper's 50,000" in md
     assert "as few as 3 episode(s)" in md
     assert "one seed per task" in md
     assert "No method succeeded on any held-out episode" in md
@@ -253,3 +258,17 @@ def test_no_run_is_not_found(tmp_path: Path) -> None:
     with pytest.raises(NotFound, match="no experiment run") as exc:
         write_report(tmp_path)
     assert exc.value.code.value == "not_found"
+
+
+def test_numbers_name_existing_files_and_do_not_change_when_rewritten(run: tuple[Path, dict[str, Raw]]) -> None:
+    root, _ = run
+    write_report(root)
+    first = (root / "report" / "numbers.json").read_bytes()
+    nums = _numbers(root)
+    for name, n in nums.items():
+        for src in n["sources"]:
+            assert (root / src).exists(), (name, src)
+        if not name.startswith(("cells/", "cell/T1-am-bc", "cell/T1-skimo")):
+            assert n["sources"], name  # every number of a cell that has files names them
+    write_report(root)
+    assert (root / "report" / "numbers.json").read_bytes() == first
