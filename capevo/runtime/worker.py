@@ -71,6 +71,7 @@ import os
 import queue
 import re
 import socket
+import tempfile
 import threading
 import time
 import uuid
@@ -131,6 +132,8 @@ candidate goes through the registry instead (publish it as a candidate, pin its 
 DEFAULT_EVALUATE_TIMEOUT_S = 600.0
 JSON_ENCODING = "application/json"
 SERVES = "serves"
+MAX_TRACE_REPLY_BYTES = 256 << 20
+"""A call's trace file travels back with its outcomes up to this size (lz4 MCAP)."""
 DISCOVERY_TIMEOUT_S = 5.0
 """At most this long to list the live workers of a task (the router answers from its table)."""
 
@@ -289,9 +292,13 @@ class EvaluateRequest:
     seeds: tuple[int, ...]
     overrides: Mapping[str, bytes] = field(default_factory=dict)
     override_origin: Origin | None = None
+    traces: bool = False
+    """Send the call's trace file back with the outcomes (the reply's attachment)."""
 
     def to_json(self) -> bytes:
         body: dict[str, Any] = {"task": self.task, "versions": dict(self.versions), "seeds": list(self.seeds)}
+        if self.traces:
+            body["traces"] = True
         if self.overrides:
             body["overrides"] = {k: base64.b64encode(v).decode("ascii") for k, v in sorted(self.overrides.items())}
         if self.override_origin is not None:
@@ -315,7 +322,7 @@ class EvaluateRequest:
             raise Invalid(f"evaluate request is not JSON: {exc}", details={"field": "payload"}) from None
         if not isinstance(body, dict):
             raise Invalid("evaluate request must be a JSON object", details={"field": "payload"})
-        unknown = sorted(set(body) - {"task", "versions", "seeds", "overrides", "override_origin"})
+        unknown = sorted(set(body) - {"task", "versions", "seeds", "overrides", "override_origin", "traces"})
         if unknown:
             raise Invalid(f"evaluate request: unknown field(s) {', '.join(unknown)}", details={"field": unknown[0]})
         task = body.get("task")
@@ -336,6 +343,9 @@ class EvaluateRequest:
             decoded = {k: base64.b64decode(v, validate=True) for k, v in raw.items()}
         except (binascii.Error, ValueError):
             raise Invalid("evaluate request: an override is not base64", details={"field": "overrides"}) from None
+        traces = body.get("traces", False)
+        if not isinstance(traces, bool):
+            raise Invalid("evaluate request: traces must be true or false", details={"field": "traces"})
         origin = body.get("override_origin")
         if origin is not None:
             try:
@@ -352,6 +362,7 @@ class EvaluateRequest:
             seeds=tuple(check_seeds(seeds)),
             overrides=check_overrides(decoded, spec.name),
             override_origin=origin,
+            traces=traces,
         )
 
 
@@ -468,14 +479,14 @@ class _Request:
         self.request = request
 
 
-def _reply(query: zenoh.Query, result: bytes | CapevoError) -> None:
+def _reply(query: zenoh.Query, result: bytes | CapevoError, *, attachment: bytes | None = None) -> None:
     """Send the one reply of ``query`` and finalise it."""
     try:
         with query:
             if isinstance(result, CapevoError):
                 query.reply_err(result.to_payload(), encoding=JSON_ENCODING)
             else:
-                query.reply(query.key_expr, result, encoding=JSON_ENCODING)
+                query.reply(query.key_expr, result, encoding=JSON_ENCODING, attachment=attachment)
     except zenoh.ZError as exc:
         log.warning("could not reply to %s: %s", query.selector, exc)
 
@@ -565,6 +576,41 @@ def _overridden(evaluator: LocalEvaluator, request: EvaluateRequest) -> Any:
         yield evaluator
     finally:
         evaluator.registry, evaluator.cache = registry, cache
+
+
+@contextlib.contextmanager
+def _trace_scratch(evaluator: LocalEvaluator, request: EvaluateRequest) -> Any:
+    """A temporary trace directory for a call that asks for its trace from a worker that keeps none.
+
+    Yields:
+        True when the directory is temporary (removed on exit), False otherwise.
+    """
+    if not request.traces or evaluator.trace_dir is not None:
+        yield False
+        return
+    with tempfile.TemporaryDirectory(prefix="capevo-eval-trace-") as tmp:
+        evaluator.trace_dir = Path(tmp)
+        try:
+            yield True
+        finally:
+            evaluator.trace_dir = None
+
+
+def _trace_bytes(outcomes: Sequence[EpisodeOutcome]) -> bytes | None:
+    """The bytes of a call's one trace file (evaluator invariant 1), or None when too large or unreadable."""
+    paths = {o.trace_path for o in outcomes if o.trace_path}
+    if len(paths) != 1:
+        return None
+    path = Path(next(iter(paths)))
+    try:
+        size = path.stat().st_size
+        if size > MAX_TRACE_REPLY_BYTES:
+            log.warning("not sending trace %s back: %d bytes, over %d", path, size, MAX_TRACE_REPLY_BYTES)
+            return None
+        return path.read_bytes()
+    except OSError as exc:
+        log.warning("cannot read trace %s to send back: %s", path, exc)
+        return None
 
 
 class RuntimeWorker:
@@ -938,9 +984,14 @@ class RuntimeWorker:
                 return
             req = item.request
             started = time.monotonic()
+            trace: bytes | None = None
             try:
-                with _overridden(evaluator, req):
+                with _overridden(evaluator, req), _trace_scratch(evaluator, req) as scratch:
                     outcomes = evaluator.evaluate(req.task, req.versions, req.seeds)
+                    if req.traces:
+                        trace = _trace_bytes(outcomes)
+                if scratch:  # the trace lived only to be sent: the outcomes must not name it
+                    outcomes = [dataclasses.replace(o, trace_path=None) for o in outcomes]
                 result: bytes | CapevoError = encode_outcomes(self.worker_id, outcomes)
                 self._emit(
                     "evaluated",
@@ -956,7 +1007,7 @@ class RuntimeWorker:
             except Exception as exc:  # an evaluation bug must cost the request, never the worker
                 log.exception("evaluate request failed")
                 result = CapevoError(f"evaluation failed in runtime worker {self.worker_id}: {type(exc).__name__}")
-            _reply(item.query, result)
+            _reply(item.query, result, attachment=trace if not isinstance(result, CapevoError) else None)
 
     def _drain(self, why: str) -> None:
         """Refuse every queued request and every later one (invariant 2)."""
@@ -1036,6 +1087,11 @@ class RemoteEvaluator:
         worker_id: Ask only this worker (no split); default every live worker of the task.
         timeout: Seconds to wait for all the outcomes of one call.
         max_attempts: Dispatches of one seed before the call gives up with ``unavailable``.
+        trace_dir: When given, each worker sends its part's trace file back with the outcomes
+            and it is written here (``<worker_id>-<file name>``); the outcomes' ``trace_path``
+            names these local copies, so learners read a remote worker's episodes without a
+            shared disk. None leaves each ``trace_path`` as the worker's own (None when the
+            worker keeps no traces).
 
     Raises:
         Invalid: neither or both of ``connect``/``session``; bad namespace, worker id, timeout or
@@ -1054,8 +1110,10 @@ class RemoteEvaluator:
         worker_id: str | None = None,
         timeout: float = DEFAULT_EVALUATE_TIMEOUT_S,
         max_attempts: int = DEFAULT_MAX_ATTEMPTS,
+        trace_dir: str | os.PathLike[str] | None = None,
     ) -> None:
         self.keys = RuntimeKeys(namespace)
+        self.trace_dir = Path(trace_dir) if trace_dir is not None else None
         self.worker_id = validate_worker_id(worker_id) if worker_id is not None else None
         if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout > 0:
             raise Invalid(
@@ -1143,6 +1201,7 @@ class RemoteEvaluator:
             seeds=tuple(check_seeds(seeds)),
             overrides=check_overrides(overrides, spec.name),
             override_origin=override_origin,
+            traces=self.trace_dir is not None,
         )
         deadline = time.monotonic() + self.timeout
         ledger = SeedLedger(request.seeds, max_attempts=self.max_attempts)
@@ -1179,7 +1238,13 @@ class RemoteEvaluator:
                     continue
                 part = next((p for p in ledger.in_flight() if p.part_id == subject), None)
                 if kind == "ok":
-                    ledger.complete(subject, decode_outcomes(body)[1])
+                    payload, attachment = body
+                    worker, outcomes = decode_outcomes(payload)
+                    local = self._keep_trace(worker, outcomes, attachment)
+                    if local is not None:
+                        outcomes = [dataclasses.replace(o, trace_path=str(local)) for o in outcomes]
+                    if ledger.complete(subject, outcomes) == 0 and local is not None:
+                        local.unlink(missing_ok=True)  # every episode in it was counted from another part
                 elif kind == "err":
                     if part is None:  # a part given up already; its late error changes nothing
                         continue
@@ -1216,7 +1281,9 @@ class RemoteEvaluator:
 
         def on_reply(reply: zenoh.Reply) -> None:
             if reply.ok is not None:
-                events.put(("ok", pid, reply.ok.payload.to_bytes()))
+                extra = reply.ok.attachment
+                trace = extra.to_bytes() if extra is not None else None
+                events.put(("ok", pid, (reply.ok.payload.to_bytes(), trace)))
             else:
                 events.put(("err", pid, reply.err.payload.to_bytes() if reply.err is not None else b""))
 
@@ -1239,6 +1306,19 @@ class RemoteEvaluator:
             raise Unavailable(f"{key}: query failed: {_first_line(exc)}", details={"key": key}) from None
         log.debug("sent seeds %s to %s (part %d)", list(part.seeds), part.worker_id, pid)
         return token
+
+    def _keep_trace(self, worker: str, outcomes: Sequence[EpisodeOutcome], trace: bytes | None) -> Path | None:
+        """Write a part's trace file under :attr:`trace_dir`; its path, or None when there is none."""
+        if self.trace_dir is None or not trace:
+            return None
+        remote = next((o.trace_path for o in outcomes if o.trace_path), None)
+        name = Path(remote).name if remote else f"eval-{uuid.uuid4().hex[:12]}.mcap"
+        path = self.trace_dir / f"{worker}-{name}"
+        self.trace_dir.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+        tmp.write_bytes(trace)
+        os.replace(tmp, path)  # a reader never sees half a file
+        return path
 
     @staticmethod
     def _lose(ledger: SeedLedger, part: Part, tokens: Mapping[int, zenoh.CancellationToken], why: str) -> None:

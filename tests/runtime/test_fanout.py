@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import random
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -28,6 +29,7 @@ from capevo.errors import CapevoError, Forbidden, Invalid, Unavailable
 from capevo.records import Origin
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.fanout import SeedLedger, split
+from capevo.runtime.traces import TraceReader
 from capevo.runtime.worker import RemoteEvaluator
 
 HORIZON = "20"
@@ -143,7 +145,8 @@ class Cluster:
     workers: dict[str, Proc]
     root: Path
 
-    def start(self, worker_id: str) -> Proc:
+    def start(self, worker_id: str, *, traces: bool = True) -> Proc:
+        keep = ["--trace-dir", str(self.root / worker_id), "--trace-compression", "none"] if traces else []
         proc = start_worker(
             self.endpoint,
             task="T1",
@@ -154,10 +157,7 @@ class Cluster:
                 "--idle",
                 "--horizon",
                 HORIZON,
-                "--trace-dir",
-                str(self.root / worker_id),
-                "--trace-compression",
-                "none",
+                *keep,
                 "--cache-dir",
                 str(self.root / worker_id / "cache"),
             ],
@@ -212,6 +212,25 @@ def test_the_split_is_deterministic_and_merges_to_a_one_worker_run(cluster: Clus
     same_episodes(first, one)
     same_episodes(second, one)
     assert all(0 < o.steps <= int(HORIZON) for o in one)
+
+
+@pytest.mark.slow
+@pytest.mark.zenoh
+def test_each_part_s_trace_comes_back_with_its_outcomes(cluster: Cluster, tmp_path: Path) -> None:
+    """Learners read the episodes of workers on other hosts from local copies (no shared disk)."""
+    seeds = [31, 32, 33]
+    with RemoteEvaluator(cluster.endpoint, timeout=240, trace_dir=tmp_path) as evaluator:
+        outcomes = evaluator.evaluate("T1", {}, seeds)
+    local = sorted({str(o.trace_path) for o in outcomes})
+    assert [Path(p).parent for p in local] == [tmp_path, tmp_path]
+    for path in local:
+        worker, name = Path(path).name[:3], Path(path).name[4:]  # "w-a-" + the worker's file name
+        original = cluster.root / worker / "evaluations" / name
+        assert Path(path).read_bytes() == original.read_bytes()
+        with TraceReader(path) as reader:
+            ran = [e.seed for e in reader.episode_summaries()]
+        assert ran == [o.seed for o in outcomes if o.trace_path == path]
+    assert not list(tmp_path.glob(".*.tmp"))
 
 
 @pytest.mark.slow
@@ -291,3 +310,39 @@ def test_a_worker_killed_mid_call_loses_no_seed_and_counts_none_twice(
     assert {cluster.ran_on(o) for o in outcomes[4:]} <= {"w-a", "w-b"}
     last = result["last_call"]
     assert isinstance(last, dict) and last["failed_parts"] >= 1 and victim_id in last["workers"]
+
+
+@pytest.mark.slow
+@pytest.mark.zenoh
+def test_workers_elsewhere_join_through_a_router(tmp_path: Path) -> None:
+    """docs/multi-host.md's layout on one machine: a plain Zenoh router (zenohd's stand-in) in
+    the middle, the registry joined to it with ``--connect``, the workers and the evaluator its
+    clients; no process connects to the registry directly."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "registry"))
+    from zenoh_fixtures import hub_router
+
+    with hub_router("a1b2c3d4e5f60718") as hub:
+        registry = start_server(tmp_path / "registry", connect=[hub])
+        c = Cluster(endpoint=hub, registry=registry, workers={}, root=tmp_path)
+        try:
+            with registry.client(actor="tester") as client:
+                publish_pick(client)
+            # workers that keep no traces of their own: they still send each call's trace back
+            c.start("w-x", traces=False)
+            c.start("w-y", traces=False)
+            with RemoteEvaluator(hub, timeout=240, trace_dir=tmp_path / "here") as evaluator:
+                outcomes = evaluator.evaluate("T1", {}, [21, 22, 23])
+                assert evaluator.last_call["workers"] == ["w-x", "w-y"]
+            with RemoteEvaluator(hub, worker_id="w-y", timeout=240) as alone:
+                untraced = alone.evaluate("T1", {}, [21, 22, 23])
+            same_episodes(outcomes, untraced)
+            assert all(o.trace_path is None for o in untraced)
+            assert [Path(str(o.trace_path)).name.split("-")[:2] for o in outcomes] == [["w", "x"]] * 2 + [["w", "y"]]
+            for o in outcomes:
+                with TraceReader(str(o.trace_path)) as reader:
+                    assert o.seed in [e.seed for e in reader.episode_summaries()]
+            assert not list(tmp_path.glob("w-*/evaluations"))
+        finally:
+            codes = [p.terminate() for p in c.workers.values()]
+            registry.stop()
+        assert codes == [0, 0]
