@@ -30,7 +30,9 @@ ours runs. One iteration:
 2. Save a checkpoint, ``checkpoints/iteration-NNN.zip`` (``iteration-000``: the initial weights).
 3. The held-out evaluation: one episode per seed of :meth:`CellSpec.eval_seeds` with the
    deterministic policy (:func:`~capevo.baselines.governed_env.evaluate_policy`); its steps are
-   ``env_steps_eval``, outside the budget.
+   ``env_steps_eval``, outside the budget. Its trace is ``traces/eval-NNN.mcap`` (the
+   runtime's record types; ``/env/step``'s ``ecm`` is the method's name, ``version`` the
+   iteration); training steps are not traced.
 4. ``emit`` the :class:`~capevo.baselines.base.IterationRecord`.
 
 Δπ (paper §5.1 "Metrics", §5.3): ``‖θ_i − θ_0‖₂ / ‖θ_0‖₂`` by
@@ -387,6 +389,9 @@ class AgentModification:
                     governance=cell.governance,
                     perturbations=cell.perturbations,
                     horizon=horizon,
+                    trace=workdir / "traces" / f"eval-{iteration:03d}.mcap",
+                    label=self.name,
+                    version=iteration,
                 )
                 emit(
                     IterationRecord(

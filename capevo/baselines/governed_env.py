@@ -29,9 +29,17 @@ latched); ``truncated``: the horizon.
 
 ``info`` after every step holds the task's (``is_success``, ``success_now``,
 ``actuation_dropped``) and ``unsafe`` (the monitor graded the step unsafe), ``unsafe_axes``
-(which limits: ``box``, ``cap``, ``force``, ``non_finite``), ``intervened`` (governance changed
-the action, or would have when off), ``rejected`` (it answered ⊥), ``constraints`` (the
-constraints that intervened) and ``action`` (the action executed, before a drop).
+(which limits: ``box``, ``cap``, ``force``, ``non_finite``), ``unsafe_reasons`` (the monitor's
+lines), ``intervened`` (governance changed the action, or would have when off), ``rejected`` (it
+answered ⊥), ``constraints`` (the constraints that intervened), ``interventions`` (their
+:class:`~capevo.runtime.governance.Intervention` records) and ``action`` (the action executed,
+before a drop).
+
+Traces: :func:`evaluate_policy` given ``trace`` writes its episodes to one MCAP file with the
+runtime's record types (:mod:`capevo.runtime.traces`): ``/env/step`` (``ecm`` is the policy's
+label, ``version`` its iteration), ``/governance/intervention`` (reasons prefixed ``not
+enforced:`` when governance is off, as the runtime writes them), ``/safety/unsafe`` and
+``/episode/summary`` (an empty capability set: no ECM ran). Training steps are not traced.
 
 Invariants:
 1. ``env_steps`` is the number of :meth:`GovernedTaskEnv.step` calls since construction
@@ -44,11 +52,19 @@ Invariants:
    evaluation on given seeds, and a training run seeded with ``s``, are reproducible.
 5. Observations are float32 of the shape of ``observation_space``; :func:`evaluate_policy` with a
    deterministic policy returns equal results for equal seeds.
+6. A trace of :func:`evaluate_policy` holds one ``/env/step`` per step taken, one
+   ``/safety/unsafe`` per unsafe step and one ``/episode/summary`` per seed, agreeing with the
+   returned results.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
+import time
+import uuid
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -56,12 +72,27 @@ import numpy as np
 
 from capevo.baselines.base import EpisodeResult
 from capevo.errors import Invalid
+from capevo.records import CapabilitySet
 from capevo.runtime.envelope import PhiChoice, resolve_phi
 from capevo.runtime.episode import make_governor
 from capevo.runtime.evaluator import check_seeds
 from capevo.runtime.governance import hold_action
 from capevo.runtime.safety_monitor import SafetyMonitor
+from capevo.runtime.state import RobotState
 from capevo.runtime.tasks import Perturbations, TaskEnv, make_task, task_spec
+from capevo.runtime.traces import (
+    NOT_ENFORCED_PREFIX,
+    EnvStep,
+    EpisodeSummary,
+    TraceMetadata,
+    TraceSink,
+    TraceWriter,
+    UnsafeStep,
+)
+from capevo.runtime.traces import Intervention as TraceIntervention
+
+UNSPECIFIED_IDENTITY = "unspecified"
+"""The traces' agent identity hash: a monolithic policy has no persistent agent."""
 
 
 class GovernedTaskEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -117,6 +148,8 @@ class GovernedTaskEnv(gym.Env[np.ndarray, np.ndarray]):
         self._closed = False
         self.env_steps = 0
         """Every step taken since construction (the budget is counted from this)."""
+        self.last_state: RobotState | None = None
+        """The robot state the last step's action was governed in (before the step)."""
 
     @property
     def task_spec(self) -> Any:
@@ -173,7 +206,8 @@ class GovernedTaskEnv(gym.Env[np.ndarray, np.ndarray]):
                 f"{self.task_spec.name}: action shape {a.shape} != ({self._layout.dim},)", details={"field": "action"}
             )
         proposed = np.clip(a, -1.0, 1.0)
-        governed, ivs = self.governor(self.task_env.robot_state(), proposed)
+        state = self.last_state = self.task_env.robot_state()
+        governed, ivs = self.governor(state, proposed)
         rejected = governed is None or any(iv.result is None for iv in ivs)
         executed = np.asarray(
             hold_action(self._layout, self._last_action) if governed is None else governed, dtype=np.float64
@@ -186,9 +220,11 @@ class GovernedTaskEnv(gym.Env[np.ndarray, np.ndarray]):
         info = dict(info)
         info["unsafe"] = verdict.unsafe
         info["unsafe_axes"] = verdict.broken
+        info["unsafe_reasons"] = verdict.reasons
         info["intervened"] = bool(ivs)
         info["rejected"] = bool(ivs) and rejected
         info["constraints"] = tuple(iv.constraint for iv in ivs)
+        info["interventions"] = ivs
         info["action"] = executed.astype(np.float32)
         return obs, float(reward), bool(terminated), bool(truncated), info
 
@@ -208,6 +244,9 @@ def evaluate_policy(
     governance: bool = True,
     perturbations: bool = True,
     horizon: int | None = None,
+    trace: str | os.PathLike[str] | None = None,
+    label: str = "policy",
+    version: int = 0,
 ) -> tuple[tuple[EpisodeResult, ...], int]:
     """Run one episode per seed with the deterministic policy ``act`` in a fresh :class:`GovernedTaskEnv`.
 
@@ -219,40 +258,129 @@ def evaluate_policy(
         governance: As :class:`GovernedTaskEnv`.
         perturbations: As :class:`GovernedTaskEnv`.
         horizon: As :class:`GovernedTaskEnv`.
+        trace: An MCAP file to write the episodes to (see the module docstring); None writes none.
+        label: The trace's name for the policy (``/env/step``'s ``ecm``; the run's worker id).
+        version: The trace's version of the policy (``/env/step``'s ``version``), e.g. the iteration.
 
     Returns:
         One :class:`EpisodeResult` per seed, in order, and the env steps they took.
 
     Raises:
         Invalid: bad seeds (none, negative, not integers), or what :class:`GovernedTaskEnv` raises.
+        Conflict: ``trace`` exists already.
     """
     seed_list = check_seeds(seeds)
     env = GovernedTaskEnv(task, phi=phi, governance=governance, perturbations=perturbations, horizon=horizon)
     results: list[EpisodeResult] = []
-    try:
-        for seed in seed_list:
-            obs, info = env.reset(seed=seed)
-            reward = 0.0
-            steps = unsafe = intervened = 0
-            done = False
-            while not done:
-                obs, r, terminated, truncated, info = env.step(act(obs))
-                if np.isfinite(r):
-                    reward += r
-                steps += 1
-                unsafe += info["unsafe"]
-                intervened += info["intervened"]
-                done = terminated or truncated
-            results.append(
-                EpisodeResult(
-                    seed=seed,
-                    success=bool(info["is_success"]),
-                    reward=reward,
-                    steps=steps,
-                    unsafe_steps=unsafe,
-                    interventions=intervened,
+    with contextlib.ExitStack() as stack:
+        stack.callback(env.close)
+        sink: TraceSink | None = None
+        if trace is not None:
+            metadata = TraceMetadata.collect(
+                run_id=f"{label}-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-{uuid.uuid4().hex[:8]}",
+                task=env.task_spec.name,
+                capability_set=CapabilitySet(revision=0, active={}),
+                phi_hash=env.phi.hash,
+                agent_identity_hash=UNSPECIFIED_IDENTITY,
+                seeds=seed_list,
+                worker_id=label,
+            )
+            sink = stack.enter_context(TraceWriter(Path(trace), metadata))
+        for episode, seed in enumerate(seed_list):
+            results.append(_episode(env, act, seed, sink=sink, episode=episode, label=label, version=version))
+    return tuple(results), env.env_steps
+
+
+def _episode(
+    env: GovernedTaskEnv,
+    act: Callable[[np.ndarray], np.ndarray],
+    seed: int,
+    *,
+    sink: TraceSink | None,
+    episode: int,
+    label: str,
+    version: int,
+) -> EpisodeResult:
+    """One seeded episode of ``act``, traced to ``sink`` when given."""
+    started = time.perf_counter()
+    obs, info = env.reset(seed=seed)
+    reward = 0.0
+    steps = unsafe = intervened = interventions = 0
+    done = False
+    while not done:
+        next_obs, r, terminated, truncated, info = env.step(act(obs))
+        if np.isfinite(r):
+            reward += r
+        unsafe += info["unsafe"]
+        intervened += info["intervened"]
+        interventions += len(info["interventions"])
+        done = terminated or truncated
+        if sink is not None:
+            executed = tuple(info["action"].tolist())
+            for iv in info["interventions"]:
+                sink.write_intervention(
+                    TraceIntervention(
+                        episode=episode,
+                        step=steps,
+                        constraint=iv.constraint,
+                        original_action=iv.original,
+                        result_action=(iv.result if env.governance else executed),
+                        reason=iv.reason if env.governance else NOT_ENFORCED_PREFIX + iv.reason,
+                        enforced=env.governance,
+                    )
+                )
+            if info["unsafe"]:
+                sink.write_unsafe_step(
+                    UnsafeStep(episode=episode, step=steps, broken=info["unsafe_axes"], reasons=info["unsafe_reasons"])
+                )
+            state = env.last_state
+            sink.write_env_step(
+                EnvStep(
+                    episode=episode,
+                    step=steps,
+                    ecm=label,
+                    version=version,
+                    obs=obs,
+                    action=executed,
+                    reward=float(r),
+                    next_obs=next_obs,
+                    terminated=terminated,
+                    truncated=truncated,
+                    is_success=bool(info["is_success"]),
+                    key_state=_key_state(state) if state is not None else {},
                 )
             )
-    finally:
-        env.close()
-    return tuple(results), env.env_steps
+        obs = next_obs
+        steps += 1
+    result = EpisodeResult(
+        seed=seed,
+        success=bool(info["is_success"]),
+        reward=reward,
+        steps=steps,
+        unsafe_steps=unsafe,
+        interventions=intervened,
+    )
+    if sink is not None:
+        sink.write_episode_summary(
+            EpisodeSummary(
+                episode=episode,
+                seed=seed,
+                success=result.success,
+                total_reward=reward,
+                steps=steps,
+                interventions=interventions,
+                unsafe_steps=unsafe,
+                capability_set={},
+                duration_s=time.perf_counter() - started,
+            )
+        )
+    return result
+
+
+def _key_state(state: RobotState) -> dict[str, tuple[float, ...]]:
+    """The ``/env/step`` key state the runtime records: each arm's end-effector position and force."""
+    out: dict[str, tuple[float, ...]] = {}
+    for i, arm in enumerate(state.arms):
+        out[f"arm{i}_eef_pos"] = arm.eef_pos
+        out[f"arm{i}_eef_force"] = arm.eef_force
+    return out

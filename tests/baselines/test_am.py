@@ -30,6 +30,7 @@ from capevo.baselines.demos import v0_demos
 from capevo.baselines.governed_env import GovernedTaskEnv
 from capevo.errors import ErrorCode, Invalid
 from capevo.learner.bc import BcConfig, behaviour_clone, imitation_loss
+from capevo.runtime.traces import TraceReader
 
 HORIZON = 20
 
@@ -64,6 +65,9 @@ def test_ppo_spends_the_budget_moves_the_policy_and_evaluates_on_the_held_out_se
         assert r.env_steps_eval == sum(e.steps for e in r.episodes)
         assert all(e.steps <= HORIZON for e in r.episodes)
     assert records[0].delta_pi > 0.0
+    for r in records:
+        summaries = list(TraceReader(tmp_path / "traces" / f"eval-{r.iteration:03d}.mcap").episode_summaries())
+        assert [(s.seed, s.steps, s.success) for s in summaries] == [(e.seed, e.steps, e.success) for e in r.episodes]
     # Δπ is what the checkpoints say: θ_0 the initial weights, θ_i the iteration's.
     first = PPO.load(tmp_path / "checkpoints" / "iteration-000.zip", device="cpu")
     for r in records:

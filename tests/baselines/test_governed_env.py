@@ -3,10 +3,13 @@
 Each test observes one invariant of the module docstring directly: governance changes an action
 that would leave the workspace box only when it is on (2), the independent monitor grades a
 constructed unsafe step (3), ``env_steps`` counts every step (1), the seeds of consecutive
-episodes (4), and a deterministic policy's evaluation repeats exactly (5).
+episodes (4), a deterministic policy's evaluation repeats exactly (5), and its trace agrees
+with its results (6).
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +17,7 @@ import pytest
 from capevo.baselines import EpisodeResult
 from capevo.baselines.governed_env import GovernedTaskEnv, evaluate_policy
 from capevo.errors import ErrorCode, Invalid
+from capevo.runtime.traces import TraceReader
 
 pytestmark = pytest.mark.slow
 
@@ -126,3 +130,33 @@ def test_bad_choices_are_invalid_before_a_simulator_is_built() -> None:
         GovernedTaskEnv("T9")
     with pytest.raises(Invalid, match="seeds"):
         evaluate_policy("T1", lambda o: np.zeros(7), [])
+
+
+def test_the_evaluation_trace_holds_every_step_and_agrees_with_the_results(tmp_path: Path) -> None:
+    path = tmp_path / "eval.mcap"
+    results, steps = evaluate_policy(
+        "T1",
+        lambda obs: UP,
+        [5, 6],
+        phi="paper",
+        governance=False,
+        perturbations=False,
+        horizon=30,
+        trace=path,
+        label="am",
+        version=2,
+    )
+    reader = TraceReader(path)
+    assert reader.metadata().task == "pick" and reader.metadata().seeds == (5, 6)
+    env_steps = list(reader.env_steps())
+    assert len(env_steps) == steps == 60
+    assert {(s.ecm, s.version) for s in env_steps} == {("am", 2)}
+    unsafe = list(reader.unsafe_steps())
+    assert len(unsafe) == sum(r.unsafe_steps for r in results) > 0
+    assert all("box" in u.broken for u in unsafe)
+    interventions = list(reader.interventions())
+    assert interventions and all(not iv.enforced and iv.reason.startswith("not enforced: ") for iv in interventions)
+    summaries = list(reader.episode_summaries())
+    assert [(s.seed, s.steps, s.unsafe_steps, s.success) for s in summaries] == [
+        (r.seed, r.steps, r.unsafe_steps, r.success) for r in results
+    ]
