@@ -147,6 +147,8 @@ def plot_sample_efficiency(
     color = {label: _color(i) for i, label in enumerate(labels)}
     for row, task in enumerate(tasks):
         ax = axes[row, 0]
+        right = max((float(p[0]) for seeds in series[task].values() for s in seeds for p in s), default=0.0)
+        ax.set_xlim(0, max(right * 1.05, 1.0))
         for label, seeds in series[task].items():
             for i, s in enumerate(seeds):
                 if not s:

@@ -461,8 +461,6 @@ class CellSummary:
     reward_var_last: float
     train_steps: int
     eval_steps: int
-    max_train_per_iteration: int
-    iterations_over_budget: int
     steps_to: Mapping[float, int | None]
     """Cumulative training env steps up to the first iteration whose held-out success reached each
     threshold; None: not reached."""
@@ -472,7 +470,6 @@ def summarize(cell: Cell) -> CellSummary:
     """The per-cell figures of a cell with at least one record."""
     recs = cell.records
     rewards = [r.reward_mean for r in recs]
-    budget = cell.spec.budget.env_steps_per_iteration if cell.spec else 0
     steps_to: dict[float, int | None] = {}
     for th in THRESHOLDS:
         spent, reached = 0, None
@@ -496,8 +493,6 @@ def summarize(cell: Cell) -> CellSummary:
         reward_var_last=var_last,
         train_steps=sum(r.env_steps_train for r in recs),
         eval_steps=sum(r.env_steps_eval for r in recs),
-        max_train_per_iteration=max(r.env_steps_train for r in recs),
-        iterations_over_budget=sum(r.env_steps_train > budget for r in recs),
         steps_to=steps_to,
     )
 
@@ -770,9 +765,9 @@ def benchmark_overhead(run_dir: Path) -> QuotedOverhead | None:
                     continue
         if not p50:
             continue
-        # the section's first paragraph names the command, the date and the machine
-        first = " ".join(section.strip().split("\n\n", 1)[0].split())
-        first = first if len(first) <= 240 else first[:239] + "…"
+        # the section's first sentence names the command, the date and the machine
+        first = " ".join(section.strip().split("\n\n", 1)[0].split()).split(". ", 1)[0]
+        first = first if len(first) <= 200 else first[:199] + "…"
         return QuotedOverhead(
             low_ms=min(p50) / 1000.0,
             high_ms=max(p50) / 1000.0,
@@ -1136,7 +1131,7 @@ def _governance(add: Any, run: Run, book: Book, overhead: QuotedOverhead | None,
     else:
         add(
             f"Overhead per action: this run records no timing per action, so the figure is quoted from "
-            f"{overhead.source}: {overhead.low_ms:.4f}–{overhead.high_ms:.4f} ms (p50 over its cases); "
+            f"{overhead.source}: {overhead.low_ms:.4f}–{overhead.high_ms:.4f} ms (the range of its cases' medians); "
             "**paper**: 0.021–0.029 ms (Table 6)."
         )
     add("")

@@ -5,6 +5,8 @@ listed, and the paper's figures stand beside the run's (capevo.experiment.report
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -272,3 +274,29 @@ def test_numbers_name_existing_files_and_do_not_change_when_rewritten(run: tuple
             assert n["sources"], name  # every number of a cell that has files names them
     write_report(root)
     assert (root / "report" / "numbers.json").read_bytes() == first
+
+
+def test_the_report_starts_no_simulator(run: tuple[Path, dict[str, Raw]]) -> None:
+    root, _ = run
+    code = (
+        "import sys; from pathlib import Path; from capevo.experiment.report import write_report; "
+        f"write_report(Path({str(root)!r})); "
+        "print(sorted(m for m in ('robosuite', 'mujoco') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == "[]"
+    assert (root / "report" / "report.md").exists()
+
+
+def test_every_plot_accepts_empty_input(tmp_path: Path) -> None:
+    from capevo.experiment import plots
+
+    files = [
+        plots.plot_evolution({}, tmp_path / "e.png"),
+        plots.plot_sample_efficiency({}, tmp_path / "s.png"),
+        plots.plot_seed_bars({}, tmp_path / "b.png", title="t", ylabel="y"),
+        plots.plot_governance([], tmp_path / "g.png"),
+    ]
+    for p in files:
+        assert p.read_bytes()[:8] == PNG_MAGIC
+        assert mpimg.imread(p).shape[0] > 100
