@@ -1,8 +1,9 @@
 """Agent Modification (AM): one monolithic policy for the whole task, updated every iteration.
 
-The paper's first baseline (§5.1 "Baselines": "a single monolithic PPO policy updated each
-iteration; no ECMs"; issue 20). There is no persistent agent and no ECM: the policy network *is*
-the agent's decision policy, so every update moves it, and §5.3's Δπ measures how far.
+The paper's first baseline (§4.1 "Experimental Setup", Baselines: "a single monolithic PPO
+policy updated each iteration; no ECMs"; issue 20). There is no persistent agent and no ECM: the
+policy network *is* the agent's decision policy, so every update moves it, and Δπ (§4.4
+"Identity Preservation") measures how far.
 
 What is learned and what is hand-written: everything the policy does is learned, from random
 weights (:attr:`AgentModification.knowledge`), by stable-baselines3's PPO (default, as the
@@ -14,7 +15,16 @@ starts from, so that the comparison with code ECMs does not rest on knowledge on
 
 It acts in :class:`~capevo.baselines.governed_env.GovernedTaskEnv`: the cell's task, Φ,
 governance and perturbations, every step graded by the independent safety monitor, exactly as
-ours runs. One iteration:
+ours runs.
+
+What it sees, against ours (issue 20, "Fairness"): the task's flat observation (positions with
+the perturbations' noise) and the task's dense reward (robosuite's shaped reward, computed from
+the simulator's exact state). Ours hands off between ECMs on predicates over the task's exact
+simulator signals (``TaskSpec.signals``: for T1 ``grasped`` and the can's height, for T6 the
+peg-hole distances and angle, and ``success``); AM does not observe those signals, and the
+report should name that asymmetry.
+
+One iteration:
 
 1. ``learn`` for exactly ``budget.env_steps_per_iteration`` env steps, counted from
    ``env.env_steps`` (the steps recorded are those counted, never the requested number).
@@ -35,7 +45,7 @@ ours runs. One iteration:
    iteration); training steps are not traced.
 4. ``emit`` the :class:`~capevo.baselines.base.IterationRecord`.
 
-Δπ (paper §5.1 "Metrics", §5.3): ``‖θ_i − θ_0‖₂ / ‖θ_0‖₂`` by
+Δπ (paper §4.1, Metrics; §4.4): ``‖θ_i − θ_0‖₂ / ‖θ_0‖₂`` by
 :func:`capevo.agent.policy_drift`, θ the concatenation of the tensors that compute the
 deterministic action (the decision), in ``state_dict`` order, and θ_0 the freshly initialised
 weights (before any cloning):
@@ -57,9 +67,9 @@ names (:func:`bc_view`).
 Simplified for CPU budgets: one environment (no ``SubprocVecEnv``), no observation
 normalisation, SB3's default hyperparameters except where named here (PPO's rollout length and
 minibatch divide the budget and the rollout; SAC's replay buffer holds the whole run, at most
-10^6 steps; the paper names none for its PPO). A budget of a few thousand steps per iteration is far below
-what a monolithic policy needs on these tasks; such runs show the accounting and Δπ, not a
-learning curve.
+10^6 steps; the paper names no hyperparameters for its PPO). The paper's budget is 50,000 env
+steps per ECM per iteration; the CI budgets of the tests (tens of steps) check the accounting
+and Δπ and cannot show learning.
 
 Invariants:
 1. Each record's ``env_steps_train`` is the env steps the iteration took (``env.env_steps``

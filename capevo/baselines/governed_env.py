@@ -1,4 +1,4 @@
-"""The whole task as one gymnasium env, run the way the runtime runs it (issue 20, paper §5.1).
+"""The whole task as one gymnasium env, run the way the runtime runs it (issue 20, paper §4.1).
 
 The baselines that learn one policy for a whole task (Agent Modification, SPiRL, SkiMo) act in
 :class:`GovernedTaskEnv`. Everything that makes a comparison with ours fair is the runtime's own
