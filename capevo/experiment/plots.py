@@ -1,4 +1,4 @@
-"""The experiment report's figures (matplotlib, Agg backend, PNG), mirroring the paper's §5 figures.
+"""The experiment report's figures (matplotlib, Agg backend, PNG), mirroring the paper's §4 figures.
 
 * :func:`plot_evolution`: per task, held-out reward and success per iteration for every method:
   each seed a thin line, the mean over seeds a thick one (paper Figure ``fig:evolution-curve``).
@@ -274,7 +274,7 @@ def plot_governance(rows: Sequence[Mapping[str, Any]], path: str | os.PathLike[s
         ax.set_title(title, fontsize=9)
         ax.grid(alpha=0.3, axis="y")
     if any(r.get("paper") for r in rows):
-        ax_b.scatter([], [], marker="D", facecolors="none", edgecolors="black", label="paper (Table 6)")
+        ax_b.scatter([], [], marker="D", facecolors="none", edgecolors="black", label="paper (Table 7)")
     for ax in (ax_b, ax_u):
         handles, labels = ax.get_legend_handles_labels()
         uniq = dict(zip(labels, handles, strict=True))

@@ -1,26 +1,29 @@
 """The report of an experiment run: ``RUN_DIR/report/report.md``, its PNG figures and ``numbers.json``
-(issue 20 "Report", mirroring the paper's §5 tables and figures).
+(issue 20 "Report", mirroring the paper's §4 tables and figures).
+
+Sections and tables are numbered as the paper's source numbers them (§4 is "Evaluation"; Table 1
+is the notation table of §2), with their LaTeX labels beside them.
 
 The report reads the run directory only (``experiment.json``, ``provenance.json`` and
 ``cells/<key>/{cell.json, metrics.jsonl, done.json, failed.json}``; layout in
 :mod:`capevo.experiment`) and needs no simulator. Its sections mirror the paper's evaluation:
 
-* **Evolution (H1, paper §5.2, Table 2 ``tab:evolution``):** R₁, R_peak, R_last, Succ_peak and
+* **Evolution (H1, paper §4.2, Table 3 ``tab:evolution``):** R₁, R_peak, R_last, Succ_peak and
   R_peak/R₁ per task and method, from the held-out evaluation after every iteration, with
   reward and success curves (mean and every seed).
-* **Method comparison (H2, §5.3, Tables 3 and 4, Figure ``fig:t6-flagship``):** peak success
+* **Method comparison (H2, §4.3, Tables 4 and 5, Figure ``fig:t6-flagship``):** peak success
   and peak reward as mean ± std over seeds (std with ddof = 1, as the paper's 63.3 ± 27.6
   from its four seeds), and Welch's t-test (``scipy.stats.ttest_ind(equal_var=False)``) of ours
   (``ours-code``, ``ours-neural``) against AM (``am``, ``am-bc``) wherever both have at least two
   seeds. A per-seed plot for T6.
 * **Sample efficiency:** the cumulative training env steps each cell spent before its held-out
   success first reached 50 % and 80 %, and success against env steps.
-* **Identity (§5.4, Figure ``fig:identity-drift``):** Δπ of the last iteration, mean per method.
-* **Governance (H3, §5.5, Table 6 ``tab:safety``):** from the ``explorer`` cells, governance on
+* **Identity (§4.4, Figure ``fig:identity-drift``):** Δπ of the last iteration, mean per method.
+* **Governance (H3, §4.5, Table 7 ``tab:safety``):** from the ``explorer`` cells, governance on
   and off: blocking rate (interventions per step), unsafe-episode rate with 95 % Wilson
   intervals. The run records no timing per action, so the overhead is quoted from
   BENCHMARKS.md's "Governance cost per action" and labelled as such.
-* **Ablation (§5.6, Table 7 ``tab:ablation``):** T3 cells whose options name a learning
+* **Ablation (§4.6, Table 8 ``tab:ablation``):** T3 cells whose options name a learning
   modality (``options["modality"]`` or ``options["modalities"]``).
 * **Fairness:** each method's ``knowledge`` (from ``cell.json``) and the budget parity check.
 * **Settings and provenance**, and every cell with its status.
@@ -30,11 +33,11 @@ metrics and written with the files it came from into ``numbers.json``, which
 :func:`capevo.experiment.verify.verify_run` recomputes. The paper's figures are constants of this
 module, copied from the paper's tables and labelled "paper" wherever they appear. Checked against
 the paper's text: the T6 per-seed values it gives (86.7, 73.3, 23.3, 70.0 against 3.3, 20.0, 16.7,
-3.3) give 63.3 ± 27.6 and 10.8 ± 8.8 with ddof = 1 and Welch t = 3.62, p = 0.027, as Table 3
-says. The paper is not consistent elsewhere, and the report quotes its tables as they are: §5.3's
-text says all methods score 0 % on T2–T5 while its Table 3 gives T3 3.3 % (Ours, AM) and 6.7 %
-(SkiMo); Table 2 gives T3 Succ_peak 10.0 % and T6 60.0 % for the same runs Table 3 gives 3.3 %
-and (seed 42) 86.7 %; §5.2 says no baseline exceeds 6.7 % on T6 while AM's seeds reach 20.0 %.
+3.3) give 63.3 ± 27.6 and 10.8 ± 8.8 with ddof = 1 and Welch t = 3.62, p = 0.027, as Table 4
+says. The paper is not consistent elsewhere, and the report quotes its tables as they are: §4.3's
+text says all methods score 0 % on T2–T5 while its Table 4 gives T3 3.3 % (Ours, AM) and 6.7 %
+(SkiMo); Table 3 gives T3 Succ_peak 10.0 % and T6 60.0 % for the same runs Table 4 gives 3.3 %
+and (seed 42) 86.7 %; §4.2 says no baseline exceeds 6.7 % on T6 while AM's seeds reach 20.0 %.
 
 Invariants:
 1. :func:`write_report` reads nothing outside the run directory except BENCHMARKS.md (for the
@@ -88,7 +91,7 @@ THRESHOLDS = (0.5, 0.8)
 """Held-out success rates whose first crossing the sample-efficiency table reports."""
 FLAGSHIP_TASK = "T6"
 PAPER_BUDGET = 50_000
-"""The paper's training budget: env steps per ECM per iteration (§5.1)."""
+"""The paper's training budget: env steps per ECM per iteration (§4.1)."""
 
 # --- the paper's published figures (quoted, never computed) -------------------------------------
 
@@ -113,7 +116,7 @@ PAPER_EVOLUTION: Mapping[str, tuple[float, float, float, float, float]] = {
     "T5": (0.33, 1.71, 0.60, 0.0, 5.2),
     "T6": (287.93, 318.44, 295.81, 60.0, 1.1),
 }
-"""Paper Table 2 (``tab:evolution``, §5.2): R₁, R_peak, R₂₀, Succ_peak (%), R_peak/R₁ for Ours."""
+"""Paper Table 3 (``tab:evolution``, §4.2): R₁, R_peak, R₂₀, Succ_peak (%), R_peak/R₁ for Ours."""
 
 PAPER_PEAK_SUCCESS: Mapping[str, Mapping[str, str]] = {
     "T1": dict.fromkeys(PAPER_METHODS, "100.0"),
@@ -123,7 +126,7 @@ PAPER_PEAK_SUCCESS: Mapping[str, Mapping[str, str]] = {
     "T5": dict.fromkeys(PAPER_METHODS, "0.0"),
     "T6": {"Ours": "63.3 ± 27.6", "AM": "10.8 ± 8.8", "S-ECM": "0.0", "SPiRL": "0.0", "SkiMo": "6.7"},
 }
-"""Paper Table 3 (``tab:method-peak-success``, §5.3), %: T6 Ours and AM over seeds {42, 7, 123,
+"""Paper Table 4 (``tab:method-peak-success``, §4.3), %: T6 Ours and AM over seeds {42, 7, 123,
 2024}, everything else seed 42."""
 
 PAPER_PEAK_REWARD: Mapping[str, Mapping[str, float]] = {
@@ -134,18 +137,18 @@ PAPER_PEAK_REWARD: Mapping[str, Mapping[str, float]] = {
     "T5": {"Ours": 2.37, "AM": 4.69, "S-ECM": 1.20, "SPiRL": 3.65, "SkiMo": 4.14},
     "T6": {"Ours": 355.79, "AM": 340.03, "S-ECM": 259.85, "SPiRL": 311.91, "SkiMo": 348.33},
 }
-"""Paper Table 4 (``tab:method-peak-reward``, §5.3)."""
+"""Paper Table 5 (``tab:method-peak-reward``, §4.3)."""
 
 PAPER_T6_SEEDS: Mapping[str, tuple[float, ...]] = {
     "Ours": (86.7, 73.3, 23.3, 70.0),
     "AM": (3.3, 20.0, 16.7, 3.3),
 }
-"""Paper §5.3 "The T6 flagship result": peak success (%) per seed 42, 7, 123, 2024."""
+"""Paper §4.3 "The T6 flagship result": peak success (%) per seed 42, 7, 123, 2024."""
 PAPER_T6_WELCH = (3.62, 0.027)
-"""Paper Table 3's caption: Welch's t and p on T6 peak success, Ours against AM."""
+"""Paper Table 4's caption: Welch's t and p on T6 peak success, Ours against AM."""
 
 PAPER_DELTA_PI: Mapping[str, float] = {"Ours": 0.0, "AM": 1.28, "S-ECM": 0.0, "SPiRL": 0.0, "SkiMo": 1.38}
-"""Paper §5.4 and Figure ``fig:identity-drift``: mean Δπ across the six tasks."""
+"""Paper §4.4 and Figure ``fig:identity-drift``: mean Δπ across the six tasks."""
 
 PAPER_GOVERNANCE: Mapping[str, tuple[float, float, float, float]] = {
     "T1": (100.0, 80.0, 0.0, 0.023),
@@ -155,7 +158,7 @@ PAPER_GOVERNANCE: Mapping[str, tuple[float, float, float, float]] = {
     "T5": (100.0, 0.0, 0.0, 0.026),
     "T6": (61.0, 0.0, 0.0, 0.021),
 }
-"""Paper Table 6 (``tab:safety``, §5.5): blocking %, unsafe off %, unsafe on %, overhead ms per
+"""Paper Table 7 (``tab:safety``, §4.5): blocking %, unsafe off %, unsafe on %, overhead ms per
 action, over 50 episodes per task."""
 
 PAPER_ABLATION: Mapping[str, tuple[float, float, float, float]] = {
@@ -167,7 +170,7 @@ PAPER_ABLATION: Mapping[str, tuple[float, float, float, float]] = {
     "IL + LLM": (0.32, 0.32, 0.0, 0.02),
     "All three (Ours)": (9.16, 20.48, 3.3, 16.63),
 }
-"""Paper Table 7 (``tab:ablation``, §5.6), T3: R_final, R_peak, Succ_peak (%), σ²_final."""
+"""Paper Table 8 (``tab:ablation``, §4.6), T3: R_final, R_peak, Succ_peak (%), σ²_final."""
 
 _MODALITY_TOKENS = {"rl": "RL", "sac": "RL", "il": "IL", "bc": "IL", "llm": "LLM", "code": "LLM", "hybrid": "LLM"}
 _PAPER_ABLATION_ROW = {
@@ -271,7 +274,7 @@ def modality_of(spec: CellSpec) -> str | None:
 
 
 def paper_ablation_row(modality: str) -> str | None:
-    """The paper's Table 7 row a modality corresponds to (``rl+il`` → "RL + IL"), if one does."""
+    """The paper's Table 8 row a modality corresponds to (``rl+il`` → "RL + IL"), if one does."""
     tokens = [t for t in re.split(r"[^a-z]+", modality.lower()) if t]
     if tokens == ["all"]:
         return "All three (Ours)"
@@ -895,7 +898,7 @@ def _figure(add: Callable[[str], None], figures: Mapping[str, str], key: str, al
 
 
 def _evolution(add: Callable[[str], None], book: Book, groups: Groups, figures: Mapping[str, str]) -> None:
-    add("## Evolution over iterations (H1; paper §5.2, Table 2)")
+    add("## Evolution over iterations (H1; paper §4.2, Table 3)")
     add("")
     if not groups:
         add("No learning cell finished.")
@@ -916,7 +919,7 @@ def _evolution(add: Callable[[str], None], book: Book, groups: Groups, figures: 
         if task in PAPER_EVOLUTION:
             r1, rp, r20, sp, ratio = PAPER_EVOLUTION[task]
             add(
-                f"| {task_title(task)} | **paper** (Ours, Table 2; R_last = R₂₀) | - | {r1:.2f} | {rp:.2f} | "
+                f"| {task_title(task)} | **paper** (Ours, Table 3; R_last = R₂₀) | - | {r1:.2f} | {rp:.2f} | "
                 f"{r20:.2f} | {sp:.1f} % | {ratio:.1f}× | - |"
             )
     add("")
@@ -929,7 +932,7 @@ def _evolution(add: Callable[[str], None], book: Book, groups: Groups, figures: 
 
 
 def _comparison(add: Callable[[str], None], book: Book, groups: Groups, figures: Mapping[str, str]) -> None:
-    add("## Method comparison (H2; paper §5.3, Tables 3 and 4)")
+    add("## Method comparison (H2; paper §4.3, Tables 4 and 5)")
     add("")
     if not groups:
         add("No learning cell finished.")
@@ -984,7 +987,7 @@ def _comparison(add: Callable[[str], None], book: Book, groups: Groups, figures:
     if not pairs:
         add("| - | - | - | - | no task has both ours and AM finished | - | - |")
     add("")
-    add("The paper's Table 3 in full (peak success %, T6 Ours and AM over four seeds, the rest seed 42):")
+    add("The paper's Table 4 in full (peak success %, T6 Ours and AM over four seeds, the rest seed 42):")
     add("")
     add("| **paper** task | " + " | ".join(PAPER_METHODS) + " |")
     add("|---|" + "---|" * len(PAPER_METHODS))
@@ -992,7 +995,7 @@ def _comparison(add: Callable[[str], None], book: Book, groups: Groups, figures:
         add(f"| {task_title(t)} | " + " | ".join(row[m] for m in PAPER_METHODS) + " |")
     add("")
     add(
-        "The paper's §5.3 text says every method scores 0 % on T2–T5, but its Table 3 gives T3 3.3 % (Ours, AM) "
+        "The paper's §4.3 text says every method scores 0 % on T2–T5, but its Table 4 gives T3 3.3 % (Ours, AM) "
         "and 6.7 % (SkiMo); the table is quoted as published."
     )
     add("")
@@ -1038,7 +1041,7 @@ def _efficiency(add: Callable[[str], None], book: Book, groups: Groups, figures:
 
 
 def _identity(add: Callable[[str], None], book: Book, groups: Groups, figures: Mapping[str, str]) -> None:
-    add("## Identity: Δπ (paper §5.4)")
+    add("## Identity: Δπ (paper §4.4)")
     add("")
     if not groups:
         add("No learning cell finished.")
@@ -1077,7 +1080,7 @@ def _ratio(book: Book, base: str) -> str:
 
 
 def _governance(add: Any, run: Run, book: Book, overhead: QuotedOverhead | None, figures: Mapping[str, str]) -> None:
-    add("## Governance (H3; paper §5.5, Table 6)")
+    add("## Governance (H3; paper §4.5, Table 7)")
     add("")
     explorer = [c for c in run.done() if c.method == EXPLORER]
     if not explorer:
@@ -1126,27 +1129,27 @@ def _governance(add: Any, run: Run, book: Book, overhead: QuotedOverhead | None,
     if overhead is None:
         add(
             "Overhead per action: this run records no timing per action and no BENCHMARKS.md with a governance "
-            "figure was found; **paper**: 0.021–0.029 ms (Table 6)."
+            "figure was found; **paper**: 0.021–0.029 ms (Table 7)."
         )
     else:
         add(
             f"Overhead per action: this run records no timing per action, so the figure is quoted from "
             f"{overhead.source}: {overhead.low_ms:.4f}–{overhead.high_ms:.4f} ms (the range of its cases' medians); "
-            "**paper**: 0.021–0.029 ms (Table 6)."
+            "**paper**: 0.021–0.029 ms (Table 7)."
         )
     add("")
     _figure(add, figures, "governance", "governance")
 
 
 def _ablation(add: Any, book: Book, learning: Sequence[Cell], figures: Mapping[str, str]) -> None:
-    add("## Learning-modality ablation on T3 (paper §5.6, Table 7)")
+    add("## Learning-modality ablation on T3 (paper §4.6, Table 8)")
     add("")
     cells = [c for c in learning if c.task == "T3" and c.spec and modality_of(c.spec) is not None]
     if not cells:
         add("No finished T3 cell names a learning modality (`options.modality`): no ablation in this run.")
         add("")
         return
-    add("| configuration | modality | seeds | R_final | R_peak | Succ_peak | σ²_final | paper (Table 7) | files |")
+    add("| configuration | modality | seeds | R_final | R_peak | Succ_peak | σ²_final | paper (Table 8) | files |")
     add("|---|---|---|---|---|---|---|---|---|")
     for (t, label), group in groups_of(cells).items():
         b = f"group/{t}/{label}"
