@@ -12,11 +12,16 @@ replies once per part, with all of its outcomes, so a part that dies takes all o
 back to the pool, even episodes the dead worker had finished (they were never reported, so
 nothing of them is counted).
 
-Why a deterministic split: the paper's gate pairs the active and the candidate set on the same
-seeds (§ gating, "paired evaluation"); a seed fixes the episode's instance whichever worker
-runs it (:mod:`capevo.runtime.evaluator`, invariant 3), so the merged outcomes do not depend
-on the split. Keeping the split a pure function of the worker set still makes a run
-reproducible down to which worker's trace file holds which episode.
+Why it matters: version gating is a statistical evaluation on held-out tasks (paper §3.1,
+"ECM Lifecycle"), and the paper's protocol spends 30 evaluation episodes per iteration (§4.1,
+"Experimental Setup"); at about 60 env steps/s per core those episodes, not learning, are much
+of an iteration's wall time here.
+
+Why a deterministic split: capevo's gate pairs the active and the candidate set on the same
+seeds (:mod:`capevo.runtime.gate`); a seed fixes the episode's instance whichever worker runs
+it (:mod:`capevo.runtime.evaluator`, invariant 3), so the merged outcomes do not depend on the
+split. Keeping the split a pure function of the worker set still makes a run reproducible down
+to which worker's trace file holds which episode.
 
 Invariants:
 1. :func:`split` is a pure function of the indices and the *set* of worker ids (order and

@@ -15,7 +15,7 @@ import random
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -145,7 +145,7 @@ class Cluster:
     workers: dict[str, Proc]
     root: Path
 
-    def start(self, worker_id: str, *, traces: bool = True) -> Proc:
+    def start(self, worker_id: str, *, traces: bool = True, login: Sequence[str] = ()) -> Proc:
         keep = ["--trace-dir", str(self.root / worker_id), "--trace-compression", "none"] if traces else []
         proc = start_worker(
             self.endpoint,
@@ -158,6 +158,7 @@ class Cluster:
                 "--horizon",
                 HORIZON,
                 *keep,
+                *login,
                 "--cache-dir",
                 str(self.root / worker_id / "cache"),
             ],
@@ -346,3 +347,40 @@ def test_workers_elsewhere_join_through_a_router(tmp_path: Path) -> None:
             codes = [p.terminate() for p in c.workers.values()]
             registry.stop()
         assert codes == [0, 0]
+
+
+SECURED = """
+users:
+  olga: {password: "olga-secret", roles: [operator]}
+  wendy: {password: "wendy-secret", roles: [runtime]}
+  wally: {password: "wally-secret", roles: [runtime]}
+  rita: {password: "rita-secret", roles: [reader]}
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.zenoh
+def test_the_split_works_under_access_control(tmp_path: Path) -> None:
+    """Workers log in with the runtime role, the evaluator with the reader role: the liveliness
+    tokens, the parts' queries and their replies (trace attachments included) all pass the
+    registry's access control."""
+    (tmp_path / "registry.yaml").write_text(SECURED)
+    registry = start_server(tmp_path / "registry", config=tmp_path / "registry.yaml")
+    assert registry.info["secured"] is True
+    c = Cluster(endpoint=registry.endpoint, registry=registry, workers={}, root=tmp_path)
+    try:
+        with registry.client(user="olga", password="olga-secret") as client:
+            publish_pick(client)
+        c.start("w-1", login=["--user", "wendy", "--password", "wendy-secret"])
+        c.start("w-2", login=["--user", "wally", "--password", "wally-secret"])
+        with RemoteEvaluator(
+            registry.endpoint, user="rita", password="rita-secret", timeout=240, trace_dir=tmp_path / "here"
+        ) as evaluator:
+            outcomes = evaluator.evaluate("T1", {}, [41, 42])
+            assert evaluator.last_call["workers"] == ["w-1", "w-2"]
+        assert [o.seed for o in outcomes] == [41, 42]
+        assert [Path(str(o.trace_path)).parent for o in outcomes] == [tmp_path / "here"] * 2
+    finally:
+        codes = [p.terminate() for p in c.workers.values()]
+        registry.stop()
+    assert codes == [0, 0]
