@@ -25,7 +25,10 @@ The report reads the run directory only (``experiment.json``, ``provenance.json`
   BENCHMARKS.md's "Governance cost per action" and labelled as such.
 * **Ablation (§4.6, Table 8 ``tab:ablation``):** T3 cells whose options name a learning
   modality (``options["modality"]`` or ``options["modalities"]``).
-* **Fairness:** each method's ``knowledge`` (from ``cell.json``) and the budget parity check.
+* **Fairness:** each method's ``knowledge`` (from ``cell.json``, also a column of the comparison),
+  the hand-off asymmetry (ours and S-ECM hand off between ECMs on predicates over exact simulator
+  state, :attr:`capevo.runtime.tasks.TaskSpec.handoff_text`; the baselines do not get those
+  signals) and the budget parity check.
 * **Settings and provenance**, and every cell with its status.
 
 What is computed and what is quoted: every number of the run is computed here from the raw
@@ -259,6 +262,21 @@ def task_title(task: str) -> str:
     except CapevoError:
         return task
     return f"{spec.id} {spec.name}"
+
+
+def handoff_text(task: str) -> str:
+    """The sentence naming a task's hand-off oracle (:attr:`capevo.runtime.tasks.TaskSpec.handoff_text`)."""
+    from capevo.runtime.tasks import task_spec
+
+    try:
+        return task_spec(task).handoff_text
+    except CapevoError:
+        return "unknown task: its hand-offs are not known"
+
+
+def uses_decomposition(method: str) -> bool:
+    """Whether a method runs the task's ECM decomposition (ours in every modality, and S-ECM)."""
+    return method.startswith("ours") or method == "s-ecm"
 
 
 def modality_of(spec: CellSpec) -> str | None:
@@ -939,17 +957,18 @@ def _comparison(add: Callable[[str], None], book: Book, groups: Groups, figures:
         add("")
         return
     add(
-        "| task | method | seeds | peak success | last success | peak reward | paper peak success | "
+        "| task | method | starts from | seeds | peak success | last success | peak reward | paper peak success | "
         "paper peak reward | files |"
     )
-    add("|---|---|---|---|---|---|---|---|---|")
+    add("|---|---|---|---|---|---|---|---|---|---|")
     for (t, label), cells in groups.items():
         b = f"group/{t}/{label}"
         col = PAPER_COLUMN.get(cells[0].method)
         ps = PAPER_PEAK_SUCCESS.get(t, {}).get(col) if col else None
         pr = PAPER_PEAK_REWARD.get(t, {}).get(col) if col else None
         add(
-            f"| {task_title(t)} | {_esc(label)} | {book.get(b + '/succ_peak/n')} | {_pm_pct(book, b + '/succ_peak')} | "
+            f"| {task_title(t)} | {_esc(label)} | {_esc(book.get(f'knowledge/{cells[0].method}') or '-')} | "
+            f"{book.get(b + '/succ_peak/n')} | {_pm_pct(book, b + '/succ_peak')} | "
             f"{_pm_pct(book, b + '/succ_last')} | {_pm(book, b + '/r_peak', _r)} | "
             f"{f'**paper** {col}: {ps} %' if ps else '-'} | {f'**paper** {col}: {pr:.2f}' if pr is not None else '-'} "
             f"| {_links(cells)} |"
@@ -1184,6 +1203,18 @@ def _fairness(add: Any, run: Run, book: Book) -> None:
         cells = [c for c in run.cells if c.spec and c.method == m]
         add(f"| {_esc(m)} | {_esc(book.get(f'knowledge/{m}') or '-')} | {_links(cells, CELL_JSON)} |")
     add("")
+    decomposed = sorted(m for m in methods if uses_decomposition(m))
+    if decomposed:
+        add(
+            f"Hand-offs: {', '.join(f'`{m}`' for m in decomposed)} run the task's ECM decomposition, whose "
+            "termination and applicability predicates read exact simulator state; the other methods act on the "
+            "task's (perturbed) observation and reward (`capevo.baselines.governed_env`) and do not get these "
+            "signals. Per task:"
+        )
+        add("")
+        for task in sorted({c.task for c in run.cells if c.spec}):
+            add(f"- {task_title(task)}: {handoff_text(task)}")
+        add("")
     add(
         "Budget parity: training env steps each iteration actually spent (`env_steps_train`) against the budget "
         "per iteration, over every recorded iteration (finished or not)."

@@ -300,3 +300,16 @@ def test_every_plot_accepts_empty_input(tmp_path: Path) -> None:
     for p in files:
         assert p.read_bytes()[:8] == PNG_MAGIC
         assert mpimg.imread(p).shape[0] > 100
+
+
+def test_fairness_names_knowledge_and_the_hand_off_oracle(run: tuple[Path, dict[str, Raw]]) -> None:
+    from capevo.runtime.tasks import task_spec
+
+    root, _ = run
+    write_report(root)
+    md = (root / "report" / "report.md").read_text()
+    # the comparison table has the knowledge column
+    assert "| T6 peg_in_hole | am | random weights | 2 |" in md
+    assert "`ours-code`, `s-ecm` run the task's ECM decomposition" in md
+    for task in ("T1", "T3", "T6"):
+        assert task_spec(task).handoff_text in md
