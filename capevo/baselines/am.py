@@ -60,8 +60,9 @@ Budget of the warm start: the demonstrations are env steps, so they are charged 
 cannot overrun the budget), clones, and learns for the rest of the budget. Iteration 1's
 ``env_steps_train`` includes the demonstration steps; its ``notes`` give them separately, with
 the cloning loss before and after and the Δπ the cloning alone caused. Cloning reuses
-:func:`capevo.learner.bc.behaviour_clone` (MSE between the deterministic action and the
-demonstrated one); for PPO through an adapter that shows it the actor under SAC's attribute
+:func:`capevo.learner.bc.behaviour_clone` (option ``bc_loss``: ``mse`` between the
+deterministic action and the demonstrated one, the default, or ``nll``, which also fits the
+exploration noise); for PPO through an adapter that shows it the actor under SAC's attribute
 names (:func:`bc_view`).
 
 Simplified for CPU budgets: one environment (no ``SubprocVecEnv``), no observation
@@ -95,12 +96,22 @@ import numpy as np
 from capevo.baselines.base import CellSpec, Emit, IterationRecord
 from capevo.baselines.governed_env import GovernedTaskEnv, evaluate_policy
 from capevo.errors import Invalid
+from capevo.learner.bc import LOSSES
 from capevo.learner.presets import TRAIN_SEED_BASE
 from capevo.runtime.tasks import task_spec
 
 ALGOS: tuple[str, ...] = ("ppo", "sac")
 WARM_STARTS: tuple[str, ...] = ("none", "bc")
-OPTIONS: tuple[str, ...] = ("algo", "bc_epochs", "bc_episodes", "n_steps", "net_arch", "torch_threads", "warm_start")
+OPTIONS: tuple[str, ...] = (
+    "algo",
+    "bc_epochs",
+    "bc_episodes",
+    "bc_loss",
+    "n_steps",
+    "net_arch",
+    "torch_threads",
+    "warm_start",
+)
 KNOWLEDGE = "random weights"
 KNOWLEDGE_BC = "random weights + BC from v0 skill demos"
 TRAIN_SEEDS_PER_CELL = 10_000
@@ -137,6 +148,8 @@ class AmOptions:
         warm_start: ``none`` or ``bc`` (clone the task's v0 code ECMs before iteration 1).
         bc_episodes: Demonstration episodes of the warm start, at most (see the module docstring).
         bc_epochs: Passes of the cloning over the demonstrations.
+        bc_loss: ``mse`` (the deterministic action; the exploration noise is left as it was) or
+            ``nll`` (the demonstrated action's likelihood: fits the noise's spread as well).
         net_arch: Hidden layer sizes of the policy (and critic); None for SB3's default
             (PPO 64-64, SAC 256-256).
         n_steps: PPO's target rollout length (the budget's divisor nearest it is used).
@@ -150,12 +163,13 @@ class AmOptions:
     warm_start: str = "none"
     bc_episodes: int = 10
     bc_epochs: int = 50
+    bc_loss: str = "mse"
     net_arch: tuple[int, ...] | None = None
     n_steps: int = 2048
     torch_threads: int = 1
 
     def __post_init__(self) -> None:
-        for name, valid in (("algo", ALGOS), ("warm_start", WARM_STARTS)):
+        for name, valid in (("algo", ALGOS), ("warm_start", WARM_STARTS), ("bc_loss", LOSSES)):
             value = getattr(self, name)
             if value not in valid:
                 raise Invalid(
@@ -234,9 +248,11 @@ def bc_view(model: Any, algo: str) -> Any:
     """``model`` as :func:`capevo.learner.bc.behaviour_clone` and ``imitation_loss`` take it.
 
     A SAC model is taken as it is. For PPO, an object with SAC's attribute names: ``actor`` is a
-    torch module over ``mlp_extractor.policy_net`` and ``action_net`` whose deterministic output
-    is the Gaussian's mean (what PPO's deterministic ``predict`` returns before clipping to the
-    action box), so cloning changes exactly the tensors Δπ measures.
+    torch module over ``mlp_extractor.policy_net``, ``action_net`` and ``log_std`` whose
+    deterministic output is the Gaussian's mean (what PPO's deterministic ``predict`` returns
+    before clipping to the action box) and whose ``get_action_dist_params`` and ``action_dist``
+    are PPO's Gaussian, so the ``mse`` loss changes exactly the tensors Δπ measures and ``nll``
+    the exploration noise's ``log_std`` as well.
     """
     if algo == "sac":
         return model
@@ -249,10 +265,15 @@ def bc_view(model: Any, algo: str) -> Any:
             super().__init__()
             self.policy_net = policy.mlp_extractor.policy_net
             self.action_net = policy.action_net
+            self.log_std = policy.log_std
+            self.action_dist = policy.action_dist
 
         def forward(self, obs: torch.Tensor, deterministic: bool = True) -> torch.Tensor:
             features = policy.extract_features(obs, policy.pi_features_extractor)
             return self.action_net(self.policy_net(features))
+
+        def get_action_dist_params(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, dict]:
+            return self(obs), self.log_std, {}
 
     return SimpleNamespace(
         actor=PpoActor(), policy=policy, observation_space=model.observation_space, action_space=model.action_space
@@ -308,7 +329,7 @@ class AgentModification:
     """The AM baseline (see the module docstring): ``run`` one cell, emitting one record per iteration.
 
     Options (``cell.options``; :class:`AmOptions`): ``algo``, ``warm_start``, ``bc_episodes``,
-    ``bc_epochs``, ``net_arch``, ``n_steps``, ``torch_threads``.
+    ``bc_epochs``, ``bc_loss``, ``net_arch``, ``n_steps``, ``torch_threads``.
     """
 
     name: ClassVar[str] = "am"
@@ -435,14 +456,15 @@ class AgentModification:
             horizon=horizon,
         )
         report = behaviour_clone(
-            bc_view(model, opts.algo), demos.demos, BcConfig(epochs=opts.bc_epochs, loss="mse", seed=cell.seed)
+            bc_view(model, opts.algo), demos.demos, BcConfig(epochs=opts.bc_epochs, loss=opts.bc_loss, seed=cell.seed)
         )
         model.save(workdir / "checkpoints" / "warm-start.zip")
         drift = policy_drift(theta0, decision_vector(model, opts.algo))
         return demos.env_steps, (
             f"warm start: {demos.env_steps} demonstration steps of the v0 code ECMs ({len(demos.outcomes)} episodes, "
-            f"{demos.successes} successful) charged to this iteration's budget; BC mse {report.loss_before:.4g} -> "
-            f"{report.loss_after:.4g} over {report.epochs} epochs; Δπ of the cloning alone {drift:.4g}"
+            f"{demos.successes} successful) charged to this iteration's budget; BC {report.loss} "
+            f"{report.loss_before:.4g} -> {report.loss_after:.4g} over {report.epochs} epochs; "
+            f"Δπ of the cloning alone {drift:.4g}"
         )
 
 

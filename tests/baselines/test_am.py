@@ -123,9 +123,12 @@ def test_bc_warm_start_charges_its_demonstrations_to_iteration_one(tmp_path: Pat
     assert record.delta_pi > 0.0
 
 
+CRITIC = {"ppo": ("mlp_extractor.value_net.", "value_net."), "sac": ("critic.", "critic_target.")}
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("algo", ["ppo", "sac"])
-def test_cloning_the_v0_skills_fits_held_out_demonstrations(tmp_path: Path, algo: str) -> None:
+@pytest.mark.parametrize(("algo", "loss"), [("ppo", "mse"), ("ppo", "nll"), ("sac", "mse")])
+def test_cloning_the_v0_skills_fits_held_out_demonstrations(tmp_path: Path, algo: str, loss: str) -> None:
     from stable_baselines3 import PPO, SAC
 
     demos = v0_demos("T1", tmp_path, seeds=[1_500_000_000 + j for j in range(4)], horizon=30)
@@ -144,15 +147,18 @@ def test_cloning_the_v0_skills_fits_held_out_demonstrations(tmp_path: Path, algo
             model = SAC("MlpPolicy", env, seed=0, device="cpu", buffer_size=100)
     finally:
         env.close()
-    critic = {k: v.clone() for k, v in model.policy.state_dict().items() if k not in decision_names(model, algo)}
+    before = {k: v.clone() for k, v in model.policy.state_dict().items()}
     view = bc_view(model, algo)
-    untrained = imitation_loss(view, held_out)
-    behaviour_clone(view, train, BcConfig(epochs=30, seed=0))
-    assert imitation_loss(view, held_out) < untrained
-    # Only the decision tensors were fitted (SAC's log_std head belongs to its actor too).
+    untrained = imitation_loss(view, held_out, loss=loss)
+    behaviour_clone(view, train, BcConfig(epochs=30, loss=loss, seed=0))
+    assert imitation_loss(view, held_out, loss=loss) < untrained
     after = model.policy.state_dict()
-    unchanged = [k for k, v in critic.items() if bool((after[k] == v).all())]
-    assert all(k in unchanged for k in critic if not k.startswith("actor."))
+    changed = {k for k, v in before.items() if not bool((after[k] == v).all())}
+    # The critic is never touched; mse moves exactly the decision tensors, nll PPO's log_std too.
+    assert not any(k.startswith(CRITIC[algo]) for k in changed)
+    assert set(decision_names(model, algo)) <= changed
+    if algo == "ppo":
+        assert ("log_std" in changed) == (loss == "nll")
 
 
 @pytest.mark.parametrize(
@@ -163,6 +169,7 @@ def test_cloning_the_v0_skills_fits_held_out_demonstrations(tmp_path: Path, algo
         ({"warm_start": "dagger"}, "options.warm_start"),
         ({"net_arch": [64, 0]}, "options.net_arch"),
         ({"bc_episodes": 0}, "options.bc_episodes"),
+        ({"bc_loss": "l1"}, "options.bc_loss"),
     ],
 )
 def test_a_bad_option_is_invalid_and_named(tmp_path: Path, options: dict, field: str) -> None:
