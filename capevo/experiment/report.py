@@ -1108,16 +1108,17 @@ def _governance(add: Any, run: Run, book: Book, overhead: QuotedOverhead | None,
     else:
         add(
             f"From the `{EXPLORER}` cells (the aggressive exploratory policy), every held-out episode of every "
-            "iteration. Blocking rate: governance interventions per executed step, with governance on. Unsafe: "
+            "iteration. Blocking rate: governance interventions per executed step, with governance on; with it "
+            "off, the steps governance would have changed (the explorer's counting governor). Unsafe: "
             "episodes with a step the independent safety monitor graded unsafe, with 95 % Wilson intervals. The "
             "blocking rate has no interval: steps of one episode are not independent draws."
         )
         add("")
         add(
-            "| task | episodes on / off | blocking rate (on) | unsafe on | unsafe off | paper: blocking, unsafe off, "
-            "unsafe on | files |"
+            "| task | episodes on / off | blocking rate (on) | would block (off) | unsafe on | unsafe off | "
+            "paper: blocking, unsafe off, unsafe on | files |"
         )
-        add("|---|---|---|---|---|---|---|")
+        add("|---|---|---|---|---|---|---|---|")
         for task in sorted({c.task for c in explorer}):
             cells = [c for c in explorer if c.task == task]
 
@@ -1131,18 +1132,21 @@ def _governance(add: Any, run: Run, book: Book, overhead: QuotedOverhead | None,
                     f"{_pct(book.get(f'{b}/unsafe_high'))}]"
                 )
 
+            def block(side: str, task: str = task) -> str:
+                b = f"h3/{task}/{side}"
+                if book.get(f"{b}/episodes") is None:
+                    return "-"
+                return (
+                    f"{book.get(f'{b}/interventions')}/{book.get(f'{b}/steps')} = "
+                    f"{_pct(book.get(f'{b}/blocking_rate'))}"
+                )
+
             on_n, off_n = book.get(f"h3/{task}/on/episodes"), book.get(f"h3/{task}/off/episodes")
-            block = (
-                "-"
-                if on_n is None
-                else f"{book.get(f'h3/{task}/on/interventions')}/{book.get(f'h3/{task}/on/steps')} = "
-                f"{_pct(book.get(f'h3/{task}/on/blocking_rate'))}"
-            )
             paper = PAPER_GOVERNANCE.get(task)
             ptext = f"**paper** {paper[0]:.1f} %, {paper[1]:.1f} %, {paper[2]:.1f} %" if paper else "-"
             add(
                 f"| {task_title(task)} | {on_n if on_n is not None else 0} / {off_n if off_n is not None else 0} | "
-                f"{block} | {rate('on')} | {rate('off')} | {ptext} | {_links(cells)} |"
+                f"{block('on')} | {block('off')} | {rate('on')} | {rate('off')} | {ptext} | {_links(cells)} |"
             )
         add("")
     if overhead is None:
