@@ -5,8 +5,8 @@ Sections and tables are numbered as the paper's source numbers them (§4 is "Eva
 is the notation table of §2), with their LaTeX labels beside them.
 
 The report reads the run directory only (``experiment.json``, ``provenance.json`` and
-``cells/<key>/{cell.json, metrics.jsonl, done.json, failed.json}``; layout in
-:mod:`capevo.experiment`) and needs no simulator. Its sections mirror the paper's evaluation:
+``cells/<key>/{cell.json, metrics.jsonl, done.json, failed.json}``, as the harness's runner
+writes them) and needs no simulator. Its sections mirror the paper's evaluation:
 
 * **Evolution (H1, paper §4.2, Table 3 ``tab:evolution``):** R₁, R_peak, R_last, Succ_peak and
   R_peak/R₁ per task and method, from the held-out evaluation after every iteration, with
@@ -15,7 +15,8 @@ The report reads the run directory only (``experiment.json``, ``provenance.json`
   and peak reward as mean ± std over seeds (std with ddof = 1, as the paper's 63.3 ± 27.6
   from its four seeds), and Welch's t-test (``scipy.stats.ttest_ind(equal_var=False)``) of ours
   (``ours-code``, ``ours-neural``) against AM (``am``, ``am-bc``) wherever both have at least two
-  seeds. A per-seed plot for T6.
+  seeds. A per-seed plot for T6. A peak over iterations is the paper's statistic; it is biased
+  upward by the evaluation's noise, so the table also gives the last iteration's success.
 * **Sample efficiency:** the cumulative training env steps each cell spent before its held-out
   success first reached 50 % and 80 %, and success against env steps.
 * **Identity (§4.4, Figure ``fig:identity-drift``):** Δπ of the last iteration, mean per method.
