@@ -1,4 +1,4 @@
-"""What every method of the experiment harness gets and gives back (issue 20, paper §5).
+"""What every method of the experiment harness gets and gives back (issue 20, paper §4).
 
 A *cell* of an experiment grid is one task × method × seed, run for a number of iterations.
 The harness (:mod:`capevo.experiment`) hands a method a :class:`CellSpec` and a work directory,
@@ -15,7 +15,7 @@ Every method, ours and the baselines alike, is measured the same way:
   (:data:`HELD_OUT_SEED_BASE`), under the same task, perturbations and Φ, graded unsafe by the
   independent safety monitor (:mod:`capevo.runtime.safety_monitor`).
 * **One identity metric.** ``delta_pi`` is how far the agent's decision policy moved since
-  iteration 0 (paper §5.3, Δπ): 0 for ours by construction; for the baselines, the relative
+  iteration 0 (paper §4.1 "Metrics", §4.4): 0 for ours by construction; for the baselines, the relative
   parameter change of the tensors the method's docstring names.
 
 Invariants:
@@ -226,7 +226,7 @@ class IterationRecord:
     env_steps_eval: int
     """Env steps of this iteration's held-out evaluation (not part of the budget)."""
     delta_pi: float
-    """Δπ of the agent's decision policy against iteration 0 (paper §5.3)."""
+    """Δπ of the agent's decision policy against iteration 0 (paper §4.1 "Metrics", §4.4)."""
     wall_s: float
     notes: str = ""
 
@@ -282,7 +282,7 @@ Emit = Callable[[IterationRecord], None]
 
 @runtime_checkable
 class Method(Protocol):
-    """A method of the comparison (paper §5.2): ours, AM, S-ECM, SPiRL, SkiMo.
+    """A method of the comparison (paper §4.3): ours, AM, S-ECM, SPiRL, SkiMo.
 
     ``name`` is the grid's name for it; ``knowledge`` is what it starts from, for the report's
     fairness column (issue 20: "methods do not start from the same knowledge").

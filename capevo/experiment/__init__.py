@@ -1,4 +1,4 @@
-"""The experiment harness (issue 20, paper §5): grids of tasks × methods × seeds run as Ray tasks,
+"""The experiment harness (issue 20, paper §4): grids of tasks × methods × seeds run as Ray tasks,
 ``capevo experiment run|report|verify``."""
 
 from __future__ import annotations
