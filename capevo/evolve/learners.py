@@ -134,6 +134,12 @@ class UpdaterContext:
     state_dir: Path | None = None
     """Where neural learners keep their state between iterations (latest candidate, replay
     buffer, demonstrations: :mod:`capevo.learner.continuation`); None starts each update afresh."""
+    candidate_evaluator: Any = None
+    """Runs code learners' candidate episodes (a :class:`~capevo.learner.base.CandidateEvaluator`)
+    in place of an in-process evaluator over a scratch registry: with ``--connect``, a
+    :class:`~capevo.runtime.worker.RemoteEvaluator`, so CEM samples run on the same runtime
+    workers as the live and gate episodes, sent inline (issue 19). The code updater closes it;
+    neural updaters ignore it (their candidates are published versions)."""
 
 
 UpdaterFactory = Callable[[UpdaterContext], Updater]
@@ -170,7 +176,9 @@ def make_updater(modality: str, context: UpdaterContext) -> Updater:
 
 
 class CemUpdater:
-    """``code`` (and, with an LLM endpoint, ``hybrid``) updates through CEM in a scratch registry."""
+    """``code`` (and, with an LLM endpoint, ``hybrid``) updates through CEM: its samples run in a
+    scratch registry in this process, or on the runtime workers when the context gives a
+    :attr:`~UpdaterContext.candidate_evaluator`."""
 
     supports_companions = True
     """It evaluates behind :attr:`UpdateRequest.companions` (so the loop may chain updates)."""
@@ -184,6 +192,10 @@ class CemUpdater:
         self.name = "hybrid" if hybrid else "cem"
         cfg = context.config
         context.trace_dir.mkdir(parents=True, exist_ok=True)
+        self.scratch: Any = None
+        self.evaluator: Any = context.candidate_evaluator
+        if self.evaluator is not None:
+            return
 
         def inner(scratch: Registry) -> Any:
             return LocalEvaluator(
@@ -198,7 +210,7 @@ class CemUpdater:
                 worker_id="evolve-learner",
             )
 
-        self.scratch = ScratchRegistryEvaluator(context.registry, inner)
+        self.scratch = self.evaluator = ScratchRegistryEvaluator(context.registry, inner)
 
     def propose(self, request: UpdateRequest, progress: ProgressSink) -> Proposal | None:
         from capevo.learner.base import request_for
@@ -229,10 +241,10 @@ class CemUpdater:
             max_env_steps=request.max_env_steps,
             episode_steps_max=self.context.config.episode_steps_max(request.task),
         )
-        search = CemSearch.from_config(self.scratch, config, progress=on_event)
+        search = CemSearch.from_config(self.evaluator, config, progress=on_event)
         learner: Any = search
         if self.hybrid:
-            learner = _hybrid(search, self.scratch)
+            learner = _hybrid(search, self.evaluator)
         candidate: Candidate = learner.learn(learn_request)
         notes = dict(candidate.notes)
         return Proposal(
@@ -251,7 +263,10 @@ class CemUpdater:
         )
 
     def close(self) -> None:
-        self.scratch.close()
+        if self.scratch is not None:
+            self.scratch.close()
+        elif self.evaluator is not None:
+            self.evaluator.close()
 
 
 def _hybrid(search: Any, evaluator: Any) -> Any:

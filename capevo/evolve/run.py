@@ -8,8 +8,9 @@ Two ways to run, as ``capevo evolve`` offers them:
 * **connect**: a running registry server over Zenoh (:class:`~capevo.registry.client.Client`)
   and the episodes (live, gate, final) on runtime workers of the task
   (:class:`~capevo.runtime.worker.RemoteEvaluator`; start them with
-  ``capevo runtime serve --connect EP --task T --idle``). The learner still runs here
-  (``learner="local"``: its own training episodes run in this process), or learner workers
+  ``capevo runtime serve --connect EP --task T --idle``), each call split across all of them.
+  The learner still runs here (``learner="local"``: a neural learner's training episodes run
+  in this process; CEM's candidate samples go inline to the same runtime workers), or learner workers
   publish the candidates (``learner="remote"``: ``capevo learner serve --connect EP --ecm NAME``)
   and this process only gates them.
 
@@ -31,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from capevo.errors import Invalid
-from capevo.evolve.config import MODALITIES, EvolveConfig, make_config
+from capevo.evolve.config import MODALITIES, NEURAL_MODALITIES, EvolveConfig, make_config
 from capevo.evolve.loop import EvolutionLoop, EvolveResult, ensure_v0
 from capevo.evolve.progress import ProgressSink, RecordingProgress
 from capevo.evolve.state import RunManifest, load_manifest
@@ -297,6 +298,20 @@ def _updater(
 
     if options.learner == "remote":
         return RemoteCandidates(registry, timeout_s=options.learner_timeout_s, should_stop=should_stop)
+    candidates = None
+    if options.connect and options.modality not in NEURAL_MODALITIES:
+        from capevo.runtime.worker import RemoteEvaluator
+
+        # CEM's samples run on the runtime workers too, sent inline; their traces come back
+        # here, where CEM reads them (issue 19: one path for live, gate and candidate episodes).
+        candidates = RemoteEvaluator(
+            list(options.connect),
+            namespace=options.namespace,
+            user=options.user,
+            password=options.password,
+            timeout=options.evaluate_timeout_s,
+            trace_dir=report_dir / "traces" / "learner",
+        )
     context = UpdaterContext(
         registry=registry,
         task=task_spec(options.task).name,
@@ -306,6 +321,7 @@ def _updater(
         perturbations=perturbations,
         trace_dir=report_dir / "traces" / "learner",
         state_dir=report_dir / "learner-state",
+        candidate_evaluator=candidates,
     )
     return make_updater(options.modality, context)
 
