@@ -21,8 +21,10 @@ What it sees, against ours (issue 20, "Fairness"): the task's flat observation (
 the perturbations' noise) and the task's dense reward (robosuite's shaped reward, computed from
 the simulator's exact state). Ours hands off between ECMs on predicates over the task's exact
 simulator signals (``TaskSpec.signals``: for T1 ``grasped`` and the can's height, for T6 the
-peg-hole distances and angle, and ``success``); AM does not observe those signals, and the
-report should name that asymmetry.
+peg-hole distances and angle, and ``success``). By default AM does not observe those signals, and
+the report names that asymmetry; option ``handoff_signals: true`` appends exactly the signals
+ours hands off on (``TaskSpec.handoff_signals``) to AM's observation, so that both sides see the
+same information (not with ``warm_start: bc``: the v0 demonstrations' traces do not hold them).
 
 One iteration:
 
@@ -107,6 +109,7 @@ OPTIONS: tuple[str, ...] = (
     "bc_epochs",
     "bc_episodes",
     "bc_loss",
+    "handoff_signals",
     "n_steps",
     "net_arch",
     "torch_threads",
@@ -154,6 +157,7 @@ class AmOptions:
             (PPO 64-64, SAC 256-256).
         n_steps: PPO's target rollout length (the budget's divisor nearest it is used).
         torch_threads: CPU threads torch uses while the cell runs.
+        handoff_signals: Observe the exact signals our hand-off predicates read, too.
 
     Raises:
         Invalid: a value out of range, naming the option.
@@ -167,8 +171,19 @@ class AmOptions:
     net_arch: tuple[int, ...] | None = None
     n_steps: int = 2048
     torch_threads: int = 1
+    handoff_signals: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.handoff_signals, bool):
+            raise Invalid(
+                f"am: option handoff_signals must be true or false, got {self.handoff_signals!r}",
+                details={"field": "options.handoff_signals"},
+            )
+        if self.handoff_signals and self.warm_start == "bc":
+            raise Invalid(
+                "am: option handoff_signals cannot go with warm_start bc (the v0 demonstrations hold no signals)",
+                details={"field": "options.handoff_signals"},
+            )
         for name, valid in (("algo", ALGOS), ("warm_start", WARM_STARTS), ("bc_loss", LOSSES)):
             value = getattr(self, name)
             if value not in valid:
@@ -381,7 +396,12 @@ class AgentModification:
         checkpoints = workdir / "checkpoints"
         checkpoints.mkdir(parents=True, exist_ok=True)
         env = GovernedTaskEnv(
-            cell.task, phi=cell.phi, governance=cell.governance, perturbations=cell.perturbations, horizon=horizon
+            cell.task,
+            phi=cell.phi,
+            governance=cell.governance,
+            perturbations=cell.perturbations,
+            horizon=horizon,
+            handoff_signals=opts.handoff_signals,
         )
         with contextlib.ExitStack() as stack:
             stack.callback(env.close)
@@ -423,6 +443,7 @@ class AgentModification:
                     trace=workdir / "traces" / f"eval-{iteration:03d}.mcap",
                     label=self.name,
                     version=iteration,
+                    handoff_signals=opts.handoff_signals,
                 )
                 emit(
                     IterationRecord(

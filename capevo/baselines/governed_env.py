@@ -22,7 +22,11 @@ there is no decision policy, no ECM invoker, no trace. The step is the loop's "g
 step" part (its steps 4 and 5), composed from the same pieces.
 
 Observation: the task's flat float32 observation (its ``observation_keys`` concatenated, noisy
-positions). Action: ``[-1, 1]^d`` with ``d`` the task's action dimension (T6: 12); actions are
+positions); with ``handoff_signals=True`` followed by the exact simulator signals our
+decomposition's hand-off predicates read (:attr:`TaskSpec.handoff_signals`: ``grasped``,
+distances, ``success``), so that a method without ECMs can get the same information ours hands
+off on (issue 20's fairness: "the baselines get the same signals ... or the report names the
+asymmetry"). Action: ``[-1, 1]^d`` with ``d`` the task's action dimension (T6: 12); actions are
 clipped to the box before governance, as :class:`capevo.learner.ecm_env.EcmEnv` does. Reward:
 the task env's reward. ``terminated``: the task's success (robosuite's ``_check_success``,
 latched); ``truncated``: the horizon.
@@ -105,6 +109,7 @@ class GovernedTaskEnv(gym.Env[np.ndarray, np.ndarray]):
         governance: Enforce Φ; False runs the governor in counting mode (nothing changed).
         perturbations: The paper's perturbations on (False: the clean task).
         horizon: Episode length; None for the task's default.
+        handoff_signals: Append the hand-off predicates' exact signals to the observation.
 
     Raises:
         Invalid: an unknown task, a bad Φ choice or horizon.
@@ -120,8 +125,10 @@ class GovernedTaskEnv(gym.Env[np.ndarray, np.ndarray]):
         governance: bool = True,
         perturbations: bool = True,
         horizon: int | None = None,
+        handoff_signals: bool = False,
     ) -> None:
         spec = task_spec(task)
+        self._extra = spec.handoff_signals if handoff_signals else ()
         # Resolved before the simulator is built: a bad choice costs nothing.
         envelope = resolve_phi(phi, spec)
         self.task_env: TaskEnv = make_task(
@@ -140,6 +147,13 @@ class GovernedTaskEnv(gym.Env[np.ndarray, np.ndarray]):
         self.governance = bool(governance)
         self.horizon = self.task_env.horizon
         self.observation_space = self.task_env.observation_space
+        if self._extra:
+            base = self.task_env.observation_space
+            self.observation_space = gym.spaces.Box(
+                low=np.concatenate([base.low, np.full(len(self._extra), -np.inf)]).astype(np.float32),
+                high=np.concatenate([base.high, np.full(len(self._extra), np.inf)]).astype(np.float32),
+                dtype=np.float32,
+            )
         self.action_space = self.task_env.action_space
         self._layout = spec.action_layout
         self._dropped = np.zeros(self._layout.dim)
@@ -187,7 +201,14 @@ class GovernedTaskEnv(gym.Env[np.ndarray, np.ndarray]):
             self._next_seed += 1
         self.governor.new_episode()
         self._last_action = None
-        return obs, dict(info)
+        return self._observed(obs), dict(info)
+
+    def _observed(self, obs: np.ndarray) -> np.ndarray:
+        if not self._extra:
+            return obs
+        signals = self.task_env.signals()
+        extra = np.array([signals[name] for name in self._extra], dtype=np.float32)
+        return np.concatenate([obs, extra]).astype(np.float32)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Clip, govern, step, grade (the runtime loop's steps 4 and 5).
@@ -226,7 +247,7 @@ class GovernedTaskEnv(gym.Env[np.ndarray, np.ndarray]):
         info["constraints"] = tuple(iv.constraint for iv in ivs)
         info["interventions"] = ivs
         info["action"] = executed.astype(np.float32)
-        return obs, float(reward), bool(terminated), bool(truncated), info
+        return self._observed(obs), float(reward), bool(terminated), bool(truncated), info
 
     def close(self) -> None:
         """Release the simulator. Idempotent."""
@@ -247,6 +268,7 @@ def evaluate_policy(
     trace: str | os.PathLike[str] | None = None,
     label: str = "policy",
     version: int = 0,
+    handoff_signals: bool = False,
 ) -> tuple[tuple[EpisodeResult, ...], int]:
     """Run one episode per seed with the deterministic policy ``act`` in a fresh :class:`GovernedTaskEnv`.
 
@@ -261,6 +283,7 @@ def evaluate_policy(
         trace: An MCAP file to write the episodes to (see the module docstring); None writes none.
         label: The trace's name for the policy (``/env/step``'s ``ecm``; the run's worker id).
         version: The trace's version of the policy (``/env/step``'s ``version``), e.g. the iteration.
+        handoff_signals: As :class:`GovernedTaskEnv` (the policy was trained with them).
 
     Returns:
         One :class:`EpisodeResult` per seed, in order, and the env steps they took.
@@ -270,7 +293,14 @@ def evaluate_policy(
         Conflict: ``trace`` exists already.
     """
     seed_list = check_seeds(seeds)
-    env = GovernedTaskEnv(task, phi=phi, governance=governance, perturbations=perturbations, horizon=horizon)
+    env = GovernedTaskEnv(
+        task,
+        phi=phi,
+        governance=governance,
+        perturbations=perturbations,
+        horizon=horizon,
+        handoff_signals=handoff_signals,
+    )
     results: list[EpisodeResult] = []
     with contextlib.ExitStack() as stack:
         stack.callback(env.close)

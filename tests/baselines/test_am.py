@@ -170,6 +170,8 @@ def test_cloning_the_v0_skills_fits_held_out_demonstrations(tmp_path: Path, algo
         ({"net_arch": [64, 0]}, "options.net_arch"),
         ({"bc_episodes": 0}, "options.bc_episodes"),
         ({"bc_loss": "l1"}, "options.bc_loss"),
+        ({"handoff_signals": "yes"}, "options.handoff_signals"),
+        ({"handoff_signals": True, "warm_start": "bc"}, "options.handoff_signals"),
     ],
 )
 def test_a_bad_option_is_invalid_and_named(tmp_path: Path, options: dict, field: str) -> None:
@@ -210,3 +212,20 @@ def test_methods_and_their_knowledge() -> None:
     assert AgentModification.knowledge_of({"warm_start": "bc"}) == KNOWLEDGE_BC
     assert AgentModification.knowledge_of({}) == KNOWLEDGE
     assert np.isclose(policy_drift([1.0, 0.0], [1.0, 0.0]), 0.0)
+
+
+@pytest.mark.slow
+def test_am_with_handoff_signals_observes_them_in_training_and_evaluation(tmp_path: Path) -> None:
+    from stable_baselines3 import PPO
+
+    from capevo.runtime.tasks import task_spec
+
+    records = _run(AgentModification(), _cell(budget=32, iterations=1, handoff_signals=True), tmp_path)
+    assert records[0].env_steps_train == 32 and len(records[0].episodes) == 2
+    model = PPO.load(tmp_path / "checkpoints" / "iteration-001.zip", device="cpu")
+    plain = GovernedTaskEnv("T1", horizon=HORIZON)
+    try:
+        want = plain.observation_space.shape[0] + len(task_spec("T1").handoff_signals)
+    finally:
+        plain.close()
+    assert model.observation_space.shape == (want,)

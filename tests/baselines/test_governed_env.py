@@ -160,3 +160,25 @@ def test_the_evaluation_trace_holds_every_step_and_agrees_with_the_results(tmp_p
     assert [(s.seed, s.steps, s.unsafe_steps, s.success) for s in summaries] == [
         (r.seed, r.steps, r.unsafe_steps, r.success) for r in results
     ]
+
+
+def test_handoff_signals_extend_the_observation_with_the_predicates_exact_signals() -> None:
+    """The fairness option: the signals ours hands off on, appended in spec order, exact."""
+    plain = GovernedTaskEnv("T1", perturbations=True, horizon=10)
+    both = GovernedTaskEnv("T1", perturbations=True, horizon=10, handoff_signals=True)
+    try:
+        names = both.task_spec.handoff_signals
+        assert both.observation_space.shape == (plain.observation_space.shape[0] + len(names),)
+        a, _ = plain.reset(seed=11)
+        b, _ = both.reset(seed=11)
+        for _ in range(3):
+            step = np.zeros(7)
+            a = plain.step(step)[0]
+            b = both.step(step)[0]
+        assert b.dtype == np.float32 and both.observation_space.contains(b)
+        np.testing.assert_array_equal(b[: len(a)], a)  # same seed, same noisy observation
+        signals = both.signals()
+        np.testing.assert_allclose(b[len(a) :], [signals[n] for n in names], rtol=1e-6)
+    finally:
+        plain.close()
+        both.close()
