@@ -269,6 +269,7 @@ def evaluate_policy(
     label: str = "policy",
     version: int = 0,
     handoff_signals: bool = False,
+    on_reset: Callable[[], None] | None = None,
 ) -> tuple[tuple[EpisodeResult, ...], int]:
     """Run one episode per seed with the deterministic policy ``act`` in a fresh :class:`GovernedTaskEnv`.
 
@@ -284,6 +285,8 @@ def evaluate_policy(
         label: The trace's name for the policy (``/env/step``'s ``ecm``; the run's worker id).
         version: The trace's version of the policy (``/env/step``'s ``version``), e.g. the iteration.
         handoff_signals: As :class:`GovernedTaskEnv` (the policy was trained with them).
+        on_reset: Called after each episode's reset, before its first action: a policy with memory
+            (a skill that runs H actions open-loop, SPiRL's and SkiMo's) starts every episode afresh.
 
     Returns:
         One :class:`EpisodeResult` per seed, in order, and the env steps they took.
@@ -317,7 +320,9 @@ def evaluate_policy(
             )
             sink = stack.enter_context(TraceWriter(Path(trace), metadata))
         for episode, seed in enumerate(seed_list):
-            results.append(_episode(env, act, seed, sink=sink, episode=episode, label=label, version=version))
+            results.append(
+                _episode(env, act, seed, sink=sink, episode=episode, label=label, version=version, on_reset=on_reset)
+            )
     return tuple(results), env.env_steps
 
 
@@ -330,10 +335,13 @@ def _episode(
     episode: int,
     label: str,
     version: int,
+    on_reset: Callable[[], None] | None = None,
 ) -> EpisodeResult:
     """One seeded episode of ``act``, traced to ``sink`` when given."""
     started = time.perf_counter()
     obs, info = env.reset(seed=seed)
+    if on_reset is not None:
+        on_reset()
     reward = 0.0
     steps = unsafe = intervened = interventions = 0
     done = False
