@@ -531,6 +531,7 @@ def _register_commands() -> None:
             "runtime": "capevo.cli.runtime:runtime",
             "learner": "capevo.cli.learner:learner",
             "evolve": "capevo.cli.evolve:evolve",
+            "experiment": "capevo.cli.experiment:experiment",
         }
     )
 

@@ -1,0 +1,416 @@
+"""``capevo experiment run``: a grid's cells as Ray tasks, resumable, with the files back on the driver
+(issue 20 "Harness").
+
+Each cell (:meth:`ExperimentConfig.cells`) is one Ray task, :func:`run_cell`. It runs in a
+temporary directory on whatever node Ray picks (no shared filesystem is assumed): it writes
+``cell.json``, appends one :meth:`IterationRecord.to_dict` line to ``metrics.jsonl`` per
+iteration (fsynced as emitted) beside the method's own files (registry, MCAP traces,
+checkpoints), and returns the whole directory as the bytes of a tar archive, a Ray object. The
+driver unpacks it under ``RUN_DIR/cells/<name>.partial``, writes ``done.json`` into it
+atomically, and renames the directory to ``cells/<name>`` (:meth:`ExperimentConfig.cell_names`).
+
+By default ``ray.init(num_cpus=workers)`` starts a local Ray instance in this process (no
+dashboard, quiet logs); ``address`` (``ray://HOST:10001`` or ``auto``) joins a running cluster
+instead, whose nodes must have the same capevo installed. One Ray task asks for one CPU.
+
+Failures: Ray re-runs a task whose worker process died (``max_retries``); a cell whose method
+raised is submitted again by the driver, up to ``retries`` more attempts; a cell that failed
+every attempt gets ``failed.json`` (error, traceback, attempts) and the other cells go on.
+
+Resuming: the same command on the same ``RUN_DIR`` skips every cell with ``done.json`` and runs
+every other one from scratch in an empty directory (a ``.partial`` directory and a
+``failed.json`` from an earlier run are removed first: a failed cell is tried again).
+``experiment.json`` must describe the same cells (the iterations, budget and settings of each).
+
+Invariants:
+1. A cell directory without ``.partial`` in its name has ``done.json`` or ``failed.json``;
+   ``done.json`` is written last (after every other file of the cell is on disk) and
+   atomically, and a cell with it is never run again.
+2. ``metrics.jsonl`` of a done cell has exactly ``cell.iterations`` records, iterations
+   0..n-1 (a method that emitted fewer or out of order fails the attempt).
+3. ``done.json``'s ``env_steps_train`` and ``env_steps_eval`` are the sums over the records.
+4. One cell's failure never stops or loses another cell's files.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import logging
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+import traceback
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from capevo.baselines.base import CellSpec, IterationRecord
+from capevo.errors import Invalid
+from capevo.evolve.metrics import append_durably, write_atomically
+from capevo.experiment.config import ExperimentConfig
+from capevo.experiment.progress import GridProgress, RecordingGridProgress
+
+log = logging.getLogger(__name__)
+
+CELLS = "cells"
+CELL_JSON = "cell.json"
+METRICS = "metrics.jsonl"
+DONE = "done.json"
+FAILED = "failed.json"
+EXPERIMENT_JSON = "experiment.json"
+PROVENANCE_JSON = "provenance.json"
+PARTIAL = ".partial"
+PACKAGES = ("capevo", "robosuite", "mujoco", "torch", "stable-baselines3", "ray", "numpy", "scipy", "gymnasium")
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
+"""Every cell uses one core: Ray gives each task one CPU, so its math libraries get one thread."""
+
+
+def _dumps(obj: Any) -> bytes:
+    return (json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False) + "\n").encode()
+
+
+# --- one cell (runs in a Ray worker) -----------------------------------------------------------
+
+
+def run_cell(cell_dict: Mapping[str, Any], name: str) -> dict[str, Any]:
+    """Run one cell in a fresh temporary directory and return its files (the Ray task's body).
+
+    Returns:
+        ``{"tar": bytes of the cell directory, "wall_s", "env_steps_train", "env_steps_eval",
+        "iterations"}``.
+
+    Raises:
+        Invalid: the method's records are not iterations 0..n-1.
+        Exception: whatever the method raised (the driver retries, then records it).
+    """
+    # robosuite sets its logger's level on import: import it first, then quiet it
+    import robosuite  # noqa: F401
+
+    from capevo.experiment.methods import knowledge_of, make_method
+
+    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
+    cell = CellSpec.from_dict(cell_dict)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix=f"capevo-cell-{name}-") as tmp:
+        d = Path(tmp) / name
+        d.mkdir()
+        knowledge = knowledge_of(cell.method, cell.options)
+        write_atomically(d / CELL_JSON, _dumps({"cell": cell.to_dict(), "knowledge": knowledge}))
+        records: list[IterationRecord] = []
+
+        def emit(record: IterationRecord) -> None:
+            if record.iteration != len(records):
+                raise Invalid(
+                    f"{cell.method} emitted iteration {record.iteration} after {len(records)} records",
+                    details={"field": "iteration"},
+                )
+            append_durably(d / METRICS, _dumps(record.to_dict()))
+            records.append(record)
+
+        # the method's own files (registry/, traces/, checkpoints) go beside cell.json and metrics.jsonl
+        make_method(cell.method).run(cell, d, emit=emit)
+        if len(records) != cell.iterations:
+            raise Invalid(
+                f"{cell.method} emitted {len(records)} of {cell.iterations} iterations", details={"field": "iterations"}
+            )
+        buf = io.BytesIO()
+        with tarfile.open(fileobj=buf, mode="w") as tar:
+            tar.add(d, arcname=name)
+        return {
+            "tar": buf.getvalue(),
+            "wall_s": time.perf_counter() - t0,
+            "env_steps_train": sum(r.env_steps_train for r in records),
+            "env_steps_eval": sum(r.env_steps_eval for r in records),
+            "iterations": len(records),
+        }
+
+
+# --- the driver --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RunSummary:
+    """What :func:`run_experiment` did."""
+
+    run_dir: Path
+    done: tuple[str, ...]
+    """Cells finished by this run."""
+    skipped: tuple[str, ...]
+    """Cells already done before it (never redone)."""
+    failed: tuple[str, ...]
+    wall_s: float
+
+
+def cell_state(cell_dir: Path) -> str:
+    """``done``, ``failed`` or ``todo`` for a cell directory."""
+    if (cell_dir / DONE).is_file():
+        return "done"
+    if (cell_dir / FAILED).is_file():
+        return "failed"
+    return "todo"
+
+
+def _check_same_grid(run_dir: Path, config: ExperimentConfig) -> None:
+    path = run_dir / EXPERIMENT_JSON
+    if not path.is_file():
+        return
+    try:
+        old = ExperimentConfig.from_dict(json.loads(path.read_text(encoding="utf-8")))
+    except (ValueError, Invalid) as exc:
+        raise Invalid(f"{path} is not an experiment config: {exc}", details={"field": "run_dir"}) from None
+    mine = {n: c.to_dict() for n, c in config.cell_names().items()}
+    theirs = {n: c.to_dict() for n, c in old.cell_names().items()}
+    changed = sorted(k for k in mine.keys() & theirs.keys() if mine[k] != theirs[k])
+    if changed:
+        raise Invalid(
+            f"{run_dir} holds a run whose cells {', '.join(changed[:3])} have other settings; "
+            "use another run directory",
+            details={"field": "run_dir"},
+        )
+
+
+def _git_commit() -> str | None:
+    here = Path(__file__).resolve().parents[2]
+    try:
+        out = subprocess.run(
+            ["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10, check=True
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    dirty = subprocess.run(
+        ["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True
+    )
+    return out.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+
+
+def _versions() -> dict[str, str | None]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out: dict[str, str | None] = {}
+    for p in PACKAGES:
+        try:
+            out[p] = version(p)
+        except PackageNotFoundError:
+            out[p] = None
+    return out
+
+
+def _load() -> list[float] | None:
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return None
+
+
+def _extract(run_dir: Path, name: str, result: Mapping[str, Any], attempts: int) -> None:
+    cells = run_dir / CELLS
+    partial = cells / (name + PARTIAL)
+    shutil.rmtree(partial, ignore_errors=True)
+    with tempfile.TemporaryDirectory(prefix=".unpack-", dir=cells) as tmp:
+        with tarfile.open(fileobj=io.BytesIO(result["tar"]), mode="r") as tar:
+            tar.extractall(tmp, filter="data")
+        os.replace(Path(tmp) / name, partial)
+    done = {
+        "wall_s": result["wall_s"],
+        "env_steps_train": result["env_steps_train"],
+        "env_steps_eval": result["env_steps_eval"],
+        "attempts": attempts,
+    }
+    write_atomically(partial / DONE, _dumps(done))
+    final = cells / name
+    shutil.rmtree(final, ignore_errors=True)
+    os.replace(partial, final)
+
+
+def _record_failure(run_dir: Path, name: str, cell: CellSpec, exc: BaseException, attempts: int) -> None:
+    from capevo.experiment.methods import knowledge_of
+
+    d = run_dir / CELLS / name
+    shutil.rmtree(d, ignore_errors=True)
+    d.mkdir(parents=True)
+    try:
+        knowledge = knowledge_of(cell.method, cell.options)
+    except Invalid:
+        knowledge = ""
+    write_atomically(d / CELL_JSON, _dumps({"cell": cell.to_dict(), "knowledge": knowledge}))
+    cause = getattr(exc, "cause", None) or exc
+    tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+    write_atomically(
+        d / FAILED, _dumps({"error": f"{type(cause).__name__}: {cause}"[:2000], "traceback": tb, "attempts": attempts})
+    )
+
+
+def _summary_of(result: Mapping[str, Any]) -> str:
+    return (
+        f"{result['iterations']} iterations, {result['env_steps_train']} training + {result['env_steps_eval']} "
+        f"evaluation env steps, {result['wall_s']:.0f} s"
+    )
+
+
+def start_ray(*, workers: int, address: str | None) -> bool:
+    """Start a local Ray instance with ``workers`` CPUs, or join ``address``; True when this call
+    started or joined it (and :func:`stop_ray` should end it)."""
+    import ray
+
+    if ray.is_initialized():
+        return False
+    kwargs: dict[str, Any] = {
+        "include_dashboard": False,
+        "log_to_driver": False,
+        "logging_level": logging.WARNING,
+        "configure_logging": True,
+        "runtime_env": {"env_vars": dict(WORKER_ENV)},
+    }
+    if address:
+        ray.init(address=address, **kwargs)
+    else:
+        ray.init(num_cpus=workers, **kwargs)
+    return True
+
+
+def stop_ray() -> None:
+    import ray
+
+    ray.shutdown()
+
+
+def run_experiment(
+    config: ExperimentConfig,
+    run_dir: Path,
+    *,
+    workers: int = 2,
+    address: str | None = None,
+    retries: int = 1,
+    max_retries: int = 2,
+    progress: GridProgress | None = None,
+    command: Sequence[str] | None = None,
+    only: Callable[[CellSpec], bool] | None = None,
+) -> RunSummary:
+    """Run (or resume) ``config``'s grid into ``run_dir``.
+
+    Args:
+        config: The grid.
+        run_dir: The run directory (created; see :mod:`capevo.experiment` for its layout).
+        workers: CPUs of the local Ray instance (ignored with ``address``).
+        address: A Ray cluster to join (``ray://HOST:10001`` or ``auto``); None starts one here.
+        retries: Further attempts of a cell whose method raised.
+        max_retries: Ray's re-runs of a task whose worker process died.
+        progress: Display sink (default: a recording one).
+        command: Recorded in ``provenance.json``.
+        only: Run only the cells it accepts (the others are left as they are).
+
+    Returns:
+        What ran, what was skipped, what failed.
+
+    Raises:
+        Invalid: ``run_dir`` holds a run of other cells' settings, or bad arguments.
+    """
+    import ray
+
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise Invalid(f"workers must be a positive integer, got {workers!r}", details={"field": "workers"})
+    if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
+        raise Invalid(f"retries must be a non-negative integer, got {retries!r}", details={"field": "retries"})
+    t0 = time.perf_counter()
+    sink: GridProgress = progress if progress is not None else RecordingGridProgress()
+    run_dir = Path(run_dir)
+    cells_dir = run_dir / CELLS
+    cells_dir.mkdir(parents=True, exist_ok=True)
+    _check_same_grid(run_dir, config)
+    write_atomically(run_dir / EXPERIMENT_JSON, _dumps(config.to_dict()))
+    for leftover in cells_dir.iterdir():
+        # an interrupted run's unpacking: never a finished cell
+        if leftover.name.endswith(PARTIAL) or leftover.name.startswith(".unpack-"):
+            shutil.rmtree(leftover, ignore_errors=True)
+    provenance: dict[str, Any] = {
+        "capevo_commit": _git_commit(),
+        "packages": _versions(),
+        "machine": {
+            "cores": os.cpu_count(),
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "load_at_start": _load(),
+        },
+        "ray": {"address": address or "local", "workers": workers if not address else None},
+        "started_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "command": list(command) if command is not None else [sys.executable, *sys.argv],
+    }
+    grid = list(config.cell_names().items())
+    states = {name: cell_state(cells_dir / name) for name, _ in grid}
+    skipped = tuple(n for n, _ in grid if states[n] == "done")
+    todo = [(n, c) for n, c in grid if states[n] != "done" and (only is None or only(c))]
+    done: list[str] = []
+    failed: list[str] = []
+    sink.started(total=len(grid), done=len(skipped), failed=0)
+    owns_ray = False
+    try:
+        if todo:
+            owns_ray = start_ray(workers=workers, address=address)
+            task = ray.remote(num_cpus=1, max_retries=max_retries)(run_cell)
+            for name, _ in todo:
+                shutil.rmtree(cells_dir / name, ignore_errors=True)  # an unfinished cell starts over
+            slots = workers if not address else max(1, int(ray.cluster_resources().get("CPU", 1)))
+            attempts = dict.fromkeys((n for n, _ in todo), 1)
+            by_ref = {task.remote(c.to_dict(), n): (n, c) for n, c in todo}
+            while by_ref:
+                sink.update(running=min(slots, len(by_ref)))
+                ready, _ = ray.wait(list(by_ref), num_returns=1, timeout=1.0)
+                for ref in ready:
+                    name, cell = by_ref.pop(ref)
+                    try:
+                        result = ray.get(ref)
+                    except Exception as exc:  # the cell's own error, or its worker died max_retries times
+                        if attempts[name] <= retries:
+                            attempts[name] += 1
+                            sink.message(f"retrying {name} (attempt {attempts[name]}): {_short(exc)}")
+                            by_ref[task.remote(cell.to_dict(), name)] = (name, cell)
+                            continue
+                        _record_failure(run_dir, name, cell, exc, attempts[name])
+                        failed.append(name)
+                        sink.cell_finished(name, ok=False, summary=_short(exc))
+                        continue
+                    _extract(run_dir, name, result, attempts[name])
+                    done.append(name)
+                    sink.cell_finished(name, ok=True, summary=_summary_of(result))
+    finally:
+        if owns_ray:
+            with contextlib.suppress(Exception):
+                stop_ray()
+        wall = time.perf_counter() - t0
+        provenance["machine"]["load_at_end"] = _load()
+        provenance["finished_at"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        provenance["wall_s"] = round(wall, 3)
+        provenance["cells"] = {"total": len(grid), "run": len(done), "skipped": len(skipped), "failed": len(failed)}
+        write_atomically(run_dir / PROVENANCE_JSON, _dumps(provenance))
+        sink.close()
+    return RunSummary(
+        run_dir=run_dir, done=tuple(done), skipped=skipped, failed=tuple(failed), wall_s=time.perf_counter() - t0
+    )
+
+
+def _short(exc: BaseException) -> str:
+    cause = getattr(exc, "cause", None) or exc
+    text = f"{type(cause).__name__}: {cause}"
+    return text.splitlines()[0][:300] if text else type(cause).__name__
+
+
+__all__ = [
+    "CELLS",
+    "DONE",
+    "FAILED",
+    "METRICS",
+    "RunSummary",
+    "cell_state",
+    "run_cell",
+    "run_experiment",
+    "start_ray",
+    "stop_ray",
+]
