@@ -193,11 +193,12 @@ class PhaseEvaluator:
 
     def evaluate(self, task: str, versions: Mapping[str, int], seeds: Sequence[int]) -> list[EpisodeOutcome]:
         versions = {**self.overlay, **versions}
+        # a remote evaluator given a trace_dir copies the workers' traces there: route them too
+        if self.trace_root is not None and (self._local or getattr(self.inner, "trace_dir", None) is not None):
+            directory = self.trace_root / self.phase
+            directory.mkdir(parents=True, exist_ok=True)
+            self.inner.trace_dir = directory  # type: ignore[attr-defined]
         if self._local:
-            if self.trace_root is not None:
-                directory = self.trace_root / self.phase
-                directory.mkdir(parents=True, exist_ok=True)
-                self.inner.trace_dir = directory  # type: ignore[attr-defined]
             self.inner.progress = lambda done, total, outcome: self.progress.episodes_done(1)  # type: ignore[attr-defined]
         deadline = time.monotonic() + self.wait_for_worker_s
         while True:

@@ -261,12 +261,15 @@ def _evaluator(
     if options.connect:
         from capevo.runtime.worker import RemoteEvaluator
 
+        # the workers' traces come back into the report (the loop reads the live ones to pick
+        # the ECM to update), also from workers on other hosts
         return RemoteEvaluator(
             list(options.connect),
             namespace=options.namespace,
             user=options.user,
             password=options.password,
             timeout=options.evaluate_timeout_s,
+            trace_dir=report_dir / "traces" / "live",
         )
     from capevo.runtime.evaluator import LocalEvaluator
 

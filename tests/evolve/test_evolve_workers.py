@@ -115,3 +115,8 @@ def test_live_gate_and_cem_episodes_all_run_on_the_workers(tmp_path: Path, free_
     # and their traces came back into the report, named after the worker that ran them
     learner_traces = sorted(p.name for p in (report / "traces" / "learner").glob("*.mcap"))
     assert learner_traces and all(name.startswith(WORKERS) for name in learner_traces), learner_traces
+    # so did the live episodes' traces, and the loop read them to choose what to learn
+    live_traces = sorted(p.name for p in (report / "traces" / "live").glob("*.mcap"))
+    assert all(name.startswith(WORKERS) for name in live_traces), live_traces
+    assert {w for w in WORKERS if any(name.startswith(w + "-") for name in live_traces)} == set(WORKERS)
+    assert "no readable traces" not in evolve.log()
