@@ -1209,6 +1209,7 @@ class RemoteEvaluator:
         tokens: dict[int, zenoh.CancellationToken] = {}
         out: set[str] = set()  # workers this call no longer sends to: dead or refusing
         used: set[str] = set()
+        refusals: list[Unavailable] = []
         with self._listeners_lock:
             self._listeners.add(events)
         try:
@@ -1220,7 +1221,7 @@ class RemoteEvaluator:
                         live |= set(self.live_workers(spec.name, min(DISCOVERY_TIMEOUT_S, _left(deadline))))
                         candidates = live - out
                     if not candidates:
-                        raise self._no_worker(spec.name, ledger, tried=sorted(used))
+                        raise self._no_worker(spec.name, ledger, tried=sorted(used), refusals=refusals)
                     for part in ledger.dispatch(candidates):
                         used.add(part.worker_id)
                         tokens[part.part_id] = self._send(part, request, events, deadline)
@@ -1252,6 +1253,7 @@ class RemoteEvaluator:
                     if not isinstance(err, Unavailable):
                         raise err
                     out.add(part.worker_id)
+                    refusals.append(err)
                     self._lose(ledger, part, tokens, err.message)
                 elif kind == "end" and part is not None:
                     # The query ended without a reply: its worker vanished with it.
@@ -1334,7 +1336,11 @@ class RemoteEvaluator:
                 why,
             )
 
-    def _no_worker(self, task: str, ledger: SeedLedger, *, tried: list[str]) -> Unavailable:
+    def _no_worker(
+        self, task: str, ledger: SeedLedger, *, tried: list[str], refusals: Sequence[Unavailable]
+    ) -> Unavailable:
+        if refusals and len(tried) == 1:
+            return refusals[-1]  # the one worker asked said why (busy, shutting down)
         if self.worker_id is not None:
             key = self.keys.evaluate(self.worker_id)
             return Unavailable(
