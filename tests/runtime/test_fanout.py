@@ -30,7 +30,7 @@ from capevo.records import Origin
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.fanout import SeedLedger, split
 from capevo.runtime.traces import TraceReader
-from capevo.runtime.worker import RemoteEvaluator
+from capevo.runtime.worker import EvaluateRequest, RemoteEvaluator
 
 HORIZON = "20"
 # A reach that holds still with the gripper open: with it no episode gets near the can.
@@ -133,6 +133,30 @@ def test_a_seed_is_dispatched_at_most_max_attempts_times() -> None:
     assert err.value.message.startswith("seeds [7, 8] were dispatched 2 times")
     with pytest.raises(Invalid):
         SeedLedger([1], max_attempts=0)
+
+
+def test_inline_artifacts_round_trip_and_bad_ones_name_their_field() -> None:
+    request = EvaluateRequest(
+        task="pick",
+        versions={"pick.lift": 0},
+        seeds=(3, 1),
+        overrides={"pick.reach": HOLD, "pick.lift": bytes(range(256))},
+        override_origin=Origin.CLONE,
+        traces=True,
+    )
+    assert EvaluateRequest.from_json(request.to_json()) == request
+    cases = [
+        (b'{"task": "T1", "seeds": [0], "overrides": {"pick.reach": "%%%"}}', "overrides", "is not base64"),
+        (b'{"task": "T1", "seeds": [0], "overrides": {"pick.reach": 3}}', "overrides", "base64 text"),
+        (b'{"task": "T1", "seeds": [0], "overrides": {"place.drop": "eA=="}}', "overrides", "not an ECM of task"),
+        (b'{"task": "T1", "seeds": [0], "overrides": {"pick.reach": ""}}', "overrides", "non-empty bytes"),
+        (b'{"task": "T1", "seeds": [0], "override_origin": "alien"}', "override_origin", "unknown override_origin"),
+        (b'{"task": "T1", "seeds": [0], "traces": 1}', "traces", "traces must be true or false"),
+    ]
+    for payload, field, text in cases:
+        with pytest.raises(Invalid) as err:
+            EvaluateRequest.from_json(payload)
+        assert err.value.details["field"] == field and text in err.value.message, (payload, err.value.message)
 
 
 # --- real workers -----------------------------------------------------------------------------
