@@ -4,14 +4,17 @@ The bookkeeping (:mod:`capevo.runtime.fanout`) is checked on its own first, one 
 invariant. Then real worker processes (``capevo runtime serve``, each a fresh interpreter)
 against a real registry server process, over loopback Zenoh with scouting off: the split is
 the one :func:`split` gives, and its merged outcomes equal a one-worker run on the same
-seeds; inline candidate artifacts run on the workers and change nothing after their call; a
-worker SIGKILLed in the middle of a call loses no seed and counts none twice.
+seeds; each part's trace comes back with its outcomes; inline candidate artifacts run on the
+workers, sandboxed, and change nothing after their call; a worker SIGKILLed (or SIGTERMed) in
+the middle of a call, or one whose query ends unanswered, loses no seed and counts none twice;
+the same through a plain Zenoh router and under the registry's access control.
 """
 
 from __future__ import annotations
 
 import hashlib
 import random
+import subprocess
 import sys
 import threading
 import time
@@ -335,6 +338,59 @@ def test_a_worker_killed_mid_call_loses_no_seed_and_counts_none_twice(
     assert {cluster.ran_on(o) for o in outcomes[4:]} <= {"w-a", "w-b"}
     last = result["last_call"]
     assert isinstance(last, dict) and last["failed_parts"] >= 1 and victim_id in last["workers"]
+
+
+# A worker that announces itself like a real one and then drops every evaluate query unanswered,
+# as a worker whose process dies with the query does (the query ends without a reply).
+_SILENT_WORKER = """
+import sys, zenoh
+from capevo.registry.zconfig import client_config
+from capevo.runtime.worker import RuntimeKeys
+endpoint, worker_id = sys.argv[1], sys.argv[2]
+keys = RuntimeKeys("capevo")
+session = zenoh.open(client_config(connect=[endpoint]))
+def drop(query):
+    with query:
+        print("DROPPED", flush=True)
+queryable = session.declare_queryable(keys.evaluate(worker_id), drop)
+tokens = [session.liveliness().declare_token(k) for k in (keys.alive(worker_id), keys.serves(worker_id, "T1"))]
+print("READY", flush=True)
+sys.stdin.read()
+for t in tokens:
+    t.undeclare()
+queryable.undeclare()
+session.close()
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.zenoh
+def test_a_part_whose_query_ends_unanswered_is_rerun_elsewhere(cluster: Cluster) -> None:
+    seeds = [51, 52, 53, 54]
+    with RemoteEvaluator(cluster.endpoint, worker_id="w-a", timeout=240) as alone:
+        reference = alone.evaluate("T1", {}, seeds)
+    silent = subprocess.Popen(
+        [sys.executable, "-c", _SILENT_WORKER, cluster.endpoint, "w-0-silent"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert silent.stdout is not None and silent.stdout.readline().strip() == "READY"
+        with RemoteEvaluator(cluster.endpoint, timeout=240) as evaluator:
+            assert evaluator.live_workers("T1")[0] == "w-0-silent"  # it sorts first: it gets the first part
+            outcomes = evaluator.evaluate("T1", {}, seeds)
+            last = dict(evaluator.last_call)
+        assert silent.stdout.readline().strip() == "DROPPED"
+    finally:
+        assert silent.stdin is not None
+        silent.stdin.close()
+        silent.wait(timeout=30)
+        silent.stdout.close()  # type: ignore[union-attr]
+    assert [o.seed for o in outcomes] == seeds
+    same_episodes(outcomes, reference)
+    assert last["failed_parts"] == 1 and last["dropped"] == 0 and "w-0-silent" in last["workers"]
+    assert {cluster.ran_on(o) for o in outcomes} <= {"w-a", "w-b"}
 
 
 @pytest.mark.slow
