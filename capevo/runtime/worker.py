@@ -39,7 +39,10 @@ Candidates reach a worker this way, inline, or as registry versions pinned in ``
 never as paths on a shared disk. Inline code never runs in the worker's process: an override
 whose origin the trust policy would run in-process is refused (:class:`Forbidden`). The reply
 is JSON ``{"worker_id", "outcomes": [EpisodeOutcome.to_dict(), ...]}``, or an error reply
-carrying :meth:`CapevoError.to_payload`.
+carrying :meth:`CapevoError.to_payload`. With ``"traces": true`` the reply's attachment is the
+call's MCAP trace file (written to a temporary directory and removed when the worker keeps no
+traces of its own; the outcomes' ``trace_path`` is then None), so the caller can read the
+episodes without sharing the worker's disk.
 
 Invariants:
 1. The loaded versions change only between episodes (``LoadedCapabilitySet.begin_episode``).
