@@ -269,7 +269,8 @@ def plot_governance(rows: Sequence[Mapping[str, Any]], path: str | os.PathLike[s
     ):
         ax.set_xticks(xs)
         ax.set_xticklabels(names)
-        ax.set_ylim(0, 105)
+        ax.set_xlim(-0.7, max(len(rows), 1) - 0.3)
+        ax.set_ylim(0, max(105.0, 1.05 * max((b.get_height() for b in ax.patches), default=0.0)))
         ax.set_ylabel(label)
         ax.set_title(title, fontsize=9)
         ax.grid(alpha=0.3, axis="y")

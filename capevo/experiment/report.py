@@ -1150,6 +1150,20 @@ def _governance(add: Any, run: Run, book: Book, overhead: QuotedOverhead | None,
                 f"{block('on')} | {block('off')} | {rate('on')} | {rate('off')} | {ptext} | {_links(cells)} |"
             )
         add("")
+        over = [
+            t
+            for t in sorted({c.task for c in explorer})
+            for side in ("on", "off")
+            if (book.get(f"h3/{t}/{side}/blocking_rate") or 0.0) > 1.0
+        ]
+        if over:
+            add(
+                f"**Blocking above 100 % ({', '.join(sorted(set(over)))}):** these cells' `interventions` count every "
+                "constraint that fired (several per step), not the steps governance changed, which "
+                "`EpisodeResult.interventions` is meant to count; the ratio overstates the paper's fraction of "
+                "actions modified or rejected and is not comparable with it."
+            )
+            add("")
     if overhead is None:
         add(
             "Overhead per action: this run records no timing per action and no BENCHMARKS.md with a governance "

@@ -313,3 +313,14 @@ def test_fairness_names_knowledge_and_the_hand_off_oracle(run: tuple[Path, dict[
     assert "`ours-code`, `s-ecm` run the task's ECM decomposition" in md
     for task in ("T1", "T3", "T6"):
         assert task_spec(task).handoff_text in md
+
+
+def test_blocking_above_one_per_step_is_called_out(tmp_path: Path) -> None:
+    """A producer that counts every constraint that fired gives more interventions than steps."""
+    root = tmp_path / "run"
+    raw = gen_raw(9, iterations=1, episodes=5, p_success=(0.0,), train=0)
+    raw.interventions[0] = [2 * n for n in raw.steps[0]]
+    write_cell(root, task="T1", method="explorer", seed=1, raw=raw)
+    write_report(root)
+    md = (root / "report" / "report.md").read_text()
+    assert "200.0 %" in md and "**Blocking above 100 % (T1):**" in md
