@@ -71,6 +71,8 @@ Z_DIM = 10
 BETA = 5e-4
 """β of the VAE's KL term (SPiRL's robot experiments)."""
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+OBS_CLIP = 10.0
+"""Normalised observations are clipped to ±OBS_CLIP (SB3 VecNormalize's default ``clip_obs``)."""
 
 
 def mlp(inputs: int, hidden: int, outputs: int, layers: int = 2) -> nn.Sequential:
@@ -190,7 +192,9 @@ class SkillVAE(nn.Module):
         self.obs_std.copy_(o.std(0).clamp_min(1e-3))
 
     def normalise(self, obs: torch.Tensor) -> torch.Tensor:
-        return (obs - self.obs_mean) / self.obs_std
+        # clipped, as SB3 VecNormalize clips: a dimension almost constant in the offline data must
+        # not blow up on a state outside it
+        return ((obs - self.obs_mean) / self.obs_std).clamp(-OBS_CLIP, OBS_CLIP)
 
     def encode(self, actions: torch.Tensor) -> Normal:
         """``q(z | a_{0:H-1})`` of ``(batch, H, action_dim)`` actions."""
