@@ -1285,9 +1285,7 @@ def _settings(add: Any, run: Run, book: Book) -> None:
         add("| | |")
         add("|---|---|")
         for k, v in prov.items():
-            if isinstance(v, Mapping):
-                v = ", ".join(f"{kk} {vv}" for kk, vv in v.items())
-            add(f"| {_esc(str(k))} | {_esc(str(v))} |")
+            add(f"| {_esc(str(k))} | {_esc(_plain(v))} |")
         add("")
     else:
         add(f"No readable `{PROVENANCE_JSON}`.")
@@ -1312,6 +1310,15 @@ def _settings(add: Any, run: Run, book: Book) -> None:
     else:
         add(f"No readable `{EXPERIMENT_JSON}`.")
         add("")
+
+
+def _plain(v: Any) -> str:
+    """A provenance value as text: mappings as ``key value, ...``, a command list as its words."""
+    if isinstance(v, Mapping):
+        return ", ".join(f"{k} {_plain(x)}" for k, x in v.items())
+    if isinstance(v, list | tuple):
+        return " ".join(str(x) for x in v) if all(isinstance(x, str) for x in v) else json.dumps(v)
+    return str(v)
 
 
 def _cells(add: Any, run: Run, book: Book) -> None:
