@@ -2,7 +2,7 @@
 
 Separate processes over loopback Zenoh (scouting off): the registry server, two idle runtime
 workers of T1, and ``capevo evolve --connect ... --modality code`` with its learner in process.
-The live and gate episodes are split across both workers, and CEM's candidate samples, never
+The live (and gate) episodes run on the workers, and CEM's candidate samples, never
 published, reach the workers inline and run there too. Their traces come back into the
 report directory, where CEM reads them; no process reads another's files.
 """
@@ -106,8 +106,9 @@ def test_live_gate_and_cem_episodes_all_run_on_the_workers(tmp_path: Path, free_
             child.stop()
 
     evaluated = {w: [e for e in c.lines() if e.get("event") == "evaluated"] for w, c in workers.items()}
-    # live and gate calls (3 and 4 seeds) were split: each worker ran a part of them
-    assert all(any(not e["overrides"] for e in events) for events in evaluated.values()), evaluated
+    # the live episodes ran on the workers (split across those up at the time: evolve starts as
+    # soon as one is ready, so which ones is a race; test_fanout checks the split itself)
+    assert any(not e["overrides"] for events in evaluated.values() for e in events), evaluated
     # CEM's samples ran on the workers, as inline overrides of the ECM being learned
     inline = [e for events in evaluated.values() for e in events if e["overrides"]]
     assert inline, evaluated
@@ -117,6 +118,5 @@ def test_live_gate_and_cem_episodes_all_run_on_the_workers(tmp_path: Path, free_
     assert learner_traces and all(name.startswith(WORKERS) for name in learner_traces), learner_traces
     # so did the live episodes' traces, and the loop read them to choose what to learn
     live_traces = sorted(p.name for p in (report / "traces" / "live").glob("*.mcap"))
-    assert all(name.startswith(WORKERS) for name in live_traces), live_traces
-    assert {w for w in WORKERS if any(name.startswith(w + "-") for name in live_traces)} == set(WORKERS)
+    assert live_traces and all(name.startswith(WORKERS) for name in live_traces), live_traces
     assert "no readable traces" not in evolve.log()
