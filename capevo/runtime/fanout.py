@@ -14,8 +14,8 @@ nothing of them is counted).
 
 Why it matters: version gating is a statistical evaluation on held-out tasks (paper §3.1,
 "ECM Lifecycle"), and the paper's protocol spends 30 evaluation episodes per iteration (§4.1,
-"Experimental Setup"); at about 60 env steps/s per core those episodes, not learning, are much
-of an iteration's wall time here.
+"Experimental Setup"). Those episodes are independent given their seeds, so they can run on
+several machines at once without changing any result.
 
 Why a deterministic split: capevo's gate pairs the active and the candidate set on the same
 seeds (:mod:`capevo.runtime.gate`); a seed fixes the episode's instance whichever worker runs
