@@ -777,12 +777,21 @@ def benchmark_overhead(run_dir: Path) -> QuotedOverhead | None:
         if not m:
             continue
         section = m.group(1)
+        rows = [
+            [c.strip() for c in line.strip().strip("|").split("|")]
+            for line in section.splitlines()
+            if line.lstrip().startswith("|")
+        ]
+        # the column is found by its header ("p50 µs" or "p50 ms"), not by its position
+        col = next((i for i, h in enumerate(rows[0]) if "p50" in h), None) if rows else None
+        if col is None:
+            continue
+        scale = 1.0 if "ms" in rows[0][col] else 1e-3
         p50 = []
-        for line in section.splitlines():
-            cols = [c.strip() for c in line.strip().strip("|").split("|")]
-            if len(cols) >= 2 and line.lstrip().startswith("|") and not cols[0].startswith("anchor"):
+        for cols in rows[1:]:
+            if len(cols) > col and not cols[0].startswith("anchor"):
                 try:
-                    p50.append(float(cols[1]))
+                    p50.append(float(cols[col]) * scale)
                 except ValueError:
                     continue
         if not p50:
@@ -791,8 +800,8 @@ def benchmark_overhead(run_dir: Path) -> QuotedOverhead | None:
         first = " ".join(section.strip().split("\n\n", 1)[0].split()).split(". ", 1)[0]
         first = first if len(first) <= 200 else first[:199] + "…"
         return QuotedOverhead(
-            low_ms=min(p50) / 1000.0,
-            high_ms=max(p50) / 1000.0,
+            low_ms=min(p50),
+            high_ms=max(p50),
             source=f"{path.name} § Governance cost per action ({first})",
         )
     return None

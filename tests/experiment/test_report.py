@@ -324,3 +324,17 @@ def test_blocking_above_one_per_step_is_called_out(tmp_path: Path) -> None:
     write_report(root)
     md = (root / "report" / "report.md").read_text()
     assert "200.0 %" in md and "**Blocking above 100 % (T1):**" in md
+
+
+def test_the_quoted_overhead_is_the_range_of_the_benchmark_medians(tmp_path: Path) -> None:
+    (tmp_path / "BENCHMARKS.md").write_text(
+        "# B\n\n## Governance cost per action\n\n`bench.py --n 5`, 2026-01-01, machine Z. More.\n\n"
+        "| case | p99 µs | p50 µs |\n|---|---:|---:|\n| a | 9.0 | 2.0 |\n| b | 50.0 | 30.0 |\n"
+        "| anchor: numpy | 1.0 | 0.5 |\n\n## Next\n\n| x | 1 |\n"
+    )
+    run_dir = tmp_path / "results" / "run"
+    run_dir.mkdir(parents=True)
+    quoted = benchmark_overhead(run_dir)
+    assert quoted is not None
+    assert (quoted.low_ms, quoted.high_ms) == pytest.approx((0.002, 0.030))
+    assert quoted.source == "BENCHMARKS.md § Governance cost per action (`bench.py --n 5`, 2026-01-01, machine Z)"
