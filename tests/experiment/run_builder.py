@@ -126,3 +126,45 @@ def write_run_files(root: Path) -> None:
             }
         )
     )
+
+
+OURS_SEEDS = (42, 7, 123)
+AM_SEEDS = (42, 7)
+
+
+def build_run(root: Path) -> tuple[Path, dict[str, Raw]]:
+    """T6 ours-code × 3 seeds, am × 2 seeds, T1 s-ecm × 1, T3 ablation cells, explorer on/off on T1,
+    and a failed, an unfinished and an unreadable cell."""
+    root.mkdir()
+    write_run_files(root)
+    raws: dict[str, Raw] = {}
+    for i, s in enumerate(OURS_SEEDS):
+        raw = gen_raw(100 + i, iterations=3, episodes=10, p_success=(0.1, 0.5, 0.9), reward_scale=3.0)
+        raws[f"T6-ours-code-s{s}"] = raw
+        write_cell(root, task="T6", method="ours-code", seed=s, raw=raw, knowledge="hand-written skills")
+    for i, s in enumerate(AM_SEEDS):
+        raw = gen_raw(200 + i, iterations=3, episodes=10, p_success=(0.0, 0.2, 0.3), drift=0.6)
+        raws[f"T6-am-s{s}"] = raw
+        write_cell(root, task="T6", method="am", seed=s, raw=raw)
+    raw = gen_raw(300, iterations=3, episodes=10, p_success=(0.0, 0.0, 0.0), train=0)
+    raws["T1-s-ecm-s42"] = raw
+    write_cell(root, task="T1", method="s-ecm", seed=42, raw=raw, knowledge="v0 ECMs")
+    raw = gen_raw(301, iterations=3, episodes=10, p_success=(0.0, 0.0, 0.1))
+    raws["T3-ours-code-s42"] = raw
+    write_cell(root, task="T3", method="ours-code", seed=42, raw=raw, options={"modality": "rl"})
+    # over budget in its second iteration
+    raw = gen_raw(302, iterations=2, episodes=10, p_success=(0.0, 0.1))
+    raw.train[1] = BUDGET.env_steps_per_iteration + 1
+    raws["T3-am-s42"] = raw
+    write_cell(root, task="T3", method="am", seed=42, raw=raw)
+    for on in (True, False):
+        raw = gen_raw(400 + on, iterations=1, episodes=20, p_success=(0.0,), train=0, p_unsafe=0.0 if on else 0.6,
+                      p_block=0.4 if on else 0.0)  # fmt: skip
+        raws[f"T1-explorer-{'on' if on else 'off'}"] = raw
+        write_cell(root, task="T1", method="explorer", seed=1, raw=raw, governance=on, knowledge="scripted")
+    write_cell(root, task="T1", method="spirl", seed=42, raw=gen_raw(5, iterations=1, episodes=10, p_success=(1.0,)),
+               status="failed", iterations=2)  # fmt: skip
+    write_cell(root, task="T1", method="skimo", seed=42, raw=gen_raw(6, iterations=1, episodes=10, p_success=(1.0,)),
+               status="unfinished", iterations=2)  # fmt: skip
+    write_cell(root, task="T1", method="am-bc", seed=42, raw=None, status="no-cell-json")
+    return root, raws

@@ -12,15 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from matplotlib import image as mpimg
-from run_builder import BUDGET, Raw, gen_raw, write_cell, write_run_files
+from run_builder import AM_SEEDS, OURS_SEEDS, Raw, build_run, gen_raw, write_cell
 from scipy import stats
 
 from capevo.errors import NotFound
 from capevo.experiment.report import benchmark_overhead, load_run, paper_ablation_row, write_report
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-OURS_SEEDS = (42, 7, 123)
-AM_SEEDS = (42, 7)
 
 
 def _peak_success(raw: Raw) -> float:
@@ -34,44 +32,6 @@ def _rewards(raw: Raw) -> list[float]:
 @pytest.fixture
 def run(tmp_path: Path) -> tuple[Path, dict[str, Raw]]:
     return build_run(tmp_path / "run")
-
-
-def build_run(root: Path) -> tuple[Path, dict[str, Raw]]:
-    """T6 ours-code × 3 seeds, am × 2 seeds, T1 s-ecm × 1, T3 ablation cells, explorer on/off on T1,
-    and a failed, an unfinished and an unreadable cell."""
-    root.mkdir()
-    write_run_files(root)
-    raws: dict[str, Raw] = {}
-    for i, s in enumerate(OURS_SEEDS):
-        raw = gen_raw(100 + i, iterations=3, episodes=10, p_success=(0.1, 0.5, 0.9), reward_scale=3.0)
-        raws[f"T6-ours-code-s{s}"] = raw
-        write_cell(root, task="T6", method="ours-code", seed=s, raw=raw, knowledge="hand-written skills")
-    for i, s in enumerate(AM_SEEDS):
-        raw = gen_raw(200 + i, iterations=3, episodes=10, p_success=(0.0, 0.2, 0.3), drift=0.6)
-        raws[f"T6-am-s{s}"] = raw
-        write_cell(root, task="T6", method="am", seed=s, raw=raw)
-    raw = gen_raw(300, iterations=3, episodes=10, p_success=(0.0, 0.0, 0.0), train=0)
-    raws["T1-s-ecm-s42"] = raw
-    write_cell(root, task="T1", method="s-ecm", seed=42, raw=raw, knowledge="v0 ECMs")
-    raw = gen_raw(301, iterations=3, episodes=10, p_success=(0.0, 0.0, 0.1))
-    raws["T3-ours-code-s42"] = raw
-    write_cell(root, task="T3", method="ours-code", seed=42, raw=raw, options={"modality": "rl"})
-    # over budget in its second iteration
-    raw = gen_raw(302, iterations=2, episodes=10, p_success=(0.0, 0.1))
-    raw.train[1] = BUDGET.env_steps_per_iteration + 1
-    raws["T3-am-s42"] = raw
-    write_cell(root, task="T3", method="am", seed=42, raw=raw)
-    for on in (True, False):
-        raw = gen_raw(400 + on, iterations=1, episodes=20, p_success=(0.0,), train=0, p_unsafe=0.0 if on else 0.6,
-                      p_block=0.4 if on else 0.0)  # fmt: skip
-        raws[f"T1-explorer-{'on' if on else 'off'}"] = raw
-        write_cell(root, task="T1", method="explorer", seed=1, raw=raw, governance=on, knowledge="scripted")
-    write_cell(root, task="T1", method="spirl", seed=42, raw=gen_raw(5, iterations=1, episodes=10, p_success=(1.0,)),
-               status="failed", iterations=2)  # fmt: skip
-    write_cell(root, task="T1", method="skimo", seed=42, raw=gen_raw(6, iterations=1, episodes=10, p_success=(1.0,)),
-               status="unfinished", iterations=2)  # fmt: skip
-    write_cell(root, task="T1", method="am-bc", seed=42, raw=None, status="no-cell-json")
-    return root, raws
 
 
 def _numbers(root: Path) -> dict[str, object]:

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_report import build_run
+from run_builder import build_run
 
 from capevo.errors import Corrupt, NotFound
 from capevo.experiment.report import write_report
