@@ -516,7 +516,7 @@ class SkillOptions:
         target_kl: δ of the temperature (SPiRL: 5).
         torch_threads: CPU threads torch uses while the cell runs.
         plan_horizon: SkiMo: skills planned ahead.
-        plan_samples: SkiMo: CEM samples per iteration (a quarter of them from the policy).
+        plan_samples: SkiMo: CEM samples per iteration (a quarter of them from the policy), 2 at least.
         plan_iterations: SkiMo: CEM iterations.
         model_steps: SkiMo: model fine-tuning steps per finished skill.
 
@@ -554,7 +554,7 @@ class SkillOptions:
             "model_steps",
         ):
             value = getattr(self, name)
-            low = 0 if name in ("pretrain_steps", "learning_starts", "model_steps") else 1
+            low = {"pretrain_steps": 0, "learning_starts": 0, "model_steps": 0, "plan_samples": 2}.get(name, 1)
             if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= 10**7:
                 raise Invalid(
                     f"option {name} must be an integer from {low} to {10**7}, got {value!r}",
