@@ -15,7 +15,7 @@ PUBLIC = {
     },
     "capevo.baselines": {
         "AgentModification", "AgentModificationBC", "Budget", "CellSpec", "Emit", "EpisodeResult", "GovernedTaskEnv",
-        "IterationRecord", "Method", "evaluate_policy",
+        "IterationRecord", "Method", "Skimo", "Spirl", "evaluate_policy",
     },
     "capevo.storage": {"AbstractStore", "BlobStore", "SqliteStore"},
     "capevo.runtime": {

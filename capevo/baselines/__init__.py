@@ -15,12 +15,16 @@ from capevo.baselines.base import Budget, CellSpec, Emit, EpisodeResult, Iterati
 if TYPE_CHECKING:
     from capevo.baselines.am import AgentModification, AgentModificationBC
     from capevo.baselines.governed_env import GovernedTaskEnv, evaluate_policy
+    from capevo.baselines.skimo import Skimo
+    from capevo.baselines.spirl import Spirl
 
 _HOMES = {
     "AgentModification": "capevo.baselines.am",
     "AgentModificationBC": "capevo.baselines.am",
     "GovernedTaskEnv": "capevo.baselines.governed_env",
     "evaluate_policy": "capevo.baselines.governed_env",
+    "Skimo": "capevo.baselines.skimo",
+    "Spirl": "capevo.baselines.spirl",
 }
 __all__ = [
     "AgentModification",
@@ -32,6 +36,8 @@ __all__ = [
     "GovernedTaskEnv",
     "IterationRecord",
     "Method",
+    "Skimo",
+    "Spirl",
     "evaluate_policy",
 ]
 __getattr__ = lazy_getattr(__name__, _HOMES)
