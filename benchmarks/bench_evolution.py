@@ -79,6 +79,8 @@ def start_task(task: str, args: argparse.Namespace, work: Path) -> dict[str, Any
         "--perturbations" if args.perturbations else "--no-perturbations",
         "--phi",
         args.phi,
+        "--modality",
+        args.modality,
     ]
     for flag, value in (
         ("--iterations", args.iterations),
@@ -161,7 +163,8 @@ def finish_task(run: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]
     }
     if args.heldout:
         out["heldout"] = heldout_evaluation(task, work / task / "data", args)
-        out["hand_set_heldout"] = hand_set_evaluation(task, work / task, args)
+        if args.modality == "code":  # the hand-set row is code parameters set by hand
+            out["hand_set_heldout"] = hand_set_evaluation(task, work / task, args)
     print(
         f"[{task}] v0 {out['v0_successes']} -> final {out['final_successes']}; "
         f"{out['promoted']} promoted, {out['rejected']} rejected; {wall:.0f} s wall, {cpu:.0f} s CPU",
@@ -318,8 +321,8 @@ def _load(r: dict[str, Any]) -> str:
 def _write(name: str, params: dict[str, Any], results: list[dict[str, Any]]) -> None:
     save_results(name, {"params": params, "results": results})
     (RESULTS_DIR / f"{name}.md").write_text(
-        f"# capevo evolve, preset {params['preset']}, perturbations {'on' if params['perturbations'] else 'off'}, "
-        f"Φ {params['phi']}\n\n`.venv/bin/python {params['command']}`, {params['date']}, "
+        f"# capevo evolve, preset {params['preset']}, modality {params.get('modality', 'code')}, "
+        f"perturbations {'on' if params['perturbations'] else 'off'}, Φ {params['phi']}\n\n`.venv/bin/python {params['command']}`, {params['date']}, "
         f"{params['cores']} cores.\n\n" + table(results) + "\n"
     )
 
@@ -352,6 +355,7 @@ def main() -> None:
     parser.add_argument("--work-dir", type=Path, default=None, help="keep registries and reports here")
     parser.add_argument("--perturbations", action=argparse.BooleanOptionalAction, default=True)
     parser.add_argument("--phi", default="task", help="the envelope of every episode: task (default) or paper")
+    parser.add_argument("--modality", default="code", help="code (default), rl, il or hybrid")
     parser.add_argument(
         "--heldout", type=int, default=30, help="episodes of the final set on fresh held-out seeds (0: none)"
     )
@@ -378,6 +382,7 @@ def main() -> None:
         "seed": args.seed,
         "perturbations": args.perturbations,
         "phi": args.phi,
+        "modality": args.modality,
         "heldout": args.heldout,
         "cores": os.cpu_count(),
         "date": time.strftime("%Y-%m-%d", time.gmtime()),
