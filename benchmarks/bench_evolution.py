@@ -322,7 +322,8 @@ def _write(name: str, params: dict[str, Any], results: list[dict[str, Any]]) -> 
     save_results(name, {"params": params, "results": results})
     (RESULTS_DIR / f"{name}.md").write_text(
         f"# capevo evolve, preset {params['preset']}, modality {params.get('modality', 'code')}, "
-        f"perturbations {'on' if params['perturbations'] else 'off'}, Φ {params['phi']}\n\n`.venv/bin/python {params['command']}`, {params['date']}, "
+        f"perturbations {'on' if params['perturbations'] else 'off'}, Φ {params['phi']}\n\n"
+        f"`.venv/bin/python {params['command']}`, {params['date']}, "
         f"{params['cores']} cores.\n\n" + table(results) + "\n"
     )
 
