@@ -31,6 +31,10 @@ for exactly a number of env steps: a skill cut by the end of an iteration's budg
 the start of the next, so every stored transition is a whole skill (H steps, or fewer when the
 episode ended first).
 
+:class:`SkillMethod` is the iteration loop both run (offline data, pre-training through the
+method's hook, then per iteration: the budget's steps, checkpoint, Δπ, held-out evaluation,
+``emit``); :class:`SkillOptions` their options.
+
 What is learned and what is hand-written: every network here is learned; H, the sizes, β, δ and
 the learning rates are set by hand (SPiRL's values where it gives them, otherwise named here).
 
@@ -40,29 +44,35 @@ Invariants:
 3. :meth:`SkillVAE.decode` returns actions in [-1, 1] of shape ``(batch, H, action_dim)``.
 4. Training a :class:`SkillVAE` or updating a :class:`SkillSAC` never changes a tensor the
    caller froze (``requires_grad`` False).
+5. :meth:`SkillMethod.run` parses every option before it builds a simulator or collects data;
+   each record's ``env_steps_train`` equals the budget and its episodes run on ``cell.eval_seeds()``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
 import json
-from collections.abc import Callable, Iterator
+import time
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 from torch import nn
 from torch.distributions import Normal, kl_divergence
 
-from capevo.baselines.governed_env import GovernedTaskEnv
+from capevo.agent import policy_drift
+from capevo.baselines.base import CellSpec, Emit, IterationRecord
+from capevo.baselines.governed_env import GovernedTaskEnv, evaluate_policy
 from capevo.baselines.offline_data import OfflineData, offline_data, offline_settings
 from capevo.errors import Invalid
-
-if TYPE_CHECKING:
-    from capevo.baselines.base import CellSpec
+from capevo.learner.bc import torch_threads
+from capevo.learner.presets import TRAIN_SEED_BASE
+from capevo.runtime.tasks import task_spec
 
 HORIZON = 10
 """H, the skill length (SPiRL: 10)."""
@@ -70,6 +80,11 @@ Z_DIM = 10
 """The skill latent's size (SPiRL: 10)."""
 BETA = 5e-4
 """β of the VAE's KL term (SPiRL's robot experiments)."""
+MAX_REPLAY = 1_000_000
+"""Skill transitions kept at most (the oldest are overwritten beyond it; AM's SAC keeps as many steps)."""
+TRAIN_SEEDS_PER_CELL = 10_000
+"""Training episodes of cell seed ``s`` run task seeds from ``TRAIN_SEED_BASE + TRAIN_SEEDS_PER_CELL * s``,
+as AM's (:data:`capevo.baselines.am.TRAIN_SEEDS_PER_CELL`): every method trains on the same seeds."""
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 OBS_CLIP = 10.0
 """Normalised observations are clipped to ±OBS_CLIP (SB3 VecNormalize's default ``clip_obs``)."""
@@ -607,3 +622,145 @@ def cell_offline_data(cell: CellSpec, workdir: Path, opts: SkillOptions, *, hori
         return offline_data(Path(workdir) / "offline.npz", settings)
     digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:12]
     return offline_data(Path(opts.offline_dir) / f"{settings['task']}-s{cell.seed}-{digest}.npz", settings)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True, eq=False)
+class SkillAgent:
+    """What a skill method builds from its pre-training, for :meth:`SkillMethod.run`'s loop.
+
+    ``modules`` holds every tensor (``vae`` among them), saved as the checkpoints and read for
+    Δπ; ``explore`` and ``exploit`` choose a skill for an observation while training and in the
+    evaluation; ``learn`` takes every finished training skill; ``new_episode`` is called at
+    every evaluation episode's start; ``progress`` describes the updates so far; ``setup`` is
+    iteration 1's note on the pre-training.
+    """
+
+    modules: nn.ModuleDict
+    setup: str
+    explore: Callable[[np.ndarray], np.ndarray]
+    exploit: Callable[[np.ndarray], np.ndarray]
+    learn: Callable[[SkillStep], None]
+    progress: Callable[[], str]
+    new_episode: Callable[[], None] = lambda: None
+
+
+class SkillMethod:
+    """The iteration loop SPiRL and SkiMo share; a method fills in :meth:`_pretrain` (the hook).
+
+    :meth:`run` parses the options, gets the offline data (:func:`cell_offline_data`), cuts it
+    into H-step windows, lets :meth:`_pretrain` build the method's :class:`SkillAgent`, and then
+    per iteration: exactly ``budget.env_steps_per_iteration`` training env steps through a
+    :class:`SkillRunner`, a checkpoint (``iteration-NNN.pt``; ``pretrained.pt`` before the
+    first), Δπ over :attr:`delta_tensors` against the end of pre-training, the held-out
+    evaluation on :meth:`CellSpec.eval_seeds` (traced to ``traces/eval-NNN.mcap``) and ``emit``.
+    Iteration 1's ``wall_s`` includes collecting the offline data and pre-training; its notes
+    give both separately.
+    """
+
+    name: ClassVar[str]
+    knowledge: ClassVar[str]
+    valid_options: ClassVar[tuple[str, ...]] = COMMON_OPTIONS
+    delta_tensors: ClassVar[tuple[str, ...]]
+
+    @classmethod
+    def knowledge_of(cls, options: Mapping[str, Any]) -> str:
+        """What a cell with ``options`` starts from (the report's fairness column).
+
+        Raises:
+            Invalid: as :meth:`SkillOptions.parse`.
+        """
+        opts = SkillOptions.parse(cls.name, options, cls.valid_options)
+        return (
+            f"offline play data: {opts.offline_episodes} episodes of scripted references with action noise "
+            f"σ {opts.offline_noise:g} (T1-T3) and random play, collected in the governed env before iteration 1"
+        )
+
+    def options(self, cell: CellSpec) -> SkillOptions:
+        """The cell's options.
+
+        Raises:
+            Invalid: an unknown option or a bad value.
+        """
+        return SkillOptions.parse(self.name, cell.options, self.valid_options)
+
+    def _pretrain(self, cell: CellSpec, data: OfflineData, seg: Segments, opts: SkillOptions) -> SkillAgent:
+        """Learn from the offline data; return the agent the loop runs (the method's hook)."""
+        raise NotImplementedError
+
+    def run(self, cell: CellSpec, workdir: Path, *, emit: Emit) -> None:
+        """Run ``cell`` for ``cell.iterations`` iterations, emitting a record after each.
+
+        Raises:
+            Invalid: a bad option, or offline data without one H-step window.
+            Conflict, Corrupt: as :func:`cell_offline_data`.
+        """
+        opts = self.options(cell)
+        budget = cell.budget.env_steps_per_iteration
+        horizon = cell.budget.horizon if cell.budget.horizon is not None else task_spec(cell.task).default_horizon
+        workdir = Path(workdir)
+        workdir.mkdir(parents=True, exist_ok=True)
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(torch_threads(opts.torch_threads))
+            torch.manual_seed(cell.seed)
+            started = time.perf_counter()
+            data = cell_offline_data(cell, workdir, opts, horizon=horizon)
+            collected = time.perf_counter()
+            seg = segments(data)
+            agent = self._pretrain(cell, data, seg, opts)
+            vae = agent.modules["vae"]
+            for p in vae.parameters():  # the skills and the prior are frozen downstream
+                p.requires_grad_(False)
+            pretrained = time.perf_counter()
+            torch.save(agent.modules.state_dict(), workdir / "pretrained.pt")
+            _, theta0 = flat(agent.modules, self.delta_tensors)
+            setup = (
+                f"{data.describe()}, {collected - started:.1f} s; {agent.setup}, {pretrained - collected:.1f} s "
+                f"(both in this iteration's wall_s); Δπ over {', '.join(p + '*' for p in self.delta_tensors)} "
+                f"({len(theta0)} values)"
+            )
+            env = GovernedTaskEnv(
+                cell.task, phi=cell.phi, governance=cell.governance, perturbations=cell.perturbations, horizon=horizon
+            )
+            stack.callback(env.close)
+            decode = decoder_of(vae)
+            runner = SkillRunner(env, decode, seed=TRAIN_SEED_BASE + TRAIN_SEEDS_PER_CELL * cell.seed)
+            actor = SkillActor(agent.exploit, decode)
+
+            def new_episode() -> None:
+                actor.reset()
+                agent.new_episode()
+
+            for iteration in range(1, cell.iterations + 1):
+                if iteration > 1:
+                    started = time.perf_counter()
+                before = env.env_steps
+                runner.run(budget, agent.explore, agent.learn)
+                spent = env.env_steps - before
+                torch.save(agent.modules.state_dict(), workdir / f"iteration-{iteration:03d}.pt")
+                delta = policy_drift(theta0, flat(agent.modules, self.delta_tensors)[1])
+                notes = [setup] if iteration == 1 else []
+                notes.append(agent.progress())
+                episodes, eval_steps = evaluate_policy(
+                    cell.task,
+                    actor,
+                    cell.eval_seeds(),
+                    phi=cell.phi,
+                    governance=cell.governance,
+                    perturbations=cell.perturbations,
+                    horizon=horizon,
+                    trace=workdir / "traces" / f"eval-{iteration:03d}.mcap",
+                    label=self.name,
+                    version=iteration,
+                    on_reset=new_episode,
+                )
+                emit(
+                    IterationRecord(
+                        iteration=iteration,
+                        episodes=episodes,
+                        env_steps_train=spent,
+                        env_steps_eval=eval_steps,
+                        delta_pi=delta,
+                        wall_s=time.perf_counter() - started,
+                        notes="; ".join(notes),
+                    )
+                )

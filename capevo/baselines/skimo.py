@@ -22,9 +22,9 @@ Shi et al., CoRL 2022:
    ``updates_per_skill`` SAC updates of the high-level policy and critics regularised by KL to
    the skill prior (:class:`~capevo.baselines.skills.SkillSAC`, as SPiRL's).
 
-Iterations, budget and the held-out evaluation are as SPiRL's (:mod:`capevo.baselines.spirl`):
-exactly ``budget.env_steps_per_iteration`` env steps, then ``cell.eval_seeds()``, traced to
-``traces/eval-NNN.mcap``. The evaluation's planner is seeded at every episode's start, so it is
+Iterations, budget and the held-out evaluation are SPiRL's, the loop of
+:class:`~capevo.baselines.skills.SkillMethod`: exactly ``budget.env_steps_per_iteration`` env
+steps, then ``cell.eval_seeds()``, traced to ``traces/eval-NNN.mcap``. The evaluation's planner is seeded at every episode's start, so it is
 deterministic.
 
 Δπ (issue 20: "counts skill and model parameters"; the paper reports 1.38): the relative change
@@ -51,25 +51,35 @@ Invariants:
 
 from __future__ import annotations
 
-import contextlib
-import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import ClassVar
 
+import numpy as np
 import torch
 from torch import nn
 
-from capevo.baselines.base import CellSpec, Emit, IterationRecord
-from capevo.baselines.governed_env import GovernedTaskEnv, evaluate_policy
-from capevo.baselines.skills import COMMON_OPTIONS, Segments, SkillOptions, SkillVAE, fit, mlp
+from capevo.baselines.base import CellSpec
+from capevo.baselines.offline_data import OfflineData
+from capevo.baselines.skills import (
+    COMMON_OPTIONS,
+    MAX_REPLAY,
+    Replay,
+    Segments,
+    SkillAgent,
+    SkillMethod,
+    SkillOptions,
+    SkillSAC,
+    SkillStep,
+    SkillVAE,
+    fit,
+    mlp,
+)
 from capevo.errors import Invalid
-from capevo.runtime.tasks import task_spec
 
 OPTIONS: tuple[str, ...] = tuple(
     sorted((*COMMON_OPTIONS, "model_steps", "plan_horizon", "plan_iterations", "plan_samples"))
 )
-KNOWLEDGE = "offline play data (scripted references with noise + random play; steps in iteration 1's notes)"
+KNOWLEDGE = "offline play data (scripted references with action noise on T1-T3, random play)"
 DELTA_TENSORS: tuple[str, ...] = ("vae.decoder.", "vae.prior.", "model.", "sac.actor.")
 """The ``state_dict`` prefixes Δπ is measured over: skills, skill prior, world model, high-level policy."""
 ELITE_FRACTION = 0.125
@@ -204,169 +214,92 @@ def cem_plan(
     return mean[0], std[0]
 
 
-class Skimo:
-    """The SkiMo baseline (see the module docstring)."""
+class Skimo(SkillMethod):
+    """The SkiMo baseline (see the module docstring).
+
+    Options (``cell.options``; :class:`~capevo.baselines.skills.SkillOptions`): SPiRL's and
+    ``plan_horizon``, ``plan_samples``, ``plan_iterations``, ``model_steps``.
+    """
 
     name: ClassVar[str] = "skimo"
     knowledge: ClassVar[str] = KNOWLEDGE
+    valid_options: ClassVar[tuple[str, ...]] = OPTIONS
+    delta_tensors: ClassVar[tuple[str, ...]] = DELTA_TENSORS
 
-    def options(self, cell: CellSpec) -> SkillOptions:
-        """The cell's options.
-
-        Raises:
-            Invalid: an unknown option or a bad value.
-        """
-        return SkillOptions.parse(self.name, cell.options, OPTIONS)
-
-    def run(self, cell: CellSpec, workdir: Path, *, emit: Emit) -> None:
-        """Run ``cell`` for ``cell.iterations`` iterations, emitting a record after each.
-
-        Raises:
-            Invalid: a bad option, or offline data without one H-step window.
-        """
-        import numpy as np
-
-        from capevo.agent import policy_drift
-        from capevo.baselines.am import TRAIN_SEEDS_PER_CELL
-        from capevo.baselines.skills import (
-            Replay,
-            SkillActor,
-            SkillRunner,
-            SkillSAC,
-            SkillStep,
-            SkillVAE,
-            cell_offline_data,
-            decoder_of,
-            flat,
-            segments,
+    def _pretrain(self, cell: CellSpec, data: OfflineData, seg: Segments, opts: SkillOptions) -> SkillAgent:
+        vae = SkillVAE(data.obs.shape[1], data.action.shape[1], hidden=opts.hidden)
+        vae.set_normaliser(data.obs)
+        model = SkillWorldModel(vae, hidden=opts.hidden)
+        fit_joint(vae, model, seg, steps=opts.pretrain_steps, seed=cell.seed)
+        with torch.no_grad():
+            z_post = vae.encode(torch.as_tensor(seg.actions)).loc
+        rec, dyn = vae.reconstruction_error(seg), model.dynamics_error(seg, z_post)
+        for p in vae.parameters():
+            p.requires_grad_(False)
+        sac = SkillSAC(vae, hidden=opts.hidden, target_kl=opts.target_kl)
+        model_opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+        modules = nn.ModuleDict({"vae": vae, "model": model, "sac": sac})
+        replay = Replay(
+            vae.obs_dim, vae.z_dim, capacity=min(MAX_REPLAY, cell.budget.env_steps_per_iteration * cell.iterations)
         )
-        from capevo.learner.bc import torch_threads
-        from capevo.learner.presets import TRAIN_SEED_BASE
+        rng = np.random.default_rng(cell.seed)
+        counts = {"model": 0, "sac": 0}
 
-        opts = self.options(cell)
-        budget = cell.budget.env_steps_per_iteration
-        horizon = cell.budget.horizon if cell.budget.horizon is not None else task_spec(cell.task).default_horizon
-        workdir = Path(workdir)
-        workdir.mkdir(parents=True, exist_ok=True)
-        with contextlib.ExitStack() as stack:
-            stack.enter_context(torch_threads(opts.torch_threads))
-            torch.manual_seed(cell.seed)
-            data = cell_offline_data(cell, workdir, opts, horizon=horizon)
-            seg = segments(data)
-            vae = SkillVAE(data.obs.shape[1], data.action.shape[1], hidden=opts.hidden)
-            vae.set_normaliser(data.obs)
-            model = SkillWorldModel(vae, hidden=opts.hidden)
-            fit_joint(vae, model, seg, steps=opts.pretrain_steps, seed=cell.seed)
-            with torch.no_grad():
-                z_post = vae.encode(torch.as_tensor(seg.actions)).loc
-            rec, dyn = vae.reconstruction_error(seg), model.dynamics_error(seg, z_post)
-            for p in vae.parameters():
-                p.requires_grad_(False)
-            sac = SkillSAC(vae, hidden=opts.hidden, target_kl=opts.target_kl)
-            model_opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-            everything = torch.nn.ModuleDict({"vae": vae, "model": model, "sac": sac})
-            torch.save(everything.state_dict(), workdir / "pretrained.pt")
-            _, theta0 = flat(everything, DELTA_TENSORS)
-            setup = (
-                f"{data.describe()}; skills, prior, dynamics and reward pre-trained jointly {opts.pretrain_steps} "
-                f"steps on {len(seg)} windows (reconstruction MSE {rec:.4g}, dynamics MSE {dyn:.4g} per normalised "
-                f"value); Δπ over {', '.join(p + '*' for p in DELTA_TENSORS)} ({len(theta0)} values)"
+        def proposal(s: torch.Tensor, g: torch.Generator) -> torch.Tensor:
+            pi = sac.policy(s)
+            return pi.mean + pi.stddev * torch.randn(pi.mean.shape, generator=g)
+
+        def plan(obs: np.ndarray, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+            return cem_plan(
+                torch.as_tensor(obs, dtype=torch.float32),
+                dynamics=model.next_obs,
+                reward=model.predicted_reward,
+                value=lambda s: sac.q(s, sac.policy(s).mean),
+                z_dim=vae.z_dim,
+                horizon=opts.plan_horizon,
+                samples=opts.plan_samples,
+                iterations=opts.plan_iterations,
+                generator=generator,
+                policy=proposal,
             )
 
-            def plan(obs: np.ndarray, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-                def proposal(s: torch.Tensor, g: torch.Generator) -> torch.Tensor:
-                    pi = sac.policy(s)
-                    return pi.mean + pi.stddev * torch.randn(pi.mean.shape, generator=g)
+        train_gen = torch.Generator().manual_seed(cell.seed)
+        eval_gen = torch.Generator().manual_seed(cell.seed)
 
-                return cem_plan(
-                    torch.as_tensor(obs, dtype=torch.float32),
-                    dynamics=model.next_obs,
-                    reward=model.predicted_reward,
-                    value=lambda s: sac.q(s, sac.policy(s).mean),
-                    z_dim=vae.z_dim,
-                    horizon=opts.plan_horizon,
-                    samples=opts.plan_samples,
-                    iterations=opts.plan_iterations,
-                    generator=generator,
-                    policy=proposal,
-                )
+        def explore(obs: np.ndarray) -> np.ndarray:
+            mean, std = plan(obs, train_gen)
+            return (mean + std * torch.randn(mean.shape, generator=train_gen)).numpy()
 
-            train_gen = torch.Generator().manual_seed(cell.seed)
+        def learn(step: SkillStep) -> None:
+            replay.add(step.obs, step.z, step.reward, step.next_obs, step.terminal)
+            if replay.size < max(1, opts.learning_starts):
+                return
+            for _ in range(opts.model_steps):
+                obs, z, reward, nxt, _terminal = replay.sample(opts.batch_size, rng)
+                m = model.losses(obs, z, reward, nxt)
+                model_opt.zero_grad()
+                (m["dynamics"] + m["reward"]).backward()
+                model_opt.step()
+                counts["model"] += 1
+            for _ in range(opts.updates_per_skill):
+                sac.update(replay.sample(opts.batch_size, rng))
+                counts["sac"] += 1
 
-            def explore(obs: np.ndarray) -> np.ndarray:
-                mean, std = plan(obs, train_gen)
-                return (mean + std * torch.randn(mean.shape, generator=train_gen)).numpy()
+        def restart_planner() -> None:
+            # the evaluation's planner draws the same numbers in every episode: deterministic
+            eval_gen.manual_seed(cell.seed)
 
-            eval_gen = torch.Generator()
-
-            def exploit(obs: np.ndarray) -> np.ndarray:
-                return plan(obs, eval_gen)[0].numpy()
-
-            env = GovernedTaskEnv(
-                cell.task, phi=cell.phi, governance=cell.governance, perturbations=cell.perturbations, horizon=horizon
-            )
-            stack.callback(env.close)
-            decode = decoder_of(vae)
-            runner = SkillRunner(env, decode, seed=TRAIN_SEED_BASE + TRAIN_SEEDS_PER_CELL * cell.seed)
-            replay = Replay(vae.obs_dim, vae.z_dim, capacity=max(1, budget * cell.iterations))
-            rng = np.random.default_rng(cell.seed)
-            updates = model_updates = 0
-
-            def learn(step: SkillStep) -> None:
-                nonlocal updates, model_updates
-                replay.add(step.obs, step.z, step.reward, step.next_obs, step.terminal)
-                if replay.size < max(1, opts.learning_starts):
-                    return
-                for _ in range(opts.model_steps):
-                    obs, z, reward, nxt, _terminal = replay.sample(opts.batch_size, rng)
-                    m = model.losses(obs, z, reward, nxt)
-                    model_opt.zero_grad()
-                    (m["dynamics"] + m["reward"]).backward()
-                    model_opt.step()
-                    model_updates += 1
-                for _ in range(opts.updates_per_skill):
-                    sac.update(replay.sample(opts.batch_size, rng))
-                    updates += 1
-
-            actor = SkillActor(exploit, decode)
-
-            def new_episode() -> None:
-                actor.reset()
-                eval_gen.manual_seed(cell.seed)
-
-            for iteration in range(1, cell.iterations + 1):
-                started = time.perf_counter()
-                before, updates_before, model_before = env.env_steps, updates, model_updates
-                runner.run(budget, explore, learn)
-                spent = env.env_steps - before
-                torch.save(everything.state_dict(), workdir / f"iteration-{iteration:03d}.pt")
-                delta = policy_drift(theta0, flat(everything, DELTA_TENSORS)[1])
-                notes = [setup] if iteration == 1 else []
-                notes.append(
-                    f"{model_updates - model_before} model and {updates - updates_before} SAC updates, "
-                    f"{replay.size} skills stored"
-                )
-                episodes, eval_steps = evaluate_policy(
-                    cell.task,
-                    actor,
-                    cell.eval_seeds(),
-                    phi=cell.phi,
-                    governance=cell.governance,
-                    perturbations=cell.perturbations,
-                    horizon=horizon,
-                    trace=workdir / "traces" / f"eval-{iteration:03d}.mcap",
-                    label=self.name,
-                    version=iteration,
-                    on_reset=new_episode,
-                )
-                emit(
-                    IterationRecord(
-                        iteration=iteration,
-                        episodes=episodes,
-                        env_steps_train=spent,
-                        env_steps_eval=eval_steps,
-                        delta_pi=delta,
-                        wall_s=time.perf_counter() - started,
-                        notes="; ".join(notes),
-                    )
-                )
+        return SkillAgent(
+            modules=modules,
+            setup=(
+                f"skills, prior, dynamics and reward pre-trained jointly {opts.pretrain_steps} steps on {len(seg)} "
+                f"windows (reconstruction MSE {rec:.4g}, dynamics MSE {dyn:.4g} per normalised value)"
+            ),
+            explore=explore,
+            exploit=lambda obs: plan(obs, eval_gen)[0].numpy(),
+            learn=learn,
+            progress=lambda: (
+                f"{counts['model']} model and {counts['sac']} SAC updates so far, {replay.size} skills stored"
+            ),
+            new_episode=restart_planner,
+        )

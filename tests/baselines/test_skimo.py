@@ -168,3 +168,20 @@ def test_skimo_options_are_checked_before_any_simulator(tmp_path: Path) -> None:
         Skimo().run(cell, tmp_path, emit=lambda r: None)
     assert err.value.code == ErrorCode.INVALID and err.value.details["field"] == "options.plan_samples"
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.slow
+def test_without_an_update_nothing_drifts(tmp_path: Path) -> None:
+    cell = CellSpec(
+        task="T1",
+        method="skimo",
+        seed=4,
+        iterations=1,
+        budget=Budget(env_steps_per_iteration=20, eval_episodes=1, horizon=20),
+        options={"offline_episodes": 2, "pretrain_steps": 10, "learning_starts": 1000},
+    )
+    records: list[IterationRecord] = []
+    Skimo().run(cell, tmp_path, emit=records.append)
+    (rec,) = records
+    assert rec.env_steps_train == 20 and rec.delta_pi == 0.0  # invariant 3
+    assert "0 model and 0 SAC updates so far, 2 skills stored" in rec.notes
