@@ -7,10 +7,11 @@ module holds what they share; each method's docstring says what it adds.
 :class:`SkillVAE` follows SPiRL (Pertsch et al., CoRL 2020), §3.1-3.2:
 
 * a skill encoder ``q(z | a_{0:H-1})`` and a decoder ``p(a_{0:H-1} | z)`` over H-step action
-  sequences (H = 10, ``z`` 10-dimensional, as SPiRL's robot experiments), trained with the
-  β-VAE objective (SPiRL eq. 1): the reconstruction error plus ``β · KL(q(z|a) ‖ N(0, I))``;
+  sequences (H = 10, ``z`` 10-dimensional, as SPiRL's and SkiMo's configurations), trained
+  with the β-VAE objective: the reconstruction error plus ``β · KL(q(z|a) ‖ N(0, I))``;
 * a skill prior ``p(z | s_0)`` trained jointly with ``KL(sg(q(z|a)) ‖ p(z|s_0))``, the encoder's
-  posterior held fixed (SPiRL eq. 2, the "stop gradient" of §3.2).
+  posterior held fixed (the "stop gradient" of SPiRL §3.2), so the prior follows the skills and
+  does not shape them.
 
 Simplified for CPU budgets: the encoder and decoder are MLPs over the flattened sequence (SPiRL
 uses LSTMs); the decoder is open-loop, ``z`` alone gives all H actions (SPiRL's original model;
@@ -18,7 +19,7 @@ its closed-loop variant and SkiMo condition the decoder on the state too); the r
 loss is the squared error (a Gaussian of fixed variance, as SPiRL's); observations are
 normalised by the offline data's mean and standard deviation, stored with the model.
 
-:class:`SkillSAC` follows SPiRL §3.3 (eq. 4-5, Algorithm 1): soft actor-critic whose policy
+:class:`SkillSAC` follows SPiRL §3.3 (skill-prior-regularised RL, its Algorithm 1): soft actor-critic whose policy
 ``π(z | s)`` picks a skill every H steps, rewarded with the H steps' summed reward, with the
 entropy term replaced by the divergence from the prior, ``−α · KL(π(z|s) ‖ p(z|s))``, and ``α``
 tuned to hold that divergence near a target δ (SPiRL's automatic temperature). The policy starts
@@ -79,7 +80,7 @@ HORIZON = 10
 Z_DIM = 10
 """The skill latent's size (SPiRL: 10)."""
 BETA = 5e-4
-"""β of the VAE's KL term (SPiRL's robot experiments)."""
+"""β of the VAE's KL term (SPiRL's kitchen configuration, ``kl_div_weight``, clvrai/spirl)."""
 MAX_REPLAY = 1_000_000
 """Skill transitions kept at most (the oldest are overwritten beyond it; AM's SAC keeps as many steps)."""
 TRAIN_SEEDS_PER_CELL = 10_000
@@ -266,7 +267,7 @@ def fit(
 
 
 def fit_vae(vae: SkillVAE, seg: Segments, *, steps: int, batch: int = 128, lr: float = 1e-3, seed: int = 0) -> None:
-    """Pre-train ``vae`` (encoder, decoder, prior) on ``seg`` (SPiRL eq. 1 + 2)."""
+    """Pre-train ``vae`` (encoder, decoder, prior) on ``seg`` (SPiRL §3.2: the VAE's and the prior's losses, summed)."""
     obs, actions = torch.as_tensor(seg.obs), torch.as_tensor(seg.actions)
     fit(
         lambda r: vae.losses(obs[r], actions[r])["total"],
@@ -308,9 +309,9 @@ class SkillSAC(nn.Module):
         vae: The skill model whose prior regularises the policy and whose normaliser the
             networks use; it is not changed here.
         hidden: Hidden units of the actor and critics.
-        gamma: Discount per skill (SPiRL: 0.99).
-        target_kl: δ, the divergence from the prior the temperature holds the policy near (SPiRL
-            robot experiments: 5).
+        gamma: Discount per skill (SPiRL's and SkiMo's 0.99).
+        target_kl: δ, the divergence from the prior the temperature holds the policy near (SPiRL's
+            kitchen configuration: 5; SkiMo's: 1).
         lr: Adam's learning rate (SAC's 3e-4).
         tau: Polyak coefficient of the target critics (SAC's 0.005).
     """
@@ -527,8 +528,8 @@ class SkillOptions:
         hidden: Hidden units of every network.
         learning_starts: Skill transitions stored before the first gradient update.
         batch_size: Skill transitions per gradient update.
-        updates_per_skill: Gradient updates per finished skill (SPiRL: one per high-level step).
-        target_kl: δ of the temperature (SPiRL: 5).
+        updates_per_skill: Gradient updates per finished skill (SAC's one per step, at the skill level).
+        target_kl: δ of the temperature (SPiRL's kitchen configuration: 5).
         torch_threads: CPU threads torch uses while the cell runs.
         plan_horizon: SkiMo: skills planned ahead.
         plan_samples: SkiMo: CEM samples per iteration (a quarter of them from the policy), 2 at least.
@@ -539,7 +540,7 @@ class SkillOptions:
         Invalid: a value out of range, naming the option.
     """
 
-    offline_episodes: int = 40
+    offline_episodes: int = 20
     offline_noise: float = 0.3
     offline_dir: str | None = None
     pretrain_steps: int = 2000

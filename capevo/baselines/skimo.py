@@ -6,40 +6,52 @@ Shi et al., CoRL 2022:
 
 1. **Offline data**: the same offline play as SPiRL (:mod:`capevo.baselines.offline_data`),
    reported in iteration 1's ``notes`` as starting knowledge, not part of any budget.
-2. **Joint pre-training** (SkiMo §3.2, its eq. 2-3): the skill VAE and skill prior of
-   :class:`~capevo.baselines.skills.SkillVAE` together with :class:`SkillWorldModel`, a
-   skill-level dynamics model ``ŝ_{t+H} = D(s_t, z)`` and a reward model ``R̂(s_t, z)`` of the H
-   steps' summed reward, one loss summed over all of them with ``z`` sampled from the skill
-   posterior, so the skills are shaped to be predictable (SkiMo's point).
-3. **Planning** (SkiMo §3.3, after TD-MPC): :func:`cem_plan`: the cross-entropy method over
-   sequences of ``plan_horizon`` skills through the learned dynamics, scored by the predicted
-   rewards plus the critic's value of the last predicted state; a quarter of the candidates
-   come from the high-level policy rolled through the model. The first skill of the best
-   sequences is executed (sampled from the elites' Gaussian while training, its mean in the
-   evaluation), decoded into H actions.
-4. **RL fine-tuning** (SkiMo §3.3): every finished skill is stored, and each one then takes
-   ``model_steps`` updates of the dynamics and reward models on the online skills and
-   ``updates_per_skill`` SAC updates of the high-level policy and critics regularised by KL to
-   the skill prior (:class:`~capevo.baselines.skills.SkillSAC`, as SPiRL's).
+2. **Joint pre-training** (SkiMo's pre-training of skills and skill dynamics): the skill VAE
+   and skill prior of :class:`~capevo.baselines.skills.SkillVAE` together with
+   :class:`SkillWorldModel`, a skill-level dynamics model ``ŝ_{t+H} = D(s_t, z)`` and a reward
+   model ``R̂(s_t, z)`` of the H steps' summed reward, one loss summed over all of them with
+   ``z`` sampled from the skill posterior, so the skills are shaped to be predictable (SkiMo's
+   point).
+3. **Planning** (SkiMo's downstream learning, after TD-MPC): :func:`cem_plan`, the
+   cross-entropy method over sequences of ``plan_horizon`` skills through the learned dynamics,
+   scored by the predicted rewards plus the critic's value of the last predicted state; a
+   quarter of the candidates come from the high-level policy rolled through the model. The
+   first skill of the best sequences is executed (sampled from the elites' Gaussian while
+   training, its mean in the evaluation), decoded into H actions.
+4. **RL fine-tuning** (SkiMo's downstream learning): every finished skill is stored, and each
+   one then takes ``model_steps`` updates of the dynamics and reward models on the online
+   skills and ``updates_per_skill`` SAC updates of the high-level policy and critics,
+   regularised by KL to the skill prior (:class:`~capevo.baselines.skills.SkillSAC`, as SPiRL's).
 
 Iterations, budget and the held-out evaluation are SPiRL's, the loop of
 :class:`~capevo.baselines.skills.SkillMethod`: exactly ``budget.env_steps_per_iteration`` env
-steps, then ``cell.eval_seeds()``, traced to ``traces/eval-NNN.mcap``. The evaluation's planner is seeded at every episode's start, so it is
-deterministic.
+steps, then ``cell.eval_seeds()``, traced to ``traces/eval-NNN.mcap``. The evaluation's planner
+is re-seeded at every episode's start, so the evaluation is deterministic.
 
 Δπ (issue 20: "counts skill and model parameters"; the paper reports 1.38): the relative change
 (:func:`capevo.agent.policy_drift`) since the end of pre-training of ``vae.decoder.*`` and
 ``vae.prior.*`` (the skills), ``model.*`` (dynamics and reward) and ``sac.actor.*`` (the
-high-level policy that proposes skills to the planner). The decoder and prior stay frozen
-downstream, as SkiMo's skills do; the model and the policy move.
+high-level policy that proposes skills to the planner); not the critics nor the skill encoder
+(unused downstream). The decoder and prior stay frozen downstream, as in SkiMo, whose
+downstream update trains "the skill dynamics model and high-level policy" (clvrai/skimo); the
+model and the policy move.
 
-Simplified for CPU budgets: the dynamics model predicts the next (normalised) observation
-rather than a learned latent state (SkiMo's TD-MPC-style latent, with its target encoder and
-multi-step consistency loss, was left out: the tasks' observations are tens of numbers); its
-decoder is open-loop like SPiRL's; CEM instead of MPPI, 64 samples and 4 iterations over 3
-skills; one-step model losses; the offline data carries the task reward (collected in the same
-env), so the reward model is pre-trained too, where SkiMo learns it downstream. With the CI
-budgets only the accounting can be checked, not learning.
+Simplified for CPU budgets:
+
+* the dynamics model predicts the next (normalised) observation rather than a learned latent
+  state (SkiMo's TD-MPC-style latent with its target encoder and multi-step consistency loss
+  is left out: the tasks' observations are tens of numbers); one-step model losses (SkiMo's are
+  over a discounted sequence of skills);
+* the decoder is open-loop, like SPiRL's original one;
+* CEM with 64 samples and 4 iterations over 3 skills (SkiMo's configuration: 512 samples, 25 of
+  them from the policy, 64 elites, 6 iterations, standard deviations within 0.05-0.5);
+* the critics are trained as SPiRL's, apart from the model (SkiMo trains them with the model's
+  loss);
+* the offline data carries the task reward (it is collected in the same env), so the reward
+  model is pre-trained too; SkiMo's task-agnostic data has none, and it learns the reward
+  downstream only.
+
+With the CI budgets only the accounting can be checked, not learning.
 
 Invariants:
 1. Each record's ``env_steps_train`` is the env steps the iteration took, and equals the budget.

@@ -3,14 +3,14 @@
 The paper's SPiRL baseline ("offline skill priors with downstream RL that fine-tunes a
 skill-conditioned policy", §4.1 Baselines) after Pertsch et al., CoRL 2020:
 
-1. **Offline data** (SPiRL §3, §5.1: task-agnostic play): :mod:`capevo.baselines.offline_data`
+1. **Offline data** (SPiRL: task-agnostic prior experience): :mod:`capevo.baselines.offline_data`
    collects ``offline_episodes`` episodes of scripted and random play in the cell's governed env,
    once per cell (reused when the file is there). Their env steps are this method's starting
    knowledge, reported in iteration 1's ``notes``, not part of any iteration's budget.
-2. **Skill pre-training** (SPiRL §3.1-3.2, eq. 1-2): :class:`~capevo.baselines.skills.SkillVAE`
+2. **Skill pre-training** (SPiRL §3.2): :class:`~capevo.baselines.skills.SkillVAE`
    over H = 10-step action windows of that data, with the state-conditioned skill prior
    ``p(z|s)``, for ``pretrain_steps`` Adam steps. Then the decoder and the prior are frozen.
-3. **Downstream RL** (SPiRL §3.3, eq. 4-5): :class:`~capevo.baselines.skills.SkillSAC`: a
+3. **Downstream RL** (SPiRL §3.3): :class:`~capevo.baselines.skills.SkillSAC`: a
    high-level policy ``π(z|s)`` (initialised as the prior) picks a skill every H steps, the
    frozen decoder turns it into H actions, rewards are summed over the skill, and the policy is
    regularised by ``KL(π ‖ p)`` with an automatically tuned temperature.

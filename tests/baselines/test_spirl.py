@@ -194,7 +194,7 @@ def test_unknown_and_bad_options_are_refused_before_any_simulator(tmp_path: Path
 
 
 def test_knowledge_names_the_offline_data() -> None:
-    assert "40 episodes" in Spirl.knowledge_of({})
+    assert "20 episodes" in Spirl.knowledge_of({})
     assert "7 episodes" in Spirl.knowledge_of({"offline_episodes": 7})
     with pytest.raises(Invalid):
         Spirl.knowledge_of({"plan_samples": 8})
