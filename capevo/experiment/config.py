@@ -439,11 +439,7 @@ def _entries(names: Sequence[str]) -> tuple[MethodEntry, ...]:
     return tuple(MethodEntry(method=n) for n in names)
 
 
-def available_baselines() -> tuple[str, ...]:
-    """The baseline methods whose modules are importable here (the others are still being written)."""
-    from capevo.experiment.methods import is_available
-
-    return tuple(n for n in ("am", "am-bc", "spirl", "skimo") if is_available(n))
+BASELINE_METHODS: tuple[str, ...] = ("am", "am-bc", "spirl", "skimo")
 
 
 @register_experiment("paper")
@@ -494,7 +490,7 @@ def _cpu_small() -> ExperimentConfig:
             MethodEntry(method="ours-code", options={"preset": "tiny", "live_episodes": 3, "gate_episodes": 4}),
             MethodEntry(method="ours-neural", options={"preset": "tiny", "live_episodes": 3, "gate_episodes": 4}),
             MethodEntry(method="s-ecm"),
-            *_entries(available_baselines()),
+            *_entries(BASELINE_METHODS),
         ),
     )
 
@@ -503,21 +499,26 @@ def _cpu_small() -> ExperimentConfig:
 def _smoke() -> ExperimentConfig:
     """Every method on T1 and T6, seed 42, 2 iterations, tiny budgets: under 5 minutes on 2 cores.
 
-    Episodes of at most 40 steps; 2 held-out episodes per iteration; 800 training steps per
-    iteration (ours: 3 live and 2 × 4 gate episodes of 40 steps leave CEM 360 steps, 9 episodes).
-    A cell is at most 2 × (800 + 80) = 1,760 env steps, about 30 s of one core plus start-up.
-    Nothing learns anything in this budget: it checks that every part runs and records.
+    Episodes of at most 40 steps; 2 held-out episodes per iteration; 600 training steps per
+    iteration (ours: 3 live and 2 × 4 gate episodes of 40 steps leave the learner 160 steps, 4
+    CEM episodes or 160 SAC steps). A cell is at most 2 × (600 + 80) = 1,360 env steps, plus
+    start-up and the baselines' gradient steps; the explorer runs on T1 only, governance on and
+    off, one iteration. Nothing learns anything in this budget: it checks that every part runs,
+    records and reports.
     """
     return ExperimentConfig(
         name="smoke",
         tasks=("T1", "T6"),
         seeds=(42,),
         iterations=2,
-        budget=Budget(env_steps_per_iteration=800, eval_episodes=2, horizon=40),
+        budget=Budget(env_steps_per_iteration=600, eval_episodes=2, horizon=40),
         methods=(
             MethodEntry(method="ours-code", options={"preset": "tiny"}),
+            MethodEntry(method="ours-neural", options={"preset": "tiny"}),
             MethodEntry(method="s-ecm"),
-            *_entries(available_baselines()),
+            *_entries(BASELINE_METHODS),
+            MethodEntry(method="explorer", tasks=("T1",), iterations=1),
+            MethodEntry(method="explorer", tasks=("T1",), iterations=1, governance=False),
         ),
     )
 

@@ -32,11 +32,11 @@ Invariants:
 1. :func:`make_method` returns a fresh instance of the registered method, or raises
    :class:`Invalid` listing the valid names; a baseline whose module cannot be imported
    raises :class:`Invalid` naming the module.
-2. Every method here emits one record per iteration, ``iteration`` 0..n-1, whose episodes run
-   on exactly ``cell.eval_seeds()``.
+2. Every method here emits one record per iteration, ``iteration`` 1..n (as the baselines
+   number them), whose episodes run on exactly ``cell.eval_seeds()``.
 3. Ours' ``delta_pi`` and ``env_steps_train`` are read from evolve's metrics row of the same
-   iteration (never written here); S-ECM's and the explorer's ``env_steps_train`` are 0, as they
-   train nothing.
+   iteration (evolve's row ``i - 1`` for record ``i``; never written here); S-ECM's and the
+   explorer's ``env_steps_train`` are 0, as they train nothing.
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ BASELINES: Mapping[str, str] = {
     "am": "capevo.baselines.am:AgentModification",
     "am-bc": "capevo.baselines.am:AgentModificationBC",
     "spirl": "capevo.baselines.spirl:Spirl",
-    "skimo": "capevo.baselines.skimo:SkiMo",
+    "skimo": "capevo.baselines.skimo:Skimo",
 }
 """Baselines by grid name: ``module:Class``, imported when a cell runs (other helpers write them)."""
 
@@ -243,7 +243,7 @@ class Ours:
                 )
             emit(
                 IterationRecord(
-                    iteration=i,
+                    iteration=i + 1,
                     episodes=episodes,
                     env_steps_train=row.env_steps,
                     env_steps_eval=sum(e.steps for e in episodes),
@@ -274,7 +274,7 @@ class StaticEcm:
 
     It trains nothing, so every record's ``env_steps_train`` is 0 (it spends none of the budget:
     the lower bound). Its policy is the same in every iteration and the evaluation seeds are the
-    same, so the held-out evaluation runs once, after iteration 0, and later iterations repeat
+    same, so the held-out evaluation runs once, after iteration 1, and later iterations repeat
     those episodes with ``env_steps_eval`` 0 and a note saying so (a deterministic episode of a
     fixed seed and capability set would only repeat itself).
     """
@@ -304,14 +304,14 @@ class StaticEcm:
         for i in range(cell.iterations):
             emit(
                 IterationRecord(
-                    iteration=i,
+                    iteration=i + 1,
                     episodes=episodes,
                     env_steps_train=0,
                     env_steps_eval=sum(e.steps for e in episodes) if i == 0 else 0,
                     delta_pi=0.0,
                     wall_s=wall if i == 0 else 0.0,
                     notes="version 0, never updated: no training steps"
-                    + ("" if i == 0 else "; the same episodes as iteration 0 (same policy, same seeds)"),
+                    + ("" if i == 0 else "; the same episodes as iteration 1 (same policy, same seeds)"),
                 )
             )
 
@@ -428,7 +428,7 @@ class Explorer:
             episodes = tuple(results[s] for s in seeds)
             emit(
                 IterationRecord(
-                    iteration=i,
+                    iteration=i + 1,
                     episodes=episodes,
                     env_steps_train=0,
                     env_steps_eval=sum(e.steps for e in episodes),

@@ -27,7 +27,8 @@ Invariants:
    ``done.json`` is written last (after every other file of the cell is on disk) and
    atomically, and a cell with it is never run again.
 2. ``metrics.jsonl`` of a done cell has exactly ``cell.iterations`` records, iterations
-   0..n-1 (a method that emitted fewer or out of order fails the attempt).
+   1..n as the baselines number them (R₁ is iteration 1's evaluation); a method that emitted
+   fewer or out of order fails the attempt.
 3. ``done.json``'s ``env_steps_train`` and ``env_steps_eval`` are the sums over the records.
 4. One cell's failure never stops or loses another cell's files.
 """
@@ -107,9 +108,10 @@ def run_cell(cell_dict: Mapping[str, Any], name: str) -> dict[str, Any]:
         records: list[IterationRecord] = []
 
         def emit(record: IterationRecord) -> None:
-            if record.iteration != len(records):
+            if record.iteration != len(records) + 1:
                 raise Invalid(
-                    f"{cell.method} emitted iteration {record.iteration} after {len(records)} records",
+                    f"{cell.method} emitted iteration {record.iteration} after {len(records)} records "
+                    "(iterations are numbered 1..n)",
                     details={"field": "iteration"},
                 )
             append_durably(d / METRICS, _dumps(record.to_dict()))

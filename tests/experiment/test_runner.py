@@ -71,7 +71,7 @@ def test_cells_finish_a_failing_cell_is_retried_and_reported_and_nothing_is_redo
         cell = json.loads((d / "cell.json").read_text())
         assert cell["cell"]["method"] == "s-ecm" and cell["cell"]["seed"] == seed and cell["knowledge"]
         records = _records(d)
-        assert [r.iteration for r in records] == [0, 1]
+        assert [r.iteration for r in records] == [1, 2]
         held_out = [2_000_000_000 + 1000 * seed + j for j in range(2)]
         assert all([e.seed for e in r.episodes] == held_out for r in records)
         done = json.loads((d / "done.json").read_text())
@@ -133,5 +133,5 @@ def test_a_run_whose_driver_was_sigkilled_resumes_without_redoing_finished_cells
     assert summary.failed == ()
     assert {k: _snapshot(run_dir / "cells" / k) for k in finished} == before
     for k in summary.done:
-        assert [r.iteration for r in _records(run_dir / "cells" / k)] == [0, 1]
+        assert [r.iteration for r in _records(run_dir / "cells" / k)] == [1, 2]
     assert not list((run_dir / "cells").glob("*.partial"))
