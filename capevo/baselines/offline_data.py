@@ -111,9 +111,10 @@ class OfflineData:
         """One line for a record's notes and the report's knowledge column."""
         counts = {k: self.kinds.count(k) for k in dict.fromkeys(self.kinds)}
         kinds = ", ".join(f"{n} {k}" for k, n in counts.items())
+        reused = " (reused: collected earlier with the same settings)" if self.reused else ""
         return (
             f"offline play data: {self.env_steps} env steps in {self.episodes} episodes ({kinds}; "
-            f"{self.successes} successful){' (reused from an earlier run of this cell)' if self.reused else ''}"
+            f"{self.successes} successful){reused}"
         )
 
 
