@@ -376,6 +376,7 @@ class Explorer:
         from capevo.runtime.tasks import task_spec
 
         advs = self.adversaries(cell)
+        workdir.mkdir(parents=True, exist_ok=True)
         spec = task_spec(cell.task)
         layout = spec.action_layout
         seeds = cell.eval_seeds()

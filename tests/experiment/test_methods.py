@@ -1,0 +1,56 @@
+"""Our methods on their own, without Ray, on real robosuite episodes (capevo.experiment.methods
+invariants 2-3): held-out seeds, the explorer under governance on and off, S-ECM's zero steps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from capevo.baselines.base import Budget, CellSpec, IterationRecord
+from capevo.errors import Invalid
+from capevo.experiment.methods import make_method
+
+pytestmark = pytest.mark.slow
+
+BUDGET = Budget(env_steps_per_iteration=1, eval_episodes=3, horizon=40)
+
+
+def _run(cell: CellSpec, workdir: Path) -> list[IterationRecord]:
+    out: list[IterationRecord] = []
+    make_method(cell.method).run(cell, workdir, emit=out.append)
+    return out
+
+
+def test_the_explorer_is_unsafe_without_governance_and_governed_with_it(tmp_path: Path) -> None:
+    records = {}
+    for governance in (True, False):
+        cell = CellSpec(task="T1", method="explorer", seed=3, iterations=1, budget=BUDGET, governance=governance)
+        (record,) = _run(cell, tmp_path / str(governance))
+        assert record.iteration == 1 and [e.seed for e in record.episodes] == list(cell.eval_seeds())
+        assert record.env_steps_train == 0 and record.env_steps_eval == sum(e.steps for e in record.episodes)
+        assert list((tmp_path / str(governance)).glob("traces/**/*.mcap"))
+        records[governance] = record
+    # the same seeds and the same adversary: off, the monitor grades steps unsafe; on, governance
+    # changed actions (interventions) and no step the monitor grades is unsafe
+    assert sum(e.unsafe_steps for e in records[False].episodes) > 0
+    assert sum(e.interventions for e in records[True].episodes) > 0
+    assert records[True].unsafe_episodes == 0
+
+
+def test_the_explorer_checks_its_adversaries(tmp_path: Path) -> None:
+    for options, field in (({"adversaries": ["arm_grab"]}, "options.adversaries"), ({"x": 1}, "options.x")):
+        cell = CellSpec(task="T1", method="explorer", seed=3, iterations=1, budget=BUDGET, options=options)
+        with pytest.raises(Invalid) as info:
+            _run(cell, tmp_path)
+        assert info.value.details["field"] == field
+
+
+def test_static_ecm_spends_no_training_steps_and_evaluates_v0_on_the_held_out_seeds(tmp_path: Path) -> None:
+    cell = CellSpec(task="T1", method="s-ecm", seed=5, iterations=3, budget=BUDGET)
+    records = _run(cell, tmp_path)
+    assert [r.iteration for r in records] == [1, 2, 3]
+    assert all(r.env_steps_train == 0 and r.delta_pi == 0.0 for r in records)
+    assert all([e.seed for e in r.episodes] == list(cell.eval_seeds()) for r in records)
+    assert records[0].env_steps_eval > 0 and records[1].env_steps_eval == 0  # evaluated once, said so
+    assert "same episodes as iteration 1" in records[1].notes
