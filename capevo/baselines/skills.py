@@ -281,21 +281,36 @@ def fit_vae(vae: SkillVAE, seg: Segments, *, steps: int, batch: int = 128, lr: f
 
 
 class Replay:
-    """Skill-level transitions ``(s, z, R, s', terminal)``, in memory (the whole run fits)."""
+    """Skill-level transitions ``(s, z, R, s', terminal)`` in memory: up to ``capacity``, then the
+    oldest are overwritten. The arrays grow by doubling, so a large capacity costs memory only
+    when the skills are there (a run stores about one per H env steps)."""
 
     def __init__(self, obs_dim: int, z_dim: int, capacity: int) -> None:
-        self.obs = np.zeros((capacity, obs_dim), np.float32)
-        self.z = np.zeros((capacity, z_dim), np.float32)
-        self.reward = np.zeros(capacity, np.float32)
-        self.next_obs = np.zeros((capacity, obs_dim), np.float32)
-        self.terminal = np.zeros(capacity, np.float32)
+        self.capacity = max(1, capacity)
+        n = min(self.capacity, 1024)
+        self.obs = np.zeros((n, obs_dim), np.float32)
+        self.z = np.zeros((n, z_dim), np.float32)
+        self.reward = np.zeros(n, np.float32)
+        self.next_obs = np.zeros((n, obs_dim), np.float32)
+        self.terminal = np.zeros(n, np.float32)
         self.size = self.pos = 0
 
+    def _grow(self) -> None:
+        n = min(self.capacity, 2 * len(self.obs))
+        for name in ("obs", "z", "reward", "next_obs", "terminal"):
+            old = getattr(self, name)
+            new = np.zeros((n, *old.shape[1:]), old.dtype)
+            new[: len(old)] = old
+            setattr(self, name, new)
+
     def add(self, obs: np.ndarray, z: np.ndarray, reward: float, next_obs: np.ndarray, terminal: bool) -> None:
+        if self.pos == len(self.obs) and len(self.obs) < self.capacity:
+            self._grow()
+        self.pos %= self.capacity
         i = self.pos
         self.obs[i], self.z[i], self.reward[i], self.next_obs[i], self.terminal[i] = obs, z, reward, next_obs, terminal
-        self.pos = (self.pos + 1) % len(self.obs)
-        self.size = min(self.size + 1, len(self.obs))
+        self.pos += 1
+        self.size = min(self.size + 1, self.capacity)
 
     def sample(self, batch: int, generator: np.random.Generator) -> tuple[torch.Tensor, ...]:
         rows = generator.integers(0, self.size, size=batch)

@@ -198,3 +198,16 @@ def test_knowledge_names_the_offline_data() -> None:
     assert "7 episodes" in Spirl.knowledge_of({"offline_episodes": 7})
     with pytest.raises(Invalid):
         Spirl.knowledge_of({"plan_samples": 8})
+
+
+def test_the_replay_grows_to_its_capacity_then_overwrites_the_oldest() -> None:
+    replay = Replay(3, 2, capacity=1500)
+    for i in range(1600):
+        replay.add(np.full(3, i), np.zeros(2), float(i), np.zeros(3), i % 2 == 0)
+    assert replay.size == 1500 and len(replay.obs) == 1500
+    # the first 100 were overwritten by the last 100; the rest are in place
+    assert sorted(replay.reward.tolist()) == [float(i) for i in range(100, 1600)]
+    assert replay.obs[0, 0] == 1500 and replay.terminal[0] == 1.0
+    obs, z, reward, _next_obs, terminal = replay.sample(8, np.random.default_rng(0))
+    assert obs.shape == (8, 3) and z.shape == (8, 2) and reward.shape == terminal.shape == (8,)
+    assert torch.equal(obs[:, 0], reward)  # rows stay together
