@@ -325,8 +325,8 @@ def run_experiment(
     sink: GridProgress = progress if progress is not None else RecordingGridProgress()
     run_dir = Path(run_dir)
     cells_dir = run_dir / CELLS
-    cells_dir.mkdir(parents=True, exist_ok=True)
     _check_same_grid(run_dir, config)
+    cells_dir.mkdir(parents=True, exist_ok=True)
     write_atomically(run_dir / EXPERIMENT_JSON, _dumps(config.to_dict()))
     for leftover in cells_dir.iterdir():
         # an interrupted run's unpacking: never a finished cell

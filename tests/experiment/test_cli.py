@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from run_builder import build_run
 
 REPO = Path(__file__).resolve().parents[2]
@@ -49,3 +50,21 @@ def test_errors_are_one_line_with_their_code(tmp_path: Path) -> None:
     bad = _capevo("run", str(grid), "--out", str(tmp_path / "out"))
     assert bad.returncode == 3 and bad.stderr.startswith("error [invalid]: tasks[0]: unknown task 'T9'")
     assert not (tmp_path / "out").exists()
+
+
+def test_a_run_directory_of_other_cell_settings_is_refused_before_anything_runs(tmp_path: Path) -> None:
+    from capevo.errors import Invalid
+    from capevo.experiment.config import parse_yaml
+    from capevo.experiment.runner import run_experiment
+
+    text = "tasks: [T1]\nseeds: [1]\niterations: 1\nbudget: {env_steps_per_iteration: 9, eval_episodes: 1}\n"
+    first = parse_yaml(text + "methods: [s-ecm]\n")
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "experiment.json").write_text(json.dumps(first.to_dict()))
+    changed = parse_yaml(text.replace("eval_episodes: 1", "eval_episodes: 2") + "methods: [s-ecm]\n")
+    with pytest.raises(Invalid) as info:
+        run_experiment(changed, run_dir)
+    assert info.value.details["field"] == "run_dir" and "T1-s-ecm-s1" in info.value.message
+    assert not (run_dir / "cells").exists()
+    assert json.loads((run_dir / "experiment.json").read_text()) == first.to_dict()
