@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -185,3 +186,30 @@ def test_without_an_update_nothing_drifts(tmp_path: Path) -> None:
     (rec,) = records
     assert rec.env_steps_train == 20 and rec.delta_pi == 0.0  # invariant 3
     assert "0 model and 0 SAC updates so far, 2 skills stored" in rec.notes
+
+
+@pytest.mark.slow
+def test_the_evaluation_is_deterministic_and_cells_share_offline_data_through_offline_dir(tmp_path: Path) -> None:
+    from capevo.baselines.governed_env import evaluate_policy
+    from capevo.baselines.skills import SkillActor, cell_offline_data, decoder_of
+
+    options = {"offline_episodes": 2, "pretrain_steps": 20, "offline_dir": str(tmp_path / "shared")}
+    budget = Budget(env_steps_per_iteration=10, eval_episodes=2, horizon=15)
+    cells = [
+        CellSpec(task="T1", method=m, seed=6, iterations=1, budget=budget, options=options) for m in ("spirl", "skimo")
+    ]
+    first = cell_offline_data(cells[0], tmp_path / "a", Skimo().options(cells[0]), horizon=15)
+    data = cell_offline_data(cells[1], tmp_path / "b", Skimo().options(cells[1]), horizon=15)
+    assert not first.reused and data.reused and np.array_equal(first.obs, data.obs)
+    assert len(list((tmp_path / "shared").iterdir())) == 1
+
+    method = Skimo()
+    agent = method._pretrain(cells[1], data, segments(data), method.options(cells[1]))
+    actor = SkillActor(agent.exploit, decoder_of(agent.modules["vae"]))
+
+    def new_episode() -> None:
+        actor.reset()
+        agent.new_episode()
+
+    runs = [evaluate_policy("T1", actor, cells[1].eval_seeds(), horizon=15, on_reset=new_episode) for _ in range(2)]
+    assert runs[0] == runs[1]
