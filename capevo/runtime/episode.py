@@ -564,6 +564,7 @@ def run_episode_detailed(
         capability_set=dict(versions),
         trace_path=trace_path,
         phi_hash=governor.phi.hash,
+        intervened_steps=intervened_steps,
     )
     if sink is not None:
         sink.write_episode_summary(

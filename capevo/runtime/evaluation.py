@@ -30,6 +30,9 @@ class EpisodeOutcome:
     trace_path: str | None = None
     phi_hash: str | None = None
     """Hash of the envelope Φ the episode ran under (None: not recorded)."""
+    intervened_steps: int | None = None
+    """Steps at which governance changed (or, counting, would have changed) the action; one
+    step can hold several of the ``interventions`` records (None: not recorded)."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -44,6 +47,7 @@ class EpisodeOutcome:
             "capability_set": dict(self.capability_set),
             "trace_path": self.trace_path,
             "phi_hash": self.phi_hash,
+            "intervened_steps": self.intervened_steps,
         }
 
     @classmethod
@@ -60,6 +64,7 @@ class EpisodeOutcome:
             capability_set={str(k): int(v) for k, v in d["capability_set"].items()},
             trace_path=d.get("trace_path"),
             phi_hash=d.get("phi_hash"),
+            intervened_steps=None if d.get("intervened_steps") is None else int(d["intervened_steps"]),
         )
 
 

@@ -36,6 +36,7 @@ from capevo.records import Origin
 from capevo.registry.local import LocalRegistry
 from capevo.runtime.capabilities import LoadedCapabilitySet
 from capevo.runtime.episode import END_PLAN_ECM, make_governor, run_episode, run_episode_detailed
+from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.governance import Phi
 from capevo.runtime.policy import Decision, DecisionContext, StepEnd
 from capevo.runtime.safety_monitor import SafetyLimits
@@ -169,6 +170,9 @@ def test_adversarial_ecm_cannot_leave_the_box_with_governance(
     assert governed.steps == HORIZON
     assert governed.unsafe_steps == 0
     assert governed.interventions > 0
+    # steps governance touched: one per distinct step of its records, and so never more than them
+    assert governed.intervened_steps == len({i.step for i in on.interventions}) <= governed.interventions
+    assert EpisodeOutcome.from_dict(governed.to_dict()) == governed
     assert {i.constraint for i in on.interventions} == {"workspace_box"}
     assert max(s.key_state["arm0_eef_pos"][2] for s in on.env_steps) <= 1.3
     assert all(i.result_action is not None and i.result_action[2] == 0.0 for i in on.interventions)
