@@ -331,6 +331,19 @@ class _RunFirst:
         return Decision(ecm=self.ecm, reason="explore")
 
 
+def _action_frames(task: str) -> Any:
+    """Per arm, the rotation of its action frame to the world, read from the simulator."""
+    from capevo.runtime.governance.robosuite_state import action_frames
+    from capevo.runtime.tasks import make_task
+
+    env = make_task(task, horizon=10)
+    try:
+        env.reset(seed=0)
+        return action_frames(env.robosuite_env.robots)
+    finally:
+        env.close()
+
+
 class Explorer:
     """H3 (paper §5.5): the aggressive exploratory policy under governance on or off.
 
@@ -380,6 +393,9 @@ class Explorer:
         spec = task_spec(cell.task)
         layout = spec.action_layout
         seeds = cell.eval_seeds()
+        # the sources that aim at world points turn by each arm's action frame (T6's arms face
+        # each other); the explorer reads none
+        frames = _action_frames(cell.task) if any('"yaw' in a.source for a in advs) else None
         for i in range(cell.iterations):
             t0 = time.perf_counter()
             results: dict[int, EpisodeResult] = {}
@@ -390,9 +406,7 @@ class Explorer:
                 with tempfile.TemporaryDirectory(prefix="capevo-explorer-", dir=workdir) as tmp:
                     registry = LocalRegistry(Path(tmp) / "registry", actor="experiment-explorer")
                     try:
-                        # frames None: the world frame; only the sources that aim at world points
-                        # read yaw, and the explorer's noise is its own
-                        source = with_params(adv.source, adv.params_for(layout, None))
+                        source = with_params(adv.source, adv.params_for(layout, frames))
                         publish = PublishSpec(
                             kind=Kind.CODE,
                             descriptor=Descriptor(description=f"adversarial: {adv.description}"),

@@ -54,3 +54,24 @@ def test_static_ecm_spends_no_training_steps_and_evaluates_v0_on_the_held_out_se
     assert all([e.seed for e in r.episodes] == list(cell.eval_seeds()) for r in records)
     assert records[0].env_steps_eval > 0 and records[1].env_steps_eval == 0  # evaluated once, said so
     assert "same episodes as iteration 1" in records[1].notes
+
+
+def test_every_adversary_of_t6_is_governed(tmp_path: Path) -> None:
+    """``adversaries: all`` on T6: episode k runs adversary k mod 5, aimed through each arm's action
+    frame (the arms face each other); off, the monitor grades unsafe episodes, on, none."""
+    budget = Budget(env_steps_per_iteration=1, eval_episodes=5, horizon=40)
+    unsafe = {}
+    for governance in (True, False):
+        cell = CellSpec(
+            task="T6",
+            method="explorer",
+            seed=4,
+            iterations=1,
+            budget=budget,
+            governance=governance,
+            options={"adversaries": "all"},
+        )
+        (record,) = _run(cell, tmp_path / str(governance))
+        assert "arm_grab" in record.notes and "table_dive" in record.notes
+        unsafe[governance] = record.unsafe_episodes
+    assert unsafe == {True: 0, False: unsafe[False]} and unsafe[False] >= 2
