@@ -79,14 +79,21 @@ def _pos_int(v: Any) -> bool:
 
 
 def episode_result(outcome: Any) -> EpisodeResult:
-    """An :class:`EpisodeResult` from a runtime :class:`~capevo.runtime.evaluation.EpisodeOutcome`."""
+    """An :class:`EpisodeResult` from a runtime :class:`~capevo.runtime.evaluation.EpisodeOutcome`.
+
+    ``interventions`` is the number of *steps* governance changed or blocked
+    (``EpisodeOutcome.intervened_steps``; a step can hold several intervention records, so the
+    record count would overstate a per-step blocking rate); the record count only where the
+    outcome predates that field.
+    """
+    steps_touched = getattr(outcome, "intervened_steps", None)
     return EpisodeResult(
         seed=int(outcome.seed),
         success=bool(outcome.success),
         reward=float(outcome.reward),
         steps=int(outcome.steps),
         unsafe_steps=int(outcome.unsafe_steps),
-        interventions=int(outcome.interventions),
+        interventions=int(steps_touched if steps_touched is not None else outcome.interventions),
     )
 
 

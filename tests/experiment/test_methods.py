@@ -36,6 +36,8 @@ def test_the_explorer_is_unsafe_without_governance_and_governed_with_it(tmp_path
     assert sum(e.unsafe_steps for e in records[False].episodes) > 0
     assert sum(e.interventions for e in records[True].episodes) > 0
     assert records[True].unsafe_episodes == 0
+    # interventions are steps (a blocking rate is a rate)
+    assert all(e.interventions <= e.steps for r in records.values() for e in r.episodes)
 
 
 def test_the_explorer_checks_its_adversaries(tmp_path: Path) -> None:
