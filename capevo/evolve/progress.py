@@ -83,7 +83,47 @@ class RecordingProgress:
         return [c[0] for c in self.calls]
 
 
-class RichProgress:
+class RichDisplay:
+    """What a rich progress display on stderr shares (the loop's and the experiment grid's): its
+    console, whether it draws live bars, a guard that keeps a display failure from stopping the
+    work, printed messages and closing.
+
+    Args:
+        console: A rich console; default one on stderr.
+        live: Draw live bars; default: only when the console is a terminal. Without them every
+            event is one printed line.
+    """
+
+    def __init__(self, console: Any = None, *, live: bool | None = None) -> None:
+        from rich.console import Console
+
+        self.console = console if console is not None else Console(stderr=True, highlight=False)
+        self.live = self.console.is_terminal if live is None else live
+        self._progress: Any = None
+        self._closed = False
+
+    def _guard(self, fn: Any, *args: Any, **kw: Any) -> None:
+        try:
+            fn(*args, **kw)
+        except Exception:  # the display must never stop the work
+            log.exception("progress display failed")
+
+    def message(self, text: str) -> None:
+        def go() -> None:
+            console = self._progress.console if self._progress is not None else self.console
+            console.print(text, markup=False)
+
+        self._guard(go)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if self._progress is not None:
+            self._guard(self._progress.stop)
+
+
+class RichProgress(RichDisplay):
     """Three bars (iterations, episodes of the current phase, learner steps) on stderr.
 
     Args:
@@ -93,23 +133,12 @@ class RichProgress:
     """
 
     def __init__(self, console: Any = None, *, live: bool | None = None) -> None:
-        from rich.console import Console
-
-        self.console = console if console is not None else Console(stderr=True, highlight=False)
-        self.live = self.console.is_terminal if live is None else live
-        self._progress: Any = None
+        super().__init__(console, live=live)
         self._iter: Any = None
         self._eps: Any = None
         self._learn: Any = None
-        self._closed = False
         self._phase = ""
         self._task = ""
-
-    def _guard(self, fn: Any, *args: Any, **kw: Any) -> None:
-        try:
-            fn(*args, **kw)
-        except Exception:  # the display must never stop the run
-            log.exception("progress display failed")
 
     def run_started(self, *, task: str, total: int, completed: int) -> None:
         def go() -> None:
@@ -186,19 +215,5 @@ class RichProgress:
 
         self._guard(go)
 
-    def message(self, text: str) -> None:
-        def go() -> None:
-            console = self._progress.console if self._progress is not None else self.console
-            console.print(text, markup=False)
 
-        self._guard(go)
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        if self._progress is not None:
-            self._guard(self._progress.stop)
-
-
-__all__ = ["ProgressSink", "RecordingProgress", "RichProgress"]
+__all__ = ["ProgressSink", "RecordingProgress", "RichDisplay", "RichProgress"]

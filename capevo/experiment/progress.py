@@ -19,6 +19,8 @@ from __future__ import annotations
 import logging
 from typing import Any, Protocol, runtime_checkable
 
+from capevo.evolve.progress import RichDisplay
+
 log = logging.getLogger(__name__)
 
 
@@ -61,7 +63,7 @@ class RecordingGridProgress:
         self.calls.append(("close", {}))
 
 
-class RichGridProgress:
+class RichGridProgress(RichDisplay):
     """One bar of cells with done / running / failed counts and rich's ETA, on stderr.
 
     Args:
@@ -70,20 +72,9 @@ class RichGridProgress:
     """
 
     def __init__(self, console: Any = None, *, live: bool | None = None) -> None:
-        from rich.console import Console
-
-        self.console = console if console is not None else Console(stderr=True, highlight=False)
-        self.live = self.console.is_terminal if live is None else live
-        self._progress: Any = None
+        super().__init__(console, live=live)
         self._bar: Any = None
-        self._closed = False
         self.total = self.done = self.failed = self.running = 0
-
-    def _guard(self, fn: Any, *args: Any, **kw: Any) -> None:
-        try:
-            fn(*args, **kw)
-        except Exception:  # the display must never stop the grid
-            log.exception("progress display failed")
 
     def _fields(self) -> dict[str, Any]:
         return {"done": self.done, "running": self.running, "failed": self.failed}
@@ -135,20 +126,6 @@ class RichGridProgress:
                 self.console.print(f"[{self.done} done, {self.failed} failed, {left} left] {line}", markup=False)
 
         self._guard(go)
-
-    def message(self, text: str) -> None:
-        def go() -> None:
-            console = self._progress.console if self._progress is not None else self.console
-            console.print(text, markup=False)
-
-        self._guard(go)
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        if self._progress is not None:
-            self._guard(self._progress.stop)
 
 
 __all__ = ["GridProgress", "RecordingGridProgress", "RichGridProgress"]
