@@ -95,8 +95,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from capevo.baselines.base import CellSpec, Emit, IterationRecord
-from capevo.baselines.governed_env import GovernedTaskEnv, evaluate_policy
+from capevo.baselines.base import CellSpec, Emit
+from capevo.baselines.governed_env import GovernedTaskEnv, held_out_record
 from capevo.errors import Invalid
 from capevo.learner.bc import LOSSES
 from capevo.learner.presets import TRAIN_SEED_BASE
@@ -432,28 +432,19 @@ class AgentModification:
                     notes.append(f"{spent % model.n_steps} steps of a partial rollout were spent and not trained on")
                 model.save(checkpoints / f"iteration-{iteration:03d}.zip")
                 delta = policy_drift(theta0, decision_vector(model, opts.algo))
-                episodes, eval_steps = evaluate_policy(
-                    cell.task,
-                    act,
-                    cell.eval_seeds(),
-                    phi=cell.phi,
-                    governance=cell.governance,
-                    perturbations=cell.perturbations,
-                    horizon=horizon,
-                    trace=workdir / "traces" / f"eval-{iteration:03d}.mcap",
-                    label=self.name,
-                    version=iteration,
-                    handoff_signals=opts.handoff_signals,
-                )
                 emit(
-                    IterationRecord(
+                    held_out_record(
+                        cell,
+                        act,
                         iteration=iteration,
-                        episodes=episodes,
                         env_steps_train=demo_steps + spent,
-                        env_steps_eval=eval_steps,
                         delta_pi=delta,
-                        wall_s=time.perf_counter() - started,
-                        notes="; ".join(notes),
+                        started=started,
+                        notes=notes,
+                        workdir=workdir,
+                        label=self.name,
+                        horizon=horizon,
+                        handoff_signals=opts.handoff_signals,
                     )
                 )
 

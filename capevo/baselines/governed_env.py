@@ -74,11 +74,11 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from capevo.baselines.base import EpisodeResult
+from capevo.baselines.base import CellSpec, EpisodeResult, IterationRecord
 from capevo.errors import Invalid
 from capevo.records import CapabilitySet
 from capevo.runtime.envelope import PhiChoice, resolve_phi
-from capevo.runtime.episode import make_governor
+from capevo.runtime.episode import key_state, make_governor
 from capevo.runtime.evaluator import check_seeds
 from capevo.runtime.governance import hold_action
 from capevo.runtime.safety_monitor import SafetyMonitor
@@ -326,6 +326,50 @@ def evaluate_policy(
     return tuple(results), env.env_steps
 
 
+def held_out_record(
+    cell: CellSpec,
+    act: Callable[[np.ndarray], np.ndarray],
+    *,
+    iteration: int,
+    env_steps_train: int,
+    delta_pi: float,
+    started: float,
+    notes: Sequence[str],
+    workdir: str | os.PathLike[str],
+    label: str,
+    horizon: int | None,
+    **evaluate_kwargs: Any,
+) -> IterationRecord:
+    """One iteration's record of a method without ECMs: its held-out evaluation on
+    ``cell.eval_seeds()`` (traced to ``traces/eval-NNN.mcap`` in ``workdir``) and what it spent.
+
+    ``started`` is the iteration's ``time.perf_counter()`` at its start; ``evaluate_kwargs`` go to
+    :func:`evaluate_policy` (``handoff_signals``, ``on_reset``).
+    """
+    episodes, eval_steps = evaluate_policy(
+        cell.task,
+        act,
+        cell.eval_seeds(),
+        phi=cell.phi,
+        governance=cell.governance,
+        perturbations=cell.perturbations,
+        horizon=horizon,
+        trace=Path(workdir) / "traces" / f"eval-{iteration:03d}.mcap",
+        label=label,
+        version=iteration,
+        **evaluate_kwargs,
+    )
+    return IterationRecord(
+        iteration=iteration,
+        episodes=episodes,
+        env_steps_train=env_steps_train,
+        env_steps_eval=eval_steps,
+        delta_pi=delta_pi,
+        wall_s=time.perf_counter() - started,
+        notes="; ".join(notes),
+    )
+
+
 def _episode(
     env: GovernedTaskEnv,
     act: Callable[[np.ndarray], np.ndarray],
@@ -385,7 +429,7 @@ def _episode(
                     terminated=terminated,
                     truncated=truncated,
                     is_success=bool(info["is_success"]),
-                    key_state=_key_state(state) if state is not None else {},
+                    key_state=key_state(state.arms) if state is not None else {},
                 )
             )
         obs = next_obs
@@ -413,12 +457,3 @@ def _episode(
             )
         )
     return result
-
-
-def _key_state(state: RobotState) -> dict[str, tuple[float, ...]]:
-    """The ``/env/step`` key state the runtime records: each arm's end-effector position and force."""
-    out: dict[str, tuple[float, ...]] = {}
-    for i, arm in enumerate(state.arms):
-        out[f"arm{i}_eef_pos"] = arm.eef_pos
-        out[f"arm{i}_eef_force"] = arm.eef_force
-    return out

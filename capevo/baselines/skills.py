@@ -67,8 +67,8 @@ from torch import nn
 from torch.distributions import Normal, kl_divergence
 
 from capevo.agent import policy_drift
-from capevo.baselines.base import CellSpec, Emit, IterationRecord
-from capevo.baselines.governed_env import GovernedTaskEnv, evaluate_policy
+from capevo.baselines.base import CellSpec, Emit
+from capevo.baselines.governed_env import GovernedTaskEnv, held_out_record
 from capevo.baselines.offline_data import OfflineData, offline_data, offline_settings
 from capevo.errors import Invalid
 from capevo.learner.bc import torch_threads
@@ -756,27 +756,18 @@ class SkillMethod:
                 delta = policy_drift(theta0, flat(agent.modules, self.delta_tensors)[1])
                 notes = [setup] if iteration == 1 else []
                 notes.append(agent.progress())
-                episodes, eval_steps = evaluate_policy(
-                    cell.task,
-                    actor,
-                    cell.eval_seeds(),
-                    phi=cell.phi,
-                    governance=cell.governance,
-                    perturbations=cell.perturbations,
-                    horizon=horizon,
-                    trace=workdir / "traces" / f"eval-{iteration:03d}.mcap",
-                    label=self.name,
-                    version=iteration,
-                    on_reset=new_episode,
-                )
                 emit(
-                    IterationRecord(
+                    held_out_record(
+                        cell,
+                        actor,
                         iteration=iteration,
-                        episodes=episodes,
                         env_steps_train=spent,
-                        env_steps_eval=eval_steps,
                         delta_pi=delta,
-                        wall_s=time.perf_counter() - started,
-                        notes="; ".join(notes),
+                        started=started,
+                        notes=notes,
+                        workdir=workdir,
+                        label=self.name,
+                        horizon=horizon,
+                        on_reset=new_episode,
                     )
                 )

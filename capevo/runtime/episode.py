@@ -229,7 +229,7 @@ def _ecm_input(obs: Mapping[str, np.ndarray], keys: tuple[str, ...]) -> np.ndarr
     return flat
 
 
-def _key_state(arms: Sequence[Any]) -> dict[str, tuple[float, ...]]:
+def key_state(arms: Sequence[Any]) -> dict[str, tuple[float, ...]]:
     """An env step's key state: each arm's end-effector position and force."""
     out: dict[str, tuple[float, ...]] = {}
     for i, arm in enumerate(arms):
@@ -535,7 +535,7 @@ def run_episode_detailed(
                     terminated=bool(terminated),
                     truncated=bool(truncated),
                     is_success=success,
-                    key_state=_key_state(state.arms),
+                    key_state=key_state(state.arms),
                 )
             )
         obs_t = next_t
