@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import inspect
 import string
+import textwrap
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -154,6 +155,21 @@ def format_ranges(ranges: Mapping[str, tuple[float, float] | tuple[float, float,
     return "PARAM_RANGES = {\n" + lines + "}\n"
 
 
+def provenance_note(template: SkillTemplate) -> str:
+    """The paragraph every rendered skill's docstring ends with: what is learned, what is hand-written.
+
+    Issue 19 asks each skill to say so; written here once so no skill can leave it out.
+    """
+    searched = ", ".join(template.params)
+    return textwrap.fill(
+        f"Learned: the values of PARAMS ({searched}), searched within PARAM_RANGES. "
+        "Hand-written: everything else here (the phases and branches of act and done, the prelude's "
+        "tolerances, the PARAM_RANGES spans) and the v0 values, which are untuned guesses.",
+        width=100,
+        break_on_hyphens=False,
+    )
+
+
 def render(template: SkillTemplate, **keys: str) -> str:
     """The skill's full source with placeholders filled in.
 
@@ -173,7 +189,7 @@ def render(template: SkillTemplate, **keys: str) -> str:
         doc = string.Template(template.doc).substitute(values)
     except KeyError as exc:
         raise Invalid(f"skill template needs a value for placeholder {exc.args[0]!r}") from None
-    head = f'"""{doc.strip()}\n"""\n'
+    head = f'"""{doc.strip()}\n\n{provenance_note(template)}\n"""\n'
     params = format_params(template.params) + format_ranges(template.ranges)
     return head + template.prelude + "\n\n" + params + "\n" + body.strip() + "\n"
 

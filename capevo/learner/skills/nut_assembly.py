@@ -6,8 +6,20 @@ about the vertical to the nut's yaw so the fingers close across the handle. The 
 (its origin) must end over the peg: while carrying, the skills servo the nut origin, not the
 hand.
 
-Version 0 is *manual and untuned*: the same weaknesses as :mod:`.grasping` (grasp point 3 cm
-too high, low gains), a carry height that does not clear the peg's top, and a slow lift.
+What is hand-written (fixed; no learner changes it): the six phases and their order (the task's
+decomposition), each skill's branches (travel at hover height, wait for the fingers to open,
+descend; climb before moving sideways; servo the nut origin, not the hand), the yaw fold into
+[-pi/2, pi/2] (the grip is symmetric), the prelude's tolerances (OPEN_WIDTH, MISSED_WIDTH,
+RELEASED_WIDTH, ROT_GAIN) and every ``PARAM_RANGES`` span (physical spans written with the
+guesses, not tuned). What is learned: the values of ``PARAMS`` inside those spans (CEM searches
+every one of them).
+
+Version 0 is *manual and untuned*. Known weaknesses, which the learners are meant to find:
+
+* reach and grasp aim ``grasp_dz`` = 3 cm above the handle, with a low gain (3);
+* align carries the nut only ``carry_dz`` = 10 cm above its seated height: the peg's top is 13 cm
+  above it, so the nut hits the peg (and align's termination, above 13 cm, is never reached);
+* the lift is slow (0.2 of full speed, from :mod:`.grasping`); insert's gain is low.
 
 Invariants:
 1. Every ECM of T4's decomposition gets exactly one skill.
@@ -17,9 +29,18 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from capevo.learner.skills._lib import SkillTemplate
+from capevo.learner.skills._lib import DIG_RANGE, GAIN_RANGE, GRASP_DZ_RANGE, SkillTemplate
 from capevo.learner.skills.grasping import LET_GO, LIFT
 from capevo.runtime.tasks.spec import TaskSpec
+
+HANDLE_OFFSET_RANGE = (0.03, 0.08)
+"""Handle grasp point along the nut's x axis from its origin (metres): the handle box of robosuite's
+square nut spans 2.9-7.9 cm from the origin (``square-nut.xml``); v0's 5.4 cm is its ``handle_site``."""
+CARRY_DZ_RANGE = (0.05, 0.3)
+"""Nut origin above its seated height while carrying (metres): the square peg's top is 0.13 m above
+the seated height (so below about 0.14 the nut hits the peg), 0.3 is near the arm's comfortable reach."""
+XY_SCALE_RANGE = (0.25, 4.0, "log")
+"""Horizontal gain of the descent relative to its vertical gain: a factor, searched on a log scale."""
 
 _NUT = '''
 def quat_rotate(q, v):
@@ -68,6 +89,14 @@ v0 is untuned (manual): grasp point too high, low gain.
         "descend_xy": 0.015,
         "dig": 0.0,
     },
+    ranges={
+        "gain": GAIN_RANGE,
+        "hover": (0.03, 0.2),
+        "handle_offset": HANDLE_OFFSET_RANGE,
+        "grasp_dz": GRASP_DZ_RANGE,
+        "descend_xy": (0.005, 0.05),
+        "dig": DIG_RANGE,
+    },
     body=_NUT
     + """
 
@@ -106,6 +135,13 @@ v0 is untuned (manual): grasp point too high.
         "dig": 0.0,
         "close_above": 0.01,
     },
+    ranges={
+        "gain": GAIN_RANGE,
+        "handle_offset": HANDLE_OFFSET_RANGE,
+        "grasp_dz": GRASP_DZ_RANGE,
+        "dig": DIG_RANGE,
+        "close_above": (0.0, 0.08),
+    },
     body=_NUT
     + """
 
@@ -132,6 +168,7 @@ v0 is untuned (manual): carries too low to clear the peg, low gain.
         "carry_dz": 0.1,
         "climb_margin": 0.03,
     },
+    ranges={"gain": GAIN_RANGE, "carry_dz": CARRY_DZ_RANGE, "climb_margin": (0.0, 0.1)},
     body=_NUT
     + """
 
@@ -161,6 +198,7 @@ v0 is untuned (manual): low gain.
         "xy_gain_scale": 1.0,
         "dig": 0.0,
     },
+    ranges={"gain": GAIN_RANGE, "xy_gain_scale": XY_SCALE_RANGE, "dig": DIG_RANGE},
     body=_NUT
     + """
 

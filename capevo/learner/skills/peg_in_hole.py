@@ -14,7 +14,25 @@ along the plate's x axis) and the peg's position (``hole_pos - peg_to_hole``), t
 Actions are computed in the world frame and turned into each arm's OSC action frame (robosuite's
 "opposed" layout mounts arm 0 at +90 degrees and arm 1 at -90 degrees of yaw).
 
+What is hand-written (fixed; no learner changes it): the eight phases and their order (the task's
+decomposition, with its termination thresholds), the controller above (which arm turns and moves
+for which error, the nearer-sign rule, the tenth-speed sideways motion while the peg is too near,
+the hole centre 0.1 m along the plate's x axis as robosuite computes it), the arms' action-frame
+yaws, and every ``PARAM_RANGES`` span (physical spans written with the guesses, not tuned). What
+is learned: the values of ``PARAMS`` inside those spans. Every step declares all six parameters
+with a range that contains 0, so a gain that is 0 in v0 (the arm it drives holds still) is searched
+too rather than frozen.
+
 Version 0 is *manual and untuned*: every gain is a guess, low, without running the simulator.
+Known weaknesses, which the learners are meant to find:
+
+* the gains are low (0.2-0.3 per radian, 1-2 per metre), so at the task's horizon (300 steps)
+  v0 is too slow: it runs out of steps a few to a few tens of steps short (issue 19 measured 0/3
+  at 300 and 3/3 at 600 steps);
+* ``hold`` has every gain at 0 (both arms just hold still);
+* ``insert`` aims ``axial_target`` = 0 (the tip 13 cm through the plate), but robosuite's success,
+  which ends the episode, holds from t = 0.14 on, with the tip still 1 cm short of the plate: the
+  strict check ``peg_inserted`` (:mod:`capevo.runtime.tasks.peg_in_hole`) reports the difference.
 
 Invariants:
 1. Every ECM of T6's decomposition gets exactly one skill; every action has 12 values in [-1, 1].
@@ -26,6 +44,27 @@ from collections.abc import Mapping
 
 from capevo.learner.skills._lib import SkillTemplate
 from capevo.runtime.tasks.spec import TaskSpec
+
+ROT_GAIN_RANGE = (0.0, 3.0)
+"""Action per radian of misalignment: at 3 a 20-degree error already saturates the arm's rotation
+action (1.0); 0 keeps that arm's orientation. Linear, because 0 is a meaningful choice."""
+MOVE_GAIN_RANGE = (0.0, 20.0)
+"""Action per metre of offset: 20 is full speed 5 cm away (as the single-arm GAIN_RANGE); 0 keeps
+that arm in place."""
+AXIAL_TARGET_RANGE = (-0.1, 0.35)
+"""Where the hole centre should sit ahead of the peg centre along the peg's axis (robosuite's t,
+metres). The peg is 0.26 m long, its tip 0.13 m ahead of its centre: 0.35 keeps the tip 22 cm
+back from the plate; -0.1 pushes the tip 23 cm through it (the hand is then about 3 cm from the
+plate)."""
+PEG_RANGES: Mapping[str, tuple[float, float]] = {
+    "peg_rot_gain": ROT_GAIN_RANGE,
+    "hole_rot_gain": ROT_GAIN_RANGE,
+    "peg_move_gain": MOVE_GAIN_RANGE,
+    "hole_move_gain": MOVE_GAIN_RANGE,
+    "axial_gain": MOVE_GAIN_RANGE,
+    "axial_target": AXIAL_TARGET_RANGE,
+}
+"""The same spans for every step: they all run one controller with different gains."""
 
 PEG_PRELUDE = '''
 import math
@@ -113,7 +152,7 @@ def _template(doc: str, **params: float) -> SkillTemplate:
     }
     base.update(params)
     doc += "\nv0 is untuned (manual): low guessed gains.\n"
-    return SkillTemplate(doc=doc, params=base, body=_BODY, prelude=PEG_PRELUDE)
+    return SkillTemplate(doc=doc, params=base, body=_BODY, prelude=PEG_PRELUDE, ranges=dict(PEG_RANGES))
 
 
 _BY_STEP: Mapping[str, SkillTemplate] = {
