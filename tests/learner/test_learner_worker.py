@@ -164,7 +164,8 @@ def test_watch_mode_learns_when_episodes_arrive_and_stops_on_sigterm(server: Ser
         trigger = events[-3]
         assert (trigger["reason"], trigger["new_episodes"], trigger["active"]) == ("count", 2, 0)
         published = events[-1]
-        assert published["notes"]["demos"]["source"] == "traces"
+        # the watched traces' successful steps, and the scripted reference's rollouts beside them
+        assert published["notes"]["demos"]["source"] == "traces+scripted"
         assert published["provenance"]["traces"] == [str((traces / "pick-watch.mcap").resolve())]
         learner.proc.send_signal(signal.SIGTERM)
         stopped = read_events(learner, "stopped", timeout=60)[-1]
