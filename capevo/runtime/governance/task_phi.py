@@ -172,8 +172,9 @@ _PEDESTALS = (
     _box((-0.11, -0.71, 0.9), (0.11, -0.49, 1.3)),
     _box((-0.11, 0.49, 0.9), (0.11, 0.71, 1.3)),
 )
-_PEG_HAND = (Aabb(low=(-0.023, -0.023, 0.0), high=(0.023, 0.023, 0.26)),)
-"""Robot 0 of TwoArmPegInHole: the peg, 0.26 m long along the site's +z."""
+_PEG_HAND = (Aabb(low=(-0.03, -0.03, 0.0), high=(0.03, 0.03, 0.26)),)
+"""Robot 0 of TwoArmPegInHole: the peg, 0.26 m long along the site's +z, as thick as the largest radius
+an episode draws (``PEG_RADIUS_RANGE``, 3 cm)."""
 _PLATE_HAND = (Aabb(low=(-0.01, -0.17, 0.0), high=(0.01, 0.17, 0.34)),)
 """Robot 1 of TwoArmPegInHole: the plate with the hole, 0.34 x 0.34 m, 2 cm thick."""
 _PEGS = (

@@ -4,8 +4,28 @@ Robot 0 holds the peg, robot 1 the plate with the square hole; neither has a gri
 action is 12 values, 6 OSC_POSE deltas per arm, each in that robot's own base frame (the two
 bases are turned +90 and -90 degrees about z).
 
-The peg radius, which robosuite draws at construction, is pinned (``PEG_RADIUS``) so every
-environment instance builds the same peg whatever its seed.
+The peg radius is drawn per episode as robosuite draws it: uniformly within robosuite's default
+``peg_radius`` range (``PEG_RADIUS_RANGE``, 1.5-3 cm) from the episode's scene generator
+(``env.rng``). robosuite draws it when it loads the model, so with ``hard_reset=False`` (one model
+per environment, see :mod:`.base`) it would be drawn once per instance; here the model is built
+with the largest radius (its collision bounds then hold any draw) and every reset sets the peg's
+geoms, mass and inertia (density kept) to the episode's draw. (MuJoCo's ``mj_setConst`` quantities,
+used only by the constraint solver's diagonal approximation, keep the compiled peg's values.)
+
+Success and the strict insertion check. robosuite's ``_check_success`` (the task's success, which
+ends the episode) accepts the hole plane anywhere from 12 cm behind to 14 cm ahead of the peg's
+centre; the peg's tip is 13 cm ahead of it, so the check passes with the tip still 1 cm short of
+the plate, before the peg ever touches it (issue 19 measured 0.0 N contact force through
+successful episodes). ``peg_inserted`` is a strict check from ground truth reported beside it:
+the peg's axis crosses the plate's mid-plane inside the square opening with the peg's radius to
+spare (within ``INSERT_TOL``), the tip is through the plate (``peg_insertion_depth`` at least the
+plate's thickness) and peg and hole are aligned as robosuite requires (|cos| > 0.95).
+:attr:`PegInHoleTask.peg_inserted` latches it per episode as ``info["is_success"]`` latches robosuite's.
+
+Horizon: 300 control steps (15 s at 20 Hz), fixed in the spec (``default_horizon``) before any run
+and not tuned to any result. It is the horizon of the configuration the tasks were written
+against; issue 19 measured v0 at 0/3 there and 3/3 at 600 steps (3-26 steps too slow), which is
+v0's weakness for the learners to fix (its gains are low), not a reason to lengthen the task.
 
 Invariants:
 1. Success is exactly robosuite ``TwoArmPegInHole._check_success``: perpendicular distance of
@@ -16,6 +36,9 @@ Invariants:
 4. ``robot_state()`` force per arm is the total contact force on the object that arm holds
    (peg or plate): they hang from the hand body beside, not under, the wrist force sensor, so
    the sensor never sees their contacts.
+5. ``peg_radius`` lies in ``PEG_RADIUS_RANGE``; equal seeds draw equal radii, whatever the jitter
+   setting (the draw comes from the scene generator right after robosuite's reset).
+6. ``peg_inserted`` implies ``peg_insertion_depth`` >= ``PLATE_THICKNESS``.
 """
 
 from __future__ import annotations
@@ -34,8 +57,21 @@ from capevo.runtime.tasks.spec import EcmStep, SignalSpec, TaskSpec, cond, pred
 TWO_PANDAS_NO_GRIPPER = ActionLayout(dim=12, arms=(ArmActionLayout(offset=0), ArmActionLayout(offset=6)))
 """Two Pandas, OSC_POSE via the BASIC composite controller, no grippers: robot 0 then robot 1."""
 
-PEG_RADIUS = 0.0225
-"""Middle of robosuite's default draw range (0.015, 0.03); the square hole is 0.1 m wide."""
+PEG_RADIUS_RANGE = (0.015, 0.03)
+"""robosuite ``TwoArmPegInHole``'s default ``peg_radius`` draw range (metres); the square hole is 0.1 m wide."""
+PEG_HALF_LENGTH = 0.13
+"""robosuite's default ``peg_length``, the cylinder's half-length: the tip is this far ahead of its centre."""
+OPENING_X = (0.06, 0.16)
+OPENING_Y = (-0.05, 0.05)
+"""The square opening in the plate's frame (metres), between its four boxes (``plate-with-hole.xml``).
+robosuite's hole centre (0.1, 0) is 1 cm off the opening's true centre (0.11, 0)."""
+PLATE_THICKNESS = 0.02
+"""The plate's boxes are 2 cm thick, centred on its frame's z = 0 plane."""
+INSERT_TOL = 0.003
+"""Metres the peg's surface may lie past the opening's edge for ``peg_inserted``: contacts are soft,
+and a peg tilted by up to acos(0.95) widens its section through the plate by about 3 mm."""
+ALIGNED_COS = 0.95
+"""robosuite's alignment threshold, kept for the strict check."""
 
 _ARM_KEYS = ("joint_pos_cos", "joint_pos_sin", "joint_vel", "eef_pos", "eef_quat")
 _OBJ_KEYS = ("hole_pos", "hole_quat", "peg_to_hole", "peg_quat", "angle", "t", "d")
@@ -57,6 +93,18 @@ PEG_SIGNALS: tuple[SignalSpec, ...] = (
     SignalSpec(name="peg_hole_cos", description="|cos| of the angle between peg axis and hole normal (1 = aligned)."),
     SignalSpec(name="peg_hole_rel_speed", description="Relative linear speed of peg and plate.", units="m/s"),
     SignalSpec(name="peg_hole_contact_force", description="Norm of the summed contact force on the peg.", units="N"),
+    SignalSpec(
+        name="peg_insertion_depth",
+        description="How far the peg's tip is past the plate's entry face along the hole normal (0: not reached).",
+        units="m",
+    ),
+    SignalSpec(
+        name="peg_inserted",
+        description=(
+            "Strict insertion (ground truth): the peg's axis crosses the plate inside the opening with its "
+            "radius to spare, the tip through the plate, |cos| > 0.95; 1 or 0."
+        ),
+    ),
     c.SUCCESS_SIGNAL,
 )
 
@@ -168,7 +216,10 @@ class PegInHoleTask(TaskEnv):
     def _build(self, kwargs: dict[str, Any]) -> Any:
         from robosuite.environments.manipulation.two_arm_peg_in_hole import TwoArmPegInHole
 
-        kwargs = {"peg_radius": (PEG_RADIUS, PEG_RADIUS), "env_configuration": "opposed", **kwargs}
+        # Compiled with the largest radius: the collision bounds (rbound, aabb, BVH) then hold every
+        # radius a reset draws, which only shrinks the geoms.
+        top = PEG_RADIUS_RANGE[1]
+        kwargs = {"peg_radius": (top, top), "env_configuration": "opposed", **kwargs}
         return TwoArmPegInHole(robots=["Panda", "Panda"], **kwargs)
 
     def _bind(self) -> None:
@@ -186,10 +237,60 @@ class PegInHoleTask(TaskEnv):
         self._cf = np.zeros(6)
         self._arm_dofs = tuple(np.asarray(r._ref_joint_vel_indexes) for r in env.robots)
         self._arm_qpos = tuple(np.asarray(r._ref_joint_pos_indexes) for r in env.robots)
+        m = self._model
+        # the peg's collision and visual cylinders; its density from the compiled mass
+        self._peg_geoms = np.array([g for g in range(m.ngeom) if int(m.geom_bodyid[g]) == self._peg_body], np.int64)
+        r0, h = (float(x) for x in m.geom_size[self._peg_geoms[0], :2])
+        self._peg_half_length = h
+        self._peg_density = float(m.body_mass[self._peg_body]) / (np.pi * r0 * r0 * 2.0 * h)
+        self.peg_radius = r0
+        """This episode's peg radius (metres), drawn at every reset."""
+        self._radius_drawn = False
+        self._inserted = False
+
+    def _draw_peg_radius(self) -> None:
+        """Draw and set this episode's peg radius as robosuite's ``get_size`` draws it at model load."""
+        env, m = self._env, self._model
+        # get_size draws one uniform per size component: the radius, then the (fixed) half-length
+        r = float(env.rng.uniform(*PEG_RADIUS_RANGE))
+        env.rng.uniform(self._peg_half_length, self._peg_half_length)
+        h = self._peg_half_length
+        m.geom_size[self._peg_geoms, 0] = r
+        mass = self._peg_density * np.pi * r * r * 2.0 * h
+        m.body_mass[self._peg_body] = mass
+        # solid cylinder about its centre; z is its axis
+        side = mass * (3.0 * r * r + (2.0 * h) ** 2) / 12.0
+        m.body_inertia[self._peg_body] = (side, side, 0.5 * mass * r * r)
+        env.peg_radius = (r, r)
+        self.peg_radius = r
+        self._radius_drawn = True
+        self._sim.forward()
+
+    def _on_reset(self) -> None:
+        if not self._radius_drawn:  # jitter off: _apply_jitter did not run
+            self._draw_peg_radius()
+        self._radius_drawn = False
+        self._inserted = False
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """:meth:`TaskEnv.step`, latching the strict check in :attr:`peg_inserted` (``info`` keeps the
+        keys every task returns)."""
+        out = super().step(action)
+        # computed here rather than read from signals(): filling the signal cache on every step would
+        # change when it is computed for everyone else
+        self._inserted = self._inserted or self._strict_insertion(float(self._env._compute_orientation()[2]))[1]
+        return out
+
+    @property
+    def peg_inserted(self) -> bool:
+        """Latched strict insertion of the current episode (see the module docstring)."""
+        return self._inserted
 
     def _apply_jitter(self, rng: np.random.Generator, half_width: float) -> None:
         # Each end effector moves by (dx, dy) with height and orientation kept, through the joint
         # offset pinv(J) [dx, dy, 0, 0, 0, 0]; redrawn while the peg would start inside the plate.
+        # the radius first: the placement check below sees this episode's peg
+        self._draw_peg_radius()
         m, d, mj = self._model, self._data, self._mj
         held = frozenset(int(g) for geoms in self._held_geoms for g in geoms)
         start = d.qpos.copy()
@@ -240,6 +341,7 @@ class PegInHoleTask(TaskEnv):
             self._mj.mj_objectVelocity(m, d, self._mj.mjtObj.mjOBJ_BODY, body, self._vel, 0)
             v.append(self._vel[3:].copy())
         success = bool(env._check_success())
+        depth, inserted = self._strict_insertion(float(cos))
         return {
             "peg_hole_dist": float(np.linalg.norm(peg - centre)),
             "peg_hole_perp_dist": float(dist_perp),
@@ -248,5 +350,31 @@ class PegInHoleTask(TaskEnv):
             "peg_hole_cos": float(cos),
             "peg_hole_rel_speed": float(np.linalg.norm(v[0] - v[1])),
             "peg_hole_contact_force": float(np.linalg.norm(self._contact_force(self._held_geoms[0]))),
+            "peg_insertion_depth": depth,
+            "peg_inserted": 1.0 if inserted else 0.0,
             "success": 1.0 if success else 0.0,
         }
+
+    def _strict_insertion(self, cos: float) -> tuple[float, bool]:
+        """``(peg_insertion_depth, peg_inserted)`` from the simulator's poses (see the module docstring)."""
+        d = self._data
+        r_hole = d.xmat[self._hole_body].reshape(3, 3)
+        # peg centre and axis in the plate's frame: its z is the hole normal, z = 0 its mid-plane
+        p = r_hole.T @ (d.xpos[self._peg_body] - d.xpos[self._hole_body])
+        a = r_hole.T @ d.xmat[self._peg_body].reshape(3, 3)[:, 2]
+        h, r = self._peg_half_length, self.peg_radius
+        if abs(a[2]) < 1e-6:
+            return 0.0, False  # the peg lies in the plate's plane: it cannot be through the hole
+        side = 1.0 if a[2] > 0 else -1.0  # the tip moves along +a, entering from the face at z = -side * t/2
+        s = -p[2] / a[2]  # where the axis crosses the mid-plane, along the axis from the peg's centre
+        if s < -h:
+            return 0.0, False  # the plate is behind the hand: the peg points away from it
+        depth = max(0.0, side * (p[2] + h * a[2]) + 0.5 * PLATE_THICKNESS)
+        q = p + s * a
+        room = r - INSERT_TOL
+        inside = (
+            OPENING_X[0] + room <= q[0] <= OPENING_X[1] - room
+            and OPENING_Y[0] + room <= q[1] <= OPENING_Y[1] - room
+            and s <= h
+        )
+        return depth, bool(inside and depth >= PLATE_THICKNESS and cos > ALIGNED_COS)
