@@ -3,9 +3,20 @@
 robosuite drops the nut from 6 cm above the table at reset, so heights are measured against
 the nut's resting height on the table rather than its height right after reset.
 
+Success is robosuite's own ``NutAssembly._check_success`` (Invariant 1), latched per episode. Besides
+the nut's position it asks the hand to be away from the nut's centre (robosuite's ``1 - tanh(10 d)
+< 0.6``, d > 4.2 cm), which a hand still holding the nut by its handle (5.4 cm out) meets: a seated nut
+still held counts, and ``release`` follows only to leave the scene clean.
+
+Horizon: 300 control steps (15 s at robosuite's 20 Hz), ``default_horizon`` in the spec. The paper
+(§5.1) names no horizon and robosuite's own default is 1000; capevo fixed 300 when the task was first
+written, before any evolution run, and keeps it: it is part of the task, not of a budget, and is never
+changed to make a target pass.
+
 Invariants:
 1. Success is exactly robosuite ``NutAssembly._check_success`` (single square nut): the nut's
-   centre within 3 cm of the square peg in x and y and less than 5 cm above the table top.
+   centre within 3 cm of the square peg in x and y and less than 5 cm above the table top, the
+   end effector more than about 4.2 cm from the nut's centre.
 2. ``object_height_above_start`` is 0 for a nut lying flat on the table.
 """
 
