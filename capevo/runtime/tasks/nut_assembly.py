@@ -103,7 +103,8 @@ class NutAssemblyTask(TaskEnv):
         ),
         success_text=(
             "robosuite NutAssembly._check_success with the square nut only: nut centre within 3 cm "
-            "of the square peg in x and y and less than 5 cm above the table top."
+            "of the square peg in x and y and less than 5 cm above the table top, with the end effector "
+            "more than about 4.2 cm from the nut's centre."
         ),
         reward_text=(
             "robosuite NutAssembly reward with reward_shaping=True, reward_scale=1: 1 when seated "
