@@ -14,7 +14,7 @@ def test_main_lists_every_group(cli: Callable[..., Result]) -> None:
     res = cli("--help")
     assert res.exit_code == 0
     commands = [ln.split()[0] for ln in res.stdout.split("Commands:")[1].splitlines() if ln.strip()]
-    assert commands == ["ecm", "evolve", "learner", "registry", "runtime", "trace"]
+    assert commands == ["ecm", "evolve", "experiment", "learner", "registry", "runtime", "trace"]
     res = cli("ecm", "--help")
     for sub in ("list", "show", "history", "publish", "promote", "rollback", "deprecate", "reject", "pull", "set"):
         assert f"  {sub} " in res.stdout
