@@ -54,11 +54,38 @@ HAND_SET: Mapping[str, Mapping[str, Mapping[str, float]]] = {
     },
 }
 HAND_SET["pick_place_multi"] = HAND_SET["place"]
+HAND_SET["nut_assembly"] = {
+    # "reach and grasp aim grasp_dz = 3 cm above the handle, with a low gain (3)": the handle, gain 10
+    "reach": {"grasp_dz": 0.0, "gain": 10.0},
+    "grasp": {"grasp_dz": 0.0, "gain": 10.0, "close_above": 0.02},
+    # "the lift is slow (0.2 of full speed)": half speed
+    "lift": {"lift_speed": 0.5},
+    # "carries the nut only 10 cm above its seated height: the peg's top is 13 cm above it": 18 cm
+    "align": {"carry_dz": 0.18, "gain": 10.0},
+    # "insert's gain is low"
+    "insert": {"gain": 10.0},
+}
+
+
+def _peg_gains(v0: Mapping[str, float]) -> dict[str, float]:
+    """T6: "the gains are low (0.2-0.3 per radian, 1-2 per metre)": every gain v0 uses (non-zero)
+    becomes 1 per radian or 5 per metre; a gain v0 leaves at 0 stays 0 (that arm holds still)."""
+    out = {}
+    for name, value in v0.items():
+        if name.endswith("_rot_gain") and value:
+            out[name] = 1.0
+        elif name.endswith("_gain") and value:
+            out[name] = 5.0
+    return out
 
 
 def hand_set_overrides(task: str) -> dict[str, dict[str, float]]:
     """The hand-set parameter overrides of each ECM of ``task`` (empty for a step left at v0)."""
     spec = task_spec(task)
+    if spec.name == "peg_in_hole":
+        from capevo.learner.skills import seed_params
+
+        return {ecm: _peg_gains(seed_params(spec.name, ecm)) for ecm in spec.ecm_names}
     table = HAND_SET.get(spec.name, {})
     return {ecm: dict(table.get(ecm.split(".")[-1], {})) for ecm in spec.ecm_names}
 
