@@ -194,7 +194,10 @@ def heldout_evaluation(task: str, root: Path, args: argparse.Namespace) -> dict[
     n, ok = len(rows), sum(r["success"] for r in rows)
     unsafe = sum(r["unsafe_steps"] > 0 for r in rows)
     ci = wilson_interval(ok, n, alpha=0.025)
+    strict = [r.get("strict_success") for r in rows if r.get("strict_success") is not None]
     return {
+        # the task's stricter check beside robosuite's success (T6: the peg through the plate)
+        "strict_successes": sum(strict) if strict else None,
         "seeds": seeds,
         "episodes": n,
         "successes": ok,
@@ -310,7 +313,11 @@ def _heldout(h: dict[str, Any] | None) -> list[str]:
     if "error" in h:
         return ["error: " + " ".join(h["error"]), "-"]
     low, high = h["wilson95"]
-    return [f"{h['successes']}/{h['episodes']} [{low:.0%}, {high:.0%}]", f"{h['unsafe_episodes']}/{h['episodes']}"]
+    strict = "" if h.get("strict_successes") is None else f"; strict check {h['strict_successes']}/{h['episodes']}"
+    return [
+        f"{h['successes']}/{h['episodes']} [{low:.0%}, {high:.0%}]{strict}",
+        f"{h['unsafe_episodes']}/{h['episodes']}",
+    ]
 
 
 def _load(r: dict[str, Any]) -> str:

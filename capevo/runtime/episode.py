@@ -565,6 +565,7 @@ def run_episode_detailed(
         trace_path=trace_path,
         phi_hash=governor.phi.hash,
         intervened_steps=intervened_steps,
+        strict_success=getattr(env, "strict_success", None),
     )
     if sink is not None:
         sink.write_episode_summary(

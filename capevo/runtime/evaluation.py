@@ -33,6 +33,9 @@ class EpisodeOutcome:
     intervened_steps: int | None = None
     """Steps at which governance changed (or, counting, would have changed) the action; one
     step can hold several of the ``interventions`` records (None: not recorded)."""
+    strict_success: bool | None = None
+    """The task's stricter check beside ``success`` (``TaskEnv.strict_success``; T6: the peg
+    through the plate), latched over the episode; None for tasks without one."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -48,6 +51,7 @@ class EpisodeOutcome:
             "trace_path": self.trace_path,
             "phi_hash": self.phi_hash,
             "intervened_steps": self.intervened_steps,
+            "strict_success": self.strict_success,
         }
 
     @classmethod
@@ -65,6 +69,7 @@ class EpisodeOutcome:
             trace_path=d.get("trace_path"),
             phi_hash=d.get("phi_hash"),
             intervened_steps=None if d.get("intervened_steps") is None else int(d["intervened_steps"]),
+            strict_success=None if d.get("strict_success") is None else bool(d["strict_success"]),
         )
 
 

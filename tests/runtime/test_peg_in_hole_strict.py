@@ -121,3 +121,23 @@ def test_with_the_tasks_own_termination_the_episode_ends_before_the_peg_is_in() 
     assert rows[-1]["is_success"] and rows[-1]["success_now"]
     assert rows[-1]["peg_inserted"] == 0.0 and rows[-1]["latched"] is False
     assert max(r["peg_hole_contact_force"] for r in rows) == 0.0
+    assert env.strict_success is False  # what every outcome reports beside robosuite's success
+
+
+def test_every_episode_outcome_reports_the_strict_check_beside_success(tmp_path) -> None:
+    """``EpisodeOutcome.strict_success``: T6's latched check, None for a task without one."""
+    from capevo.agent import DecompositionPolicy, IdentityMemory
+    from capevo.learner.skills import seed_registry
+    from capevo.registry.local import LocalRegistry
+    from capevo.runtime.evaluation import EpisodeOutcome
+    from capevo.runtime.evaluator import LocalEvaluator
+
+    with LocalRegistry(tmp_path / "reg", actor="tests") as reg:
+        seed_registry(reg, "T6")
+        seed_registry(reg, "T1")
+        policy = DecompositionPolicy(identity=IdentityMemory.default())
+        with LocalEvaluator(reg, policy=policy, trace_dir=None, horizon=20) as ev:
+            t6 = ev.evaluate("T6", {}, [5])[0]
+            t1 = ev.evaluate("T1", {}, [5])[0]
+    assert t6.strict_success is False and t1.strict_success is None
+    assert EpisodeOutcome.from_dict(t6.to_dict()) == t6

@@ -394,6 +394,13 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         """Latched success of the current episode."""
         return self._success
 
+    @property
+    def strict_success(self) -> bool | None:
+        """A stricter success check reported beside :attr:`is_success`, latched per episode, for
+        tasks whose robosuite criterion passes short of the job (T6: the peg through the plate);
+        None for tasks without one."""
+        return None
+
     def flatten(self, obs_dict: dict[str, np.ndarray]) -> np.ndarray:
         """Concatenate ``task_spec.observation_keys`` of ``obs_dict`` into the flat float32 vector."""
         return np.concatenate(

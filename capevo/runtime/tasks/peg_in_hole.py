@@ -288,6 +288,11 @@ class PegInHoleTask(TaskEnv):
         """Latched strict insertion of the current episode (see the module docstring)."""
         return self._inserted
 
+    @property
+    def strict_success(self) -> bool | None:
+        """:attr:`peg_inserted`: the strict check every outcome reports beside robosuite's success."""
+        return self._inserted
+
     def _apply_jitter(self, rng: np.random.Generator, half_width: float) -> None:
         # Each end effector moves by (dx, dy) with height and orientation kept, through the joint
         # offset pinv(J) [dx, dy, 0, 0, 0, 0]; redrawn while the peg would start inside the plate.
