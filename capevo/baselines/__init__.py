@@ -1,4 +1,4 @@
-"""The methods capevo is compared against (issue 20, paper §5.2), one module per method, and the
+"""The methods capevo is compared against (issue 20, paper §4.1 "Baselines"), one module per method, and the
 record types every method of the experiment harness shares (:mod:`capevo.baselines.base`).
 
 The methods and the governed whole-task env load robosuite (and torch when they run) only when

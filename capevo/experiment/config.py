@@ -1,5 +1,5 @@
 """Experiment grids: a YAML file (or a preset) naming tasks × methods × seeds, iterations, one budget,
-Φ, governance and perturbations (issue 20, paper §5 "Experimental Setup").
+Φ, governance and perturbations (issue 20, paper §4.1 "Experimental Setup").
 
 A config file::
 
@@ -51,10 +51,10 @@ from capevo.baselines.base import MAX_CELL_SEED, Budget, CellSpec
 from capevo.errors import Invalid
 
 PAPER_SEEDS: tuple[int, ...] = (42, 7, 123, 2024)
-"""The paper's four seeds (§5 "Experimental Setup")."""
+"""The paper's four seeds (§4.1 "Experimental Setup")."""
 ALL_TASKS: tuple[str, ...] = ("T1", "T2", "T3", "T4", "T5", "T6")
 PAPER_METHODS: tuple[str, ...] = ("ours-code", "am", "s-ecm", "spirl", "skimo")
-"""The paper's five methods (§5.2): ours, Agent Modification, Static ECM, SPiRL, SkiMo."""
+"""The paper's five methods (§4.1, Baselines): ours, Agent Modification, Static ECM, SPiRL, SkiMo."""
 ENTRY_FIELDS = frozenset({"method", "tasks", "seeds", "iterations", "phi", "governance", "perturbations", "options"})
 TOP_FIELDS = frozenset(
     {"name", "tasks", "seeds", "iterations", "budget", "phi", "governance", "perturbations", "methods", "preset"}
@@ -444,7 +444,7 @@ BASELINE_METHODS: tuple[str, ...] = ("am", "am-bc", "spirl", "skimo")
 
 @register_experiment("paper")
 def _paper() -> ExperimentConfig:
-    """The paper's grid (§5 "Experimental Setup"): 6 tasks, its 5 methods (plus ours with
+    """The paper's grid (§4.1 "Experimental Setup"): 6 tasks, its 5 methods (plus ours with
     neural ECMs and AM warm-started by BC, issue 20's fairness rows), seeds {42, 7, 123, 2024},
     20 iterations, 50,000 env steps per ECM per iteration and 30 held-out episodes.
 

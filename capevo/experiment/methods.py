@@ -1,4 +1,4 @@
-"""The methods a grid may name (issue 20, paper §5.2): ours, the static lower bound, the H3 explorer,
+"""The methods a grid may name (issue 20, paper §4.1 "Baselines"): ours, the static lower bound, the H3 explorer,
 and the baselines of :mod:`capevo.baselines`, which are imported by name only when a cell runs.
 
 ==================  =========================================================================
@@ -277,7 +277,7 @@ class OursNeural(Ours):
 
 
 class StaticEcm:
-    """Static ECM (paper §5.2): the task's version 0 code ECMs (hand-written, untuned), never updated.
+    """Static ECM (paper §4.1 "Baselines"): the task's version 0 code ECMs (hand-written, untuned), never updated.
 
     It trains nothing, so every record's ``env_steps_train`` is 0 (it spends none of the budget:
     the lower bound). Its policy is the same in every iteration and the evaluation seeds are the
@@ -352,7 +352,7 @@ def _action_frames(task: str) -> Any:
 
 
 class Explorer:
-    """H3 (paper §5.5): the aggressive exploratory policy under governance on or off.
+    """H3 (paper §4.5): the aggressive exploratory policy under governance on or off.
 
     Every ECM of the task is one adversarial code ECM of :mod:`capevo.runtime.tasks.adversarial`
     (hand-written to break Φ; nothing is learned), the first runs the whole episode (no step

@@ -9,7 +9,7 @@ the nut's position it asks the hand to be away from the nut's centre (robosuite'
 still held counts, and ``release`` follows only to leave the scene clean.
 
 Horizon: 300 control steps (15 s at robosuite's 20 Hz), ``default_horizon`` in the spec. The paper
-(§5.1) names no horizon and robosuite's own default is 1000; capevo fixed 300 when the task was first
+(§4.1) names no horizon and robosuite's own default is 1000; capevo fixed 300 when the task was first
 written, before any evolution run, and keeps it: it is part of the task, not of a budget, and is never
 changed to make a target pass.
 

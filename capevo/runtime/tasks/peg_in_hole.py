@@ -23,7 +23,7 @@ plate's thickness) and peg and hole are aligned as robosuite requires (|cos| > 0
 :attr:`PegInHoleTask.peg_inserted` latches it per episode as ``info["is_success"]`` latches robosuite's.
 
 Horizon: 300 control steps (15 s at robosuite's 20 Hz), ``default_horizon`` in the spec. The paper
-(§5.1) names no horizon and robosuite's own default is 1000; capevo fixed 300 when the task was first
+(§4.1) names no horizon and robosuite's own default is 1000; capevo fixed 300 when the task was first
 written (before any evolution run) and keeps it: it is part of the task, not of a budget, and is never
 changed to make a target pass. v0 does not finish within it (issue 19 measured 0/3 at 300 steps and
 3/3 at 600, 3-26 steps too slow): that is one of v0's weaknesses, its low gains, for the learners to

@@ -1,7 +1,7 @@
 """T3 stack: robosuite Stack, put the red cube A on the green cube B.
 
 Success is robosuite's own ``Stack._check_success`` (Invariant 1), latched per episode. Horizon: 200
-control steps (10 s at robosuite's 20 Hz), ``default_horizon`` in the spec. The paper (§5.1) names no
+control steps (10 s at robosuite's 20 Hz), ``default_horizon`` in the spec. The paper (§4.1) names no
 horizon and robosuite's own default is 1000; capevo fixed 200 when the task was first written, before
 any evolution run, and keeps it: it is part of the task, not of a budget, and is never changed to make
 a target pass.
