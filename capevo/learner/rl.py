@@ -509,7 +509,11 @@ class SacLearner:
         """Clone :attr:`bc`'s demonstrations into a randomly initialised actor."""
         if self.bc is None:
             return None
-        demos = self.bc.gather(request, target)
+        try:
+            demos = self.bc.gather(request, target)
+        except Invalid as exc:  # no scripted reference and no successful trace yet (T4-T6)
+            log.warning("%s: nothing to clone (%s); SAC starts from the random v0", request.ecm, exc.message)
+            return None
         report = behaviour_clone(model, demos, self.distill)
         log.info(
             "%s: cloned %d demonstration steps (%s) into the random v0: loss %.4f -> %.4f",

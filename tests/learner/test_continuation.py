@@ -140,3 +140,14 @@ def test_bc_keeps_every_demonstration_and_continues_from_its_latest(registry: Lo
     assert LearnerState(state_dir, ECM).latest() == b.artifact
     # b started from a's weights: its loss before cloning is a's loss after, on a's rows
     assert b.notes["bc"]["loss_before"] < a.notes["bc"]["loss_before"]
+
+
+@pytest.mark.slow
+def test_sac_on_a_random_v0_without_anything_to_clone_starts_from_its_weights(registry: LocalRegistry) -> None:
+    """No scripted rollouts and no successful traces (T4-T6 have no scripted reference): SAC
+    trains from the random v0 instead of failing the update."""
+    bc = BcLearner(config=BC, env_config=ENV_CONFIG, registry=registry, scripted_episodes=0)
+    cand = SacLearner(config=SAC, env_config=ENV_CONFIG, registry=registry, bc=bc, torch_threads=1).learn(
+        _request(registry)
+    )
+    assert cand.notes["warm_start"] == "weights" and cand.notes["train"]["steps"] == SAC.total_steps
