@@ -60,6 +60,7 @@ def test_state_files_round_trip_and_demos_accumulate(tmp_path: Path) -> None:
     b = (np.full((2, 4), 2.0, np.float32), np.ones((2, 2), np.float32))
     state.add_demos(*a)
     obs, act = state.add_demos(*b)
+    np.testing.assert_array_equal(act, np.concatenate([a[1], b[1]]))
     np.testing.assert_array_equal(obs, np.concatenate([a[0], b[0]]))  # invariant 2: stored rows first
     np.testing.assert_array_equal(LearnerState(tmp_path, ECM).demos()[1], np.concatenate([a[1], b[1]]))
     with pytest.raises(Invalid) as info:
@@ -119,9 +120,9 @@ def test_sac_continues_from_its_rejected_candidate_and_keeps_its_buffer(
 @pytest.mark.slow
 def test_sac_on_a_random_v0_starts_from_a_cloned_actor(registry: LocalRegistry) -> None:
     bc = BcLearner(config=BC, env_config=ENV_CONFIG, registry=registry, scripted_episodes=2)
-    cloned = SacLearner(
-        config=SAC, env_config=ENV_CONFIG, registry=registry, bc=bc, distill=BC, torch_threads=1
-    ).learn(_request(registry))
+    cloned = SacLearner(config=SAC, env_config=ENV_CONFIG, registry=registry, bc=bc, distill=BC, torch_threads=1).learn(
+        _request(registry)
+    )
     assert cloned.notes["warm_start"] == "cloned"
     distill = cloned.notes["train"]["distill"]
     assert distill["samples"] > 0 and distill["loss_after"] < distill["loss_before"]
