@@ -484,8 +484,9 @@ def _cpu_small() -> ExperimentConfig:
 
     Ours (code and neural) uses the evolve preset ``cpu-small`` with 3 live and 6 paired gate
     episodes per iteration: on T1 3 × 150 + 2 × 6 × 150 = 2,250 steps reserved at the horizon, the
-    rest (5,750) for CEM (about 19 candidates of 2 episodes) or SAC; on T6 4,500 reserved, 3,500 left. With the ``tiny`` CEM and 4,000
-    steps per iteration T1 stayed at 0/10 held-out over 3 iterations (measured once, 46 s).
+    rest (5,750) for CEM (about 19 candidates of 2 episodes) or SAC; on T6 4,500 reserved, 3,500
+    left. With the ``tiny`` CEM and 4,000 steps per iteration T1 stayed at 0/10 held-out over 3
+    iterations (measured once, 46 s).
     """
     ours = {"preset": "cpu-small", "live_episodes": 3, "gate_episodes": 6}
     return ExperimentConfig(
