@@ -253,6 +253,7 @@ def _markdown(
     add("|---|---|")
     add(f"| task | {spec.id} `{spec.name}` (robosuite {spec.env_name}): {spec.success_text} |")
     add(f"| decomposition | {' → '.join(f'`{n}`' for n in spec.ecm_names)} |")
+    add(f"| hand-offs | {spec.handoff_text} |")
     add(
         f"| preset | `{cfg.preset}`: {cfg.live_episodes} live episodes/iteration, gate N = {cfg.gate_episodes} "
         f"paired held-out seeds, horizon {cfg.horizon or spec.default_horizon} |"

@@ -43,6 +43,8 @@ def test_report_states_v0_result_gate_and_identity(tmp_path: Path) -> None:
     text = (loop.report_dir / "report.md").read_text()
     assert "Version 0 is **manual creation**" in text and "deliberately left untuned" in text
     assert "| `pick.reach` | code | manual |" in text
+    # the hand-off oracle is named (issue 19): the predicates read exact simulator state
+    assert "| hand-offs | hand-offs between ECMs read exact simulator state" in text and "grasped" in text
     # start vs final on the same seeds, with the paired test
     assert "| start (iteration 0, live seeds) | grasp@0, lift@0, reach@0 | 0/3 = 0%" in text
     assert "| final (same seeds) | grasp@0, lift@0, reach@1 | 3/3 = 100%" in text
