@@ -450,3 +450,18 @@ def kill(proc: subprocess.Popen[Any]) -> None:
     if proc.poll() is None:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
+
+
+def registry_server(tmp_path: Path, endpoint: str) -> Child:
+    """A registry server process on ``endpoint`` with its root under ``tmp_path``, ready."""
+    registry = Child(
+        [sys.executable, "-m", "capevo.registry.service", "--root", str(tmp_path / "registry"), "--listen", endpoint],
+        tmp_path,
+        "registry",
+    )
+    try:
+        registry.wait_event("ready", timeout=60)
+    except BaseException:
+        registry.stop()
+        raise
+    return registry

@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from evolve_support import Child, evolve_command, wait_for
+from evolve_support import Child, evolve_command, registry_server, wait_for
 
 from capevo.records import Action, Origin, State
 from capevo.registry.client import Client
@@ -31,21 +31,7 @@ def test_registry_runtime_and_learner_processes_complete_an_iteration(tmp_path: 
     report = tmp_path / "report"
     children: list[Child] = []
     try:
-        registry = Child(
-            [
-                sys.executable,
-                "-m",
-                "capevo.registry.service",
-                "--root",
-                str(tmp_path / "registry"),
-                "--listen",
-                endpoint,
-            ],
-            tmp_path,
-            "registry",
-        )
-        children.append(registry)
-        registry.wait_event("ready", timeout=60)
+        children.append(registry_server(tmp_path, endpoint))
 
         evolve = Child(
             evolve_command(

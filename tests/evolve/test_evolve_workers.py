@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from evolve_support import Child, evolve_command, wait_for
+from evolve_support import Child, evolve_command, registry_server, wait_for
 
 from capevo.registry.client import Client
 
@@ -28,21 +28,7 @@ def test_live_gate_and_cem_episodes_all_run_on_the_workers(tmp_path: Path, free_
     report = tmp_path / "report"
     children: list[Child] = []
     try:
-        registry = Child(
-            [
-                sys.executable,
-                "-m",
-                "capevo.registry.service",
-                "--root",
-                str(tmp_path / "registry"),
-                "--listen",
-                endpoint,
-            ],
-            tmp_path,
-            "registry",
-        )
-        children.append(registry)
-        registry.wait_event("ready", timeout=60)
+        children.append(registry_server(tmp_path, endpoint))
         evolve = Child(
             evolve_command(
                 "--task",
