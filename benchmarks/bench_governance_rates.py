@@ -225,14 +225,24 @@ def _job_path(out: str, task: str, phi: str, mode: str, name: str, episodes: int
     return _common.RESULTS_DIR / f"{out}.jobs" / f"{task}-{phi}-{mode}-{name}-n{episodes}-h{horizon}.json"
 
 
-def _cached(path: Path, name: str) -> dict[str, Any] | None:
+def _phi_hash(task: str, phi_kind: str) -> str:
+    """The hash of the envelope a job of ``task`` runs under (``run_job`` builds the same Φ from its env)."""
+    from capevo.runtime.governance import Phi
+    from capevo.runtime.tasks import task_spec
+
+    return (Phi.default() if phi_kind == "paper" else Phi.for_task(task_spec(task))).hash
+
+
+def _cached(path: Path, name: str, phi_hash: str) -> dict[str, Any] | None:
+    """The job's earlier result, if it ran the same adversary source under the same Φ."""
     if not path.exists():
         return None
     try:
         job = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    return job if job.get("source_sha256") == source_digest(name) else None
+    same = job.get("source_sha256") == source_digest(name) and job.get("phi_hash") == phi_hash
+    return job if same else None
 
 
 def _tally(counts: Mapping[str, int]) -> str:
@@ -283,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
     pending = []
     for task, phi, mode, name, seeds in todo:
         path = _job_path(args.out, task, phi, mode, name, args.episodes, args.horizon)
-        job = None if args.fresh else _cached(path, name)
+        job = None if args.fresh else _cached(path, name, _phi_hash(task, phi))
         if job is not None:
             results.append(job)
             _progress(len(results), len(todo), job, " (cached)")

@@ -10,7 +10,8 @@ ramp takes over from there.
 
 Per arm and pair ``(dist, n, r, owner)`` with ``q < 1``, where
 ``q = t + (1 − t) · clip((dist − clearance) / b, 0, 1)`` (``t``, ``b``: ``touch_loose`` and
-``brake_loose`` for a movable object, ``touch`` and ``brake`` otherwise):
+``brake_loose`` for a movable object, ``touch_arm`` (when set) and ``brake`` for another arm,
+``touch`` and ``brake`` otherwise):
 
 * translation: the approaching components (``a_k · n_k > 0``) are shrunk so that their
   closing speed ``Σ_{a_k n_k > 0} a_k · n_k`` is at most ``q`` (receding components are left
@@ -23,12 +24,16 @@ Per arm and pair ``(dist, n, r, owner)`` with ``q < 1``, where
   scene's bound (``touch``, ``brake``) on its own: pushed sideways such an object slides,
   pushed down it is pinned against what it rests on;
 * rotation (``rotation``): every rotation component is limited to
-  ``q · min(1, lever / |r|)``: turning swings the hand's far points, the more the farther
-  they are from the site;
+  ``q_turn · min(1, lever / |r|)`` with ``q_turn = min(q, t_rot + (1 − t_rot) · clip((dist −
+  clearance) / brake, 0, 1))`` (``t_rot`` = ``touch_rotation``; unset, ``q_turn = q``): turning
+  swings the hand's far points, the more the farther they are from the site, and a hand in
+  contact that turns wedges what it touches (measured on T6, the AM-bc baseline of
+  ``results/cpu-small``: twisting the peg in the plate's hole at 0.04 read 45-66 N with every
+  translation already held);
 * another arm (``owner`` another arm of the layout: the pair's other geom is that arm's hand
   or one of its links): the same for that arm with ``−n`` (its components with
-  ``a_k · n_k < 0``), and with ``rotation`` its rotation components are limited to ``q``, so
-  neither side closes the gap fast.
+  ``a_k · n_k < 0``), and with ``rotation`` its rotation components are limited to ``q_turn``,
+  so neither side closes the gap fast.
 
 ``touch > 0`` keeps the hand able to close a small gap (to grasp, place or insert) at a gentle
 speed; OSC's steady push at that speed stays far below the force limit.
@@ -38,9 +43,10 @@ Invariants (per arm, after the check):
    movable object with ``n_z < 0`` and ``q > q_fixed(dist)`` the sum is over x and y, and
    ``a_z · n_z <= q_fixed(dist)``.
 2. With ``rotation``, every rotation component has ``|ω_k| <= min over those pairs of
-   q · min(1, lever / |r|)`` (``q`` the smaller of the two bounds for a movable object below).
+   q_turn · min(1, lever / |r|)`` (``q`` the smaller of the two bounds for a movable object below).
 3. For a pair whose ``owner`` is another arm ``j`` of the layout, arm ``j`` has
-   ``Σ_{k: a_k n_k < 0} −a_k · n_k <= q(dist)`` and (with ``rotation``) ``|ω_k| <= q`` for its rotation components.
+   ``Σ_{k: a_k n_k < 0} −a_k · n_k <= q(dist)`` and (with ``rotation``) ``|ω_k| <= q_turn`` for its
+   rotation components.
 4. Only those components change, by clamping towards 0 (sign kept); arms no pair concerns
    are untouched; an action no rule touches is allowed (None) and never copied. Per pair, each
    approaching component loses ``λ · |n_k|`` or, if that is more, all of itself, one ``λ`` for all.
@@ -74,7 +80,11 @@ class ContactApproach(ConstraintBase):
         touch_loose: The same for a pair with a movable object (``owner`` -2), which gives way
             when pushed; in [0, 1].
         brake_loose: ``brake`` for a pair with a movable object; None: ``brake``; > 0.
+        touch_arm: ``touch`` for a pair with another arm (its hand, what it holds, or a link);
+            None: ``touch``; in [0, 1].
         rotation: Also limit the rotation components near a pair.
+        touch_rotation: The rotation components' own floor at the clearance, ramping to 1 over
+            ``brake`` like ``touch``; None: the translation's bound alone; in [0, 1].
         lever: Metres; a pair farther than this from the site limits rotation more; > 0.
         name: Label for interventions; defaults to the kind.
 
@@ -90,7 +100,9 @@ class ContactApproach(ConstraintBase):
     touch: float = 0.04
     touch_loose: float = 0.04
     brake_loose: float | None = None
+    touch_arm: float | None = None
     rotation: bool = True
+    touch_rotation: float | None = None
     lever: float = 0.1
     name: str | None = None
 
@@ -104,6 +116,10 @@ class ContactApproach(ConstraintBase):
             raise invalid("touch", f"must be in [0, 1], got {self.touch}")
         if not 0 <= self.touch_loose <= 1:
             raise invalid("touch_loose", f"must be in [0, 1], got {self.touch_loose}")
+        if self.touch_arm is not None and not 0 <= self.touch_arm <= 1:
+            raise invalid("touch_arm", f"must be in [0, 1], got {self.touch_arm}")
+        if self.touch_rotation is not None and not 0 <= self.touch_rotation <= 1:
+            raise invalid("touch_rotation", f"must be in [0, 1], got {self.touch_rotation}")
         if self.brake_loose is not None and not self.brake_loose > 0:
             raise invalid("brake_loose", f"must be > 0, got {self.brake_loose}")
         if not self.lever > 0:
@@ -115,8 +131,16 @@ class ContactApproach(ConstraintBase):
         brake = self.brake_loose if loose and self.brake_loose is not None else self.brake
         x = (dist - self.clearance) / brake
         x = 0.0 if x < 0.0 else 1.0 if x > 1.0 else x
-        t = self.touch_loose if loose else self.touch
+        t = self.touch_loose if loose else self.touch_arm if owner >= 0 and self.touch_arm is not None else self.touch
         return t + (1.0 - t) * x
+
+    def rotation_bound(self, dist: float) -> float:
+        """Largest rotation component ``touch_rotation`` allows at ``dist`` metres (inf when unset)."""
+        if self.touch_rotation is None:
+            return math.inf
+        x = (dist - self.clearance) / self.brake
+        x = 0.0 if x < 0.0 else 1.0 if x > 1.0 else x
+        return self.touch_rotation + (1.0 - self.touch_rotation) * x
 
     def compile(self, layout: ActionLayout) -> Check:
         band = self.clearance + max(self.brake, self.brake_loose or 0.0)
@@ -128,6 +152,12 @@ class ContactApproach(ConstraintBase):
         br_loose = self.brake_loose if self.brake_loose is not None else self.brake
         t_loose = self.touch_loose
         u_fixed, u_loose = 1.0 - t_fixed, 1.0 - t_loose
+        # Another arm's own floor (None: the fixed scene's touch, bit for bit)
+        t_arm = self.touch_arm if self.touch_arm is not None else t_fixed
+        u_arm = 1.0 - t_arm
+        # Rotation's own floor: None keeps the translation's bound q (bit for bit).
+        t_rot = self.touch_rotation
+        u_rot = 1.0 - t_rot if t_rot is not None else 0.0
         # With the same settings a movable object's bound is the fixed one, bit for bit, so it
         # needs no second bound (repr, not ==: a touch of -0.0 gives a bound of -0.0 at 0 m).
         split = repr((br_loose, t_loose)) != repr((br_fixed, t_fixed))
@@ -168,7 +198,7 @@ class ContactApproach(ConstraintBase):
                     else:
                         x = (dist - cl) / br_fixed
                         x = 0.0 if x < 0.0 else 1.0 if x > 1.0 else x
-                        q = q_down = t_fixed + u_fixed * x
+                        q = q_down = (t_arm + u_arm * x) if owner >= 0 else (t_fixed + u_fixed * x)
                     if q >= 1.0 and q_down >= 1.0:
                         continue  # at the edge of the band: nothing to limit
                     # Closing speed of the approaching components alone, summed as brake_along
@@ -195,12 +225,18 @@ class ContactApproach(ConstraintBase):
                             brake_along(arm, ((0, nx), (1, ny), (2, nz)), q)
                             touched[i] = True
                     if turn:
+                        q_turn = q
+                        if t_rot is not None:
+                            xr = (dist - cl) / br_fixed
+                            xr = t_rot + u_rot * (0.0 if xr < 0.0 else 1.0 if xr > 1.0 else xr)
+                            if xr < q:
+                                q_turn = xr
                         rr = rx * rx + ry * ry + rz * rz
                         if rr < lever2:
-                            qr = q  # |r| < lever for sure: no sqrt needed for a factor of 1
+                            qr = q_turn  # |r| < lever for sure: no sqrt needed for a factor of 1
                         else:
                             r = sqrt(rr) if isfinite(rx + ry + rz) else inf
-                            qr = q * (lever / r if r > lever else 1.0)
+                            qr = q_turn * (lever / r if r > lever else 1.0)
                         if qr < qr_i:
                             qr_i = qr
                     if 0 <= owner < n_arms and owner != i:
@@ -215,8 +251,8 @@ class ContactApproach(ConstraintBase):
                         if c > q:
                             brake_along(other, ((0, nx), (1, ny), (2, nz)), q, sign=-1.0)
                             touched[owner] = True
-                        if turn and q < q_rot[owner]:
-                            q_rot[owner] = q
+                        if turn and q_turn < q_rot[owner]:
+                            q_rot[owner] = q_turn
                 q_rot[i] = qr_i
             b: list[float] | None = None
             notes: list[str] = []

@@ -96,9 +96,22 @@ PANDA_HAND: tuple[Aabb, ...] = (
 fingertips, +x along the fingers' travel): the hand body, and both fingers fully open.
 Measured from the model's geom bounding boxes."""
 CONTACT_APPROACH: Mapping[str, float] = MappingProxyType(
-    {"clearance": 0.005, "brake": 0.1, "touch": 0.04, "touch_loose": 0.04}
+    {
+        "clearance": 0.005,
+        "brake": 0.1,
+        "touch": 0.04,
+        "touch_loose": 0.04,
+        "touch_arm": 0.01,
+        "touch_rotation": 0.01,
+    }
 )
-"""``contact_approach`` settings of every per-task Φ."""
+"""``contact_approach`` settings of every per-task Φ. ``touch_arm`` and ``touch_rotation`` are a
+quarter of ``touch``: a learned whole-task policy (the AM-bc baseline of ``results/cpu-small``)
+found that the two arms of T6 meet with their heavy links behind the hands (29-52 N at the
+translation touch speed, link 5 or 6 against the other arm or its plate) and that twisting the
+peg in the plate's hole at 0.04 wedges it (45-66 N with every translation held). With both at
+0.01, that policy's unsafe T6 episodes on its held-out seeds went from 3/10 to 0/10 (iteration 3)
+and from 3/10 to 1/10 (iteration 1; the one step left read 21.3 N, link 5 on link 5)."""
 FORCE_MARGIN = 2.0
 """Newtons below the paper's 20 N at which ``force_ramp`` ends its ramp and starts backing off.
 Governance reads the wrist sensor with the hand's weight removed but not its acceleration
@@ -108,8 +121,15 @@ against a true 19.57 N (MuJoCo's contact forces). 2 N, four times that error, ke
 FORCE_RELEASE = 0.02
 """Hysteresis of ``force_ramp``: after a force above its limit, motion into that contact is held
 until the hand has backed off 2 cm (a re-approach at touch speed then starts from clear of it)."""
-SURFACE_CLEARANCE = -0.004
-"""Let the fingertips settle 4 mm "into" the surface: the OSC push that remains there is gentle (about 10 N)."""
+SURFACE_CLEARANCE = 0.0
+"""The fingertips stop at the surface, not in it. A clearance of -0.004 let them settle 4 mm
+"into" it with a gentle OSC push (about 10 N on average), but a hand dragged along the surface
+there (``lateral`` 0.2) chatters: measured on the AM-bc baseline's T1 policy
+(``results/cpu-small``, seed 2000042000), a fingertip sliding on the bin floor touched it in one
+2 ms substep of every ~17, at 30-34 N each time (1.9 N averaged over the control step), and the
+last substep of 5 of 10 held-out episodes caught such a touch. At 0.0 the same policy's episodes
+have none (0/10), and the scripted references keep their success (``capevo.runtime.tasks.bench
+--phi task``)."""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

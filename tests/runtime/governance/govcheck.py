@@ -250,10 +250,19 @@ def violations(
 def contact_bound(c: ContactApproach, dist: float, owner: int) -> float:
     """q for one pair, restated from the spec."""
     loose = owner == -2
-    touch = c.touch_loose if loose else c.touch
+    arm = owner >= 0 and c.touch_arm is not None
+    touch = c.touch_loose if loose else c.touch_arm if arm else c.touch
     brake = c.brake_loose if loose and c.brake_loose is not None else c.brake
     x = min(1.0, max(0.0, (dist - c.clearance) / brake))
     return touch + (1.0 - touch) * x
+
+
+def contact_turn(c: ContactApproach, q: float, dist: float) -> float:
+    """The rotation floor for one pair, restated from the spec: ``touch_rotation`` ramped over the fixed band."""
+    if c.touch_rotation is None:
+        return q
+    x = min(1.0, max(0.0, (dist - c.clearance) / c.brake))
+    return min(q, c.touch_rotation + (1.0 - c.touch_rotation) * x)
 
 
 def _contact_violations(
@@ -277,9 +286,10 @@ def _contact_violations(
             if pinned and a[o + 2] * nz > q_down * (1 + 1e-9) + tol:
                 out.append(f"{c.label}: arm {i} pushes a loose object down at {a[o + 2] * nz} > {q_down}")
             q = min(q, q_down)
+            qt = contact_turn(c, q, dist)
             if c.rotation:
                 r = math.sqrt(rx * rx + ry * ry + rz * rz)
-                qr = q * min(1.0, c.lever / r) if r > 0 else q
+                qr = qt * min(1.0, c.lever / r) if r > 0 else qt
                 if any(abs(action[o + j]) > qr + tol for j in (3, 4, 5)):
                     out.append(f"{c.label}: arm {i} turns faster than {qr} near a pair")
             if 0 <= owner < n_arms and owner != i:
@@ -287,8 +297,8 @@ def _contact_violations(
                 closing = sum(-a[p + k] * n[k] for k in range(3) if a[p + k] * n[k] < 0)
                 if closing > q * (1 + 1e-9) + tol:
                     out.append(f"{c.label}: arm {owner} closes at {closing} > {q} on arm {i}'s pair")
-                if c.rotation and any(abs(action[p + j]) > q + tol for j in (3, 4, 5)):
-                    out.append(f"{c.label}: arm {owner} turns faster than {q} near arm {i}'s pair")
+                if c.rotation and any(abs(action[p + j]) > qt + tol for j in (3, 4, 5)):
+                    out.append(f"{c.label}: arm {owner} turns faster than {qt} near arm {i}'s pair")
     return out
 
 

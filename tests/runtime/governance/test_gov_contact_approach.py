@@ -68,6 +68,8 @@ def test_config_round_trips_and_bad_values_name_their_field() -> None:
         ("touch_loose", -0.1, "touch_loose: must be in [0, 1], got -0.1"),
         ("brake_loose", 0.0, "brake_loose: must be > 0, got 0.0"),
         ("lever", 0.0, "lever: must be > 0, got 0.0"),
+        ("touch_arm", 1.01, "touch_arm: must be in [0, 1], got 1.01"),
+        ("touch_rotation", -0.5, "touch_rotation: must be in [0, 1], got -0.5"),
     ]:
         with pytest.raises(Invalid) as e:
             ContactApproach(**{field: value})
@@ -207,6 +209,23 @@ def test_a_pair_with_the_other_arm_slows_both_arms() -> None:
     assert away[1] == -1.0 and away[7] == 1.0
 
 
+def test_another_arm_and_turning_get_their_own_floor_at_the_clearance() -> None:
+    rule = ContactApproach(touch=0.04, touch_arm=0.01, touch_rotation=0.01)
+    arm0 = scene((0.0, -0.1, 1.0), pair(0.0, (0.0, 1.0, 0.0), owner=1), pair(0.0, (0.0, 0.0, -1.0)))
+    state = RobotState(arms=(arm0, scene((0.0, 0.1, 1.0))))
+    push = [0.0, 1.0, -1.0, 0.5, -0.5, 0.5, 0.0, -1.0, 0.0, 0.5, 0.5, 0.5]
+    out, _ = govern(rule, state, push, TWO_ARM_NO_GRIPPER)
+    # towards the other arm at touch_arm, both sides; down onto the fixed scene at touch
+    assert out[1] == pytest.approx(0.01) and out[7] == pytest.approx(-0.01)
+    assert out[2] == pytest.approx(-0.04)
+    # turning at touch_rotation on both arms, below both translation floors
+    assert out[3:6] == pytest.approx((0.01, -0.01, 0.01)) and out[9:12] == pytest.approx((0.01, 0.01, 0.01))
+    # half-way through the band every floor has ramped half-way to full speed
+    half = ContactApproach(touch_rotation=0.0).rotation_bound(0.005 + 0.05)
+    assert half == pytest.approx(0.5)
+    assert ContactApproach().rotation_bound(0.0) == math.inf
+
+
 @pytest.mark.parametrize("bad", [math.nan, math.inf])
 def test_a_non_finite_pair_is_rejected(bad: float) -> None:
     state = RobotState(arms=(scene((0.0, 0.0, 1.0), (bad, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, FIXED)),))
@@ -233,7 +252,9 @@ RULES = st.builds(
     touch=st.floats(0.0, 1.0),
     touch_loose=st.floats(0.0, 1.0),
     brake_loose=st.one_of(st.none(), st.floats(0.01, 0.2)),
+    touch_arm=st.one_of(st.none(), st.floats(0.0, 1.0)),
     rotation=st.booleans(),
+    touch_rotation=st.one_of(st.none(), st.floats(0.0, 1.0)),
 )
 COMPONENT = st.one_of(st.floats(-3.0, 3.0), st.sampled_from([0.0, 1.0, -1.0]))
 
@@ -280,13 +301,14 @@ def reference(rule: ContactApproach, arms: Any, a: list[float], layout: Any) -> 
             else:
                 brake_along(arm, ((0, nx), (1, ny), (2, nz)), q)
             q = min(q, q_down)
+            q_turn = min(q, rule.rotation_bound(dist))
             if rule.rotation:
                 r = math.sqrt(rx * rx + ry * ry + rz * rz) if math.isfinite(rx + ry + rz) else math.inf
-                q_rot[i] = min(q_rot[i], q * (rule.lever / r if r > rule.lever else 1.0))
+                q_rot[i] = min(q_rot[i], q_turn * (rule.lever / r if r > rule.lever else 1.0))
             if 0 <= owner < n and owner != i:
                 brake_along(poses[owner], ((0, nx), (1, ny), (2, nz)), q, sign=-1.0)
                 if rule.rotation:
-                    q_rot[owner] = min(q_rot[owner], q)
+                    q_rot[owner] = min(q_rot[owner], q_turn)
     b, notes = None, []
     for i, o in enumerate(offsets):
         arm = poses[i]
@@ -352,7 +374,9 @@ def test_the_task_phi_adds_contact_approach_before_the_cap() -> None:
         assert "contact_approach" in labels and labels[-1] == "velocity_cap"
         assert labels[:2] == ("workspace_box", "contact_force")
     rule = next(c for c in Phi.for_task(task_spec("T3")).constraints if isinstance(c, ContactApproach))
-    assert rule == ContactApproach(clearance=0.005, brake=0.1, touch=0.04, touch_loose=0.04)
+    assert rule == ContactApproach(
+        clearance=0.005, brake=0.1, touch=0.04, touch_loose=0.04, touch_arm=0.01, touch_rotation=0.01
+    )
 
 
 def test_reach_creep_leaves_a_slow_outward_motion_up_to_the_edge_only() -> None:

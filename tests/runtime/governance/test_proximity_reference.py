@@ -151,7 +151,7 @@ def test_near_reports_what_the_pair_by_pair_reference_reports(task: str) -> None
         env.close()
 
 
-def test_two_arm_sensing_covers_the_wrists_and_single_arm_sensing_the_hand_only() -> None:
+def test_two_arm_sensing_covers_the_forearms_and_single_arm_sensing_the_hand_only() -> None:
     for task, wrist in (("T6", True), ("T1", False)):
         env = make_task(task, horizon=5)
         try:
@@ -164,6 +164,6 @@ def test_two_arm_sensing_covers_the_wrists_and_single_arm_sensing_the_hand_only(
                 )
                 bodies = set(names)
                 links = {b for b in bodies if b.startswith(f"robot{arm}_link")}
-                assert links == ({f"robot{arm}_link6", f"robot{arm}_link7"} if wrist else set()), bodies
+                assert links == ({f"robot{arm}_link{k}" for k in (5, 6, 7)} if wrist else set()), bodies
         finally:
             env.close()
