@@ -58,7 +58,16 @@ def main(argv: list[str] | None = None) -> int:
     worker = str(HERE / "bench_worker.py")
     parts = [
         _part(
-            [rates, "--episodes", str(args.episodes), "--horizon", str(args.horizon), "--jobs", str(args.jobs), "--fresh"]
+            [
+                rates,
+                "--episodes",
+                str(args.episodes),
+                "--horizon",
+                str(args.horizon),
+                "--jobs",
+                str(args.jobs),
+                "--fresh",
+            ]
         ),
         _part([worker, "--rounds", str(args.rounds), "--seeds", str(args.seeds), "--phi", "task"]),
         _part(

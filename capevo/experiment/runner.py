@@ -54,7 +54,7 @@ from pathlib import Path
 from typing import Any
 
 from capevo.baselines.base import CellSpec, IterationRecord
-from capevo.errors import Invalid
+from capevo.errors import Invalid, Unavailable
 from capevo.evolve.metrics import append_durably, write_atomically
 from capevo.experiment.config import ExperimentConfig
 from capevo.experiment.progress import GridProgress, RecordingGridProgress
@@ -272,7 +272,17 @@ def start_ray(*, workers: int, address: str | None) -> bool:
         "runtime_env": {"env_vars": dict(WORKER_ENV)},
     }
     if address:
-        ray.init(address=address, **kwargs)
+        try:
+            ray.init(address=address, **kwargs)
+        except ConnectionError as e:
+            # Ray >= 2.59 starts clusters with token auth on; a client without the token times out
+            # with a generic message, so name the likely causes here.
+            raise Unavailable(
+                f"could not join the Ray cluster at {address}: {e}. Check that the head is running and "
+                "its client port is reachable; a cluster started by Ray >= 2.59 needs RAY_AUTH_MODE=token "
+                "and its token (RAY_AUTH_TOKEN, or the head's ~/.ray/auth_token) here too (docs/multi-host.md)",
+                details={"field": "address", "address": address},
+            ) from e
     else:
         ray.init(num_cpus=workers, **kwargs)
     return True
