@@ -71,6 +71,13 @@ Force definition (against the paper's 20 N):
   (30.4 N); the five T1 picks peak at 17.9 N (the palm brushing ``bin1``). The one jump in the
   table data above (254 N, 628 N, 232 N on consecutive steps) sits on a push twelve times the
   limit.
+  A fingertip dragged along a surface while resting on it does chatter: the AM-bc baseline's T1
+  policy (``results/cpu-small``, seed 2000042000) slid a finger over the bin floor at 5 cm/s
+  with a 0.01-0.02 mm gap; in one 2 ms substep of every ~17 the finger touched the floor at
+  1.5-2 mm/s and read 30-34 N, 0 N in the others (1.9 N averaged over the control step). Such a
+  touch is still graded (its impulse is real, and a grade that averaged it away would also
+  average away short real strikes); the default Φ keeps bare fingertips from resting on a
+  surface instead (``capevo.runtime.governance.task_phi.SURFACE_CLEARANCE``).
 - **Sampling.** Only the last substep is read, so an impact that starts and ends inside a control
   step is missed or read low: on the same ten episodes, reading every substep finds 20 steps above
   20 N where the last substep finds 12, and a peak of 80.2 N where it finds 38.2 N (T2 seed 2);
