@@ -117,6 +117,18 @@ def learner() -> None:
     "--torch-threads", type=click.IntRange(min=1), default=1, show_default=True, help="CPU threads for torch."
 )
 @click.option(
+    "--evaluate-on-workers",
+    is_flag=True,
+    help="code/hybrid: run CEM's samples on the runtime workers of the task (via --connect), not in this process.",
+)
+@click.option(
+    "--evaluate-timeout",
+    type=click.FloatRange(min=1.0),
+    default=600.0,
+    show_default=True,
+    help="Seconds to wait for all the episodes of one batch of samples on the workers.",
+)
+@click.option(
     "--timeout",
     type=click.FloatRange(min=0.01),
     default=10.0,
@@ -150,6 +162,8 @@ def serve_cmd(
     phi: str,
     progress: bool | None,
     torch_threads: int,
+    evaluate_on_workers: bool,
+    evaluate_timeout: float,
     timeout: float,
     log_level: str,
     as_json: bool,
@@ -159,7 +173,9 @@ def serve_cmd(
     With --once: pull the active version and the experience, train, publish one candidate,
     exit. Otherwise watch --traces for new episodes of the active version and registry events,
     and update whenever the trigger fires (--min-episodes new episodes, or a success-rate drop
-    of --margin between two --window windows), until SIGTERM.
+    of --margin between two --window windows), until SIGTERM. With --evaluate-on-workers a code
+    learner's samples run on the task's runtime workers (sent inline, traces returned), the same
+    path as the gate's and the live episodes.
     """
     from capevo.learner.bc import default_learner_id
     from capevo.learner.trigger import TriggerConfig
@@ -172,6 +188,15 @@ def serve_cmd(
     endpoints = split_endpoints(connect)
     if (root is None) == (not endpoints):
         raise Invalid("give exactly one of --connect ENDPOINT or --root DIR", details={"field": "connect"})
+    if evaluate_on_workers and not endpoints:
+        raise Invalid(
+            "--evaluate-on-workers needs --connect (the runtime workers' Zenoh network)", details={"field": "connect"}
+        )
+    if evaluate_on_workers and modality not in ("code", "hybrid"):
+        raise Invalid(
+            f"--evaluate-on-workers runs code learners' samples; modality {modality!r} publishes versions to gate",
+            details={"field": "evaluate_on_workers"},
+        )
     secret = remember_password(password)
     config = LearnerConfig(
         ecm=ecm,
@@ -208,7 +233,21 @@ def serve_cmd(
         click.echo(json.dumps(event, default=str) if as_json else _human(event))
         sys.stdout.flush()
 
-    worker = LearnerWorker(config, open_it, emit=show)
+    def open_evaluator(trace_dir: Path) -> Any:
+        from capevo.runtime.worker import RemoteEvaluator
+
+        return RemoteEvaluator(
+            list(endpoints),
+            namespace=namespace,
+            user=user or None,
+            password=secret,
+            timeout=evaluate_timeout,
+            trace_dir=trace_dir,
+        )
+
+    worker = LearnerWorker(
+        config, open_it, emit=show, open_candidate_evaluator=open_evaluator if evaluate_on_workers else None
+    )
     worker.run(handle_signals=True)
 
 

@@ -203,6 +203,11 @@ class LearnerContext:
     should_stop: Callable[[], bool]
     progress_bar: bool
     torch_threads: int | None
+    open_candidate_evaluator: Callable[[Path], Any] | None = None
+    """Builds the evaluator that runs code learners' candidate samples, given the directory their
+    traces go to (a :class:`~capevo.runtime.worker.RemoteEvaluator`: the samples run on the
+    runtime workers, sent inline, and their traces come back to that directory); None runs them
+    in this process over a scratch mirror of the registry."""
 
 
 Factory = Callable[[LearnerContext], contextlib.AbstractContextManager[Any]]
@@ -293,13 +298,21 @@ def _il(ctx: LearnerContext) -> Iterator[Any]:
 
 @contextlib.contextmanager
 def _scratch_evaluator(ctx: LearnerContext) -> Iterator[Any]:
-    """Runs unpublished code candidates on a private mirror of the registry."""
+    """Runs unpublished code candidates on the runtime workers (``ctx.open_candidate_evaluator``) or
+    on a private mirror of the registry in this process."""
     from capevo.agent.identity import IdentityMemory
     from capevo.agent.policy import DecompositionPolicy
     from capevo.learner.scratch import ScratchRegistryEvaluator
     from capevo.runtime.evaluator import LocalEvaluator
 
     trace_dir = ctx.work_dir / "candidate-traces"
+    if ctx.open_candidate_evaluator is not None:
+        remote = ctx.open_candidate_evaluator(trace_dir)
+        try:
+            yield remote
+        finally:
+            remote.close()
+        return
 
     def make(reg: Registry) -> LocalEvaluator:
         return LocalEvaluator(
@@ -446,9 +459,20 @@ class LearnerWorker:
         config: What to learn and how.
         open_registry: Returns the registry to use (called once per run; the worker closes it).
         emit: Receives every event dict.
+        open_candidate_evaluator: Given a trace directory, returns the evaluator code learners'
+            candidate samples run on (a :class:`~capevo.runtime.worker.RemoteEvaluator`: on the
+            runtime workers); None runs them in this process. Called once per update; the worker
+            closes what it returns.
     """
 
-    def __init__(self, config: LearnerConfig, open_registry: Callable[[], Registry], *, emit: Emit | None = None):
+    def __init__(
+        self,
+        config: LearnerConfig,
+        open_registry: Callable[[], Registry],
+        *,
+        emit: Emit | None = None,
+        open_candidate_evaluator: Callable[[Path], Any] | None = None,
+    ):
         self.config = config
         self.task = config.task_name
         self.learner_id = config.learner_id or default_learner_id(config.modality)
@@ -461,6 +485,7 @@ class LearnerWorker:
         )
         self.preset = dataclasses.replace(preset, env=dataclasses.replace(env, phi=config.phi))
         self._open_registry = open_registry
+        self._open_candidate_evaluator = open_candidate_evaluator
         self._emit_fn = emit
         self._wake = threading.Event()
         self.published: list[EcmVersion] = []
@@ -576,6 +601,7 @@ class LearnerWorker:
                 should_stop=stop.is_set,
                 progress_bar=self.config.progress_bar,
                 torch_threads=self.config.torch_threads,
+                open_candidate_evaluator=self._open_candidate_evaluator,
             )
             started = time.perf_counter()
             try:

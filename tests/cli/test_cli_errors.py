@@ -263,3 +263,21 @@ def test_an_unknown_envelope_is_refused_before_anything_starts(
     msg = assert_clean_error(res.stderr, "invalid")
     assert msg == "phi: expected one of task, paper or a Φ YAML file, got 'papr'"
     assert not reg.exists()
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (("--root", "{reg}", "--modality", "code"), "--evaluate-on-workers needs --connect"),
+        (("--connect", "tcp/127.0.0.1:9", "--modality", "il"), "--evaluate-on-workers runs code learners' samples"),
+    ],
+)
+def test_evaluating_samples_on_workers_needs_a_network_and_a_code_learner(
+    cli: Callable[..., Result], tmp_path: Path, extra: tuple[str, ...], message: str
+) -> None:
+    reg = tmp_path / "reg"
+    args = ("learner", "serve", "--ecm", "pick.reach", "--once", "--evaluate-on-workers", *extra)
+    res = cli(*(a.format(reg=reg) for a in args))
+    assert res.exit_code == 3, res.stderr
+    assert assert_clean_error(res.stderr, "invalid").startswith(message)
+    assert not reg.exists()
