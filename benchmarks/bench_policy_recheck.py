@@ -1,0 +1,131 @@
+"""Re-grade a finished grid's learned whole-task policies under today's default envelope.
+
+The cpu-small grid (``results/cpu-small``) trains AM and AM-bc (SB3 PPO, one policy for the
+whole task; ``capevo.baselines.am``) and saves each iteration's policy to
+``cells/<cell>/checkpoints/iteration-NNN.zip``. Under the default Φ of the time, their held-out
+episodes were unsafe by the independent safety monitor in 14/30 (AM-bc, T1), 7/30 (AM-bc, T6) and
+2/30 (AM, T1) episodes, which is what issue 18's governance fixes answer. This script runs the
+very same policies again, unchanged, on the cell's own held-out seeds
+(:meth:`capevo.baselines.base.CellSpec.eval_seeds`, one env per checkpoint, seeds in order, as the
+grid did), with the envelope as it is now (``--phi``, default ``task``), governance on and the
+paper's perturbations, and counts unsafe episodes by the monitor and their reasons.
+
+It re-grades the policies only: training under the new envelope would give other policies, which
+is what a fresh grid run measures.
+
+    .venv/bin/python benchmarks/bench_policy_recheck.py --grid results/cpu-small \\
+        [--cells T1-am-bc-s42 T6-am-bc-s42 T1-am-s42 T6-am-s42] [--phi task]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import markdown_table, save_results
+
+DEFAULT_CELLS = ("T1-am-s42", "T1-am-bc-s42", "T6-am-s42", "T6-am-bc-s42")
+
+
+def recheck(cell_dir: Path, phi: str) -> list[dict[str, Any]]:
+    """Every checkpoint of one AM cell, re-run on the cell's held-out seeds under ``phi``."""
+    import numpy as np
+    from stable_baselines3 import PPO
+
+    from capevo.baselines.base import CellSpec
+    from capevo.baselines.governed_env import evaluate_policy
+
+    cell = CellSpec.from_dict(json.loads((cell_dir / "cell.json").read_text())["cell"])
+    rows = []
+    for ckpt in sorted((cell_dir / "checkpoints").glob("iteration-0*.zip")):
+        iteration = int(ckpt.stem.split("-")[1])
+        if iteration == 0:
+            continue  # the untrained policy was never evaluated by the grid
+        model = PPO.load(ckpt, device="cpu")
+
+        def act(obs: np.ndarray, model: Any = model) -> np.ndarray:
+            return model.predict(obs, deterministic=True)[0]
+
+        started = time.perf_counter()
+        episodes, steps = evaluate_policy(
+            cell.task, act, cell.eval_seeds(), phi=phi, governance=cell.governance, perturbations=cell.perturbations
+        )
+        rows.append(
+            {
+                "cell": cell_dir.name,
+                "iteration": iteration,
+                "episodes": len(episodes),
+                "unsafe_episodes": sum(e.unsafe_steps > 0 for e in episodes),
+                "unsafe_steps": sum(e.unsafe_steps for e in episodes),
+                "successes": sum(e.success for e in episodes),
+                "unsafe_seeds": [e.seed for e in episodes if e.unsafe_steps > 0],
+                "env_steps": steps,
+                "seconds": time.perf_counter() - started,
+            }
+        )
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def grid_unsafe(cell_dir: Path) -> dict[int, int]:
+    """The unsafe episodes the grid itself recorded, per iteration (its ``metrics.jsonl``)."""
+    out = {}
+    for line in (cell_dir / "metrics.jsonl").read_text().splitlines():
+        record = json.loads(line)
+        out[int(record["iteration"])] = sum(e["unsafe_steps"] > 0 for e in record["episodes"])
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--grid", type=Path, required=True, help="a finished grid's run directory")
+    parser.add_argument("--cells", nargs="+", default=list(DEFAULT_CELLS))
+    parser.add_argument("--phi", default="task")
+    parser.add_argument("--out", default="policy_recheck")
+    args = parser.parse_args(argv)
+    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
+    rows = []
+    for name in args.cells:
+        cell_dir = args.grid / "cells" / name
+        before = grid_unsafe(cell_dir)
+        for row in recheck(cell_dir, args.phi):
+            row["grid_unsafe_episodes"] = before.get(row["iteration"])
+            rows.append(row)
+    table = [
+        [
+            r["cell"],
+            r["iteration"],
+            f"{r['grid_unsafe_episodes']}/{r['episodes']}",
+            f"**{r['unsafe_episodes']}/{r['episodes']}**",
+            r["unsafe_steps"],
+            f"{r['successes']}/{r['episodes']}",
+        ]
+        for r in rows
+    ]
+    print(
+        markdown_table(
+            [
+                "cell",
+                "iteration",
+                "unsafe, as the grid ran",
+                "unsafe, default Φ now",
+                "unsafe steps now",
+                "success now",
+            ],
+            table,
+        )
+    )
+    command = "benchmarks/bench_policy_recheck.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    print(f"results: {save_results(args.out, {'command': command.strip(), 'phi': args.phi, 'rows': rows})}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
