@@ -172,3 +172,59 @@ def test_tuned_pick_succeeds_and_v0_does_not(tmp_path) -> None:
     v0 = _evaluate(tmp_path, "pick", {}, seeds)
     assert not any(o.success for o in v0)
     assert math.isfinite(sum(o.reward for o in v0))
+
+
+def _yaw_quat(yaw: float) -> np.ndarray:
+    """(x, y, z, w) of a rotation by ``yaw`` about world z."""
+    return np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)], dtype=np.float32)
+
+
+def _down_quat(yaw: float) -> np.ndarray:
+    """The gripper pointing down, turned ``yaw`` about world z (``hand_pose.down_at``)."""
+    return np.array([math.cos(0.5 * yaw), math.sin(0.5 * yaw), 0.0, 0.0], dtype=np.float32)
+
+
+@pytest.mark.parametrize(
+    ("nut_deg", "grip_deg", "turn_sign"),
+    [
+        # handle out (+x side) and the grip at the same yaw: only the positive way round reaches
+        # 180 degrees inside the wrist's span (the negative way would pass -109 degrees)
+        (30.0, 30.0, 1.0),
+        (-60.0, -60.0, 1.0),
+        (80.0, 80.0, 1.0),
+        # grip turned half a circle from the handle: the short way back to a gripper yaw of 0
+        (120.0, -60.0, 1.0),
+        (-120.0, 60.0, -1.0),
+    ],
+)
+def test_nut_align_turns_the_handle_back_the_way_the_wrist_can_go(
+    nut_deg: float, grip_deg: float, turn_sign: float
+) -> None:
+    """T4's align turns the held nut until its handle points at the robot (yaw 180 degrees), in
+    the direction that keeps the gripper's yaw inside the span joint 7 reaches (measured in T4:
+    about -120 to +210 degrees from DOWN), even when that is the long way round."""
+    name = "nut_assembly.align"
+    (publish,) = [p for n, _, p in seed_specs("nut_assembly") if n == name]
+    skill = CodeSkill(seed_source("nut_assembly", name), filename=name)
+    obs = _neutral_obs(publish)
+    obs["SquareNut_quat"] = _yaw_quat(math.radians(nut_deg))
+    obs["robot0_eef_quat"] = _down_quat(math.radians(grip_deg))
+    action = skill.act(obs)
+    assert action[5] * turn_sign > 0.5  # a full-speed turn about z, this way round
+    assert abs(action[3]) < 1e-3 and abs(action[4]) < 1e-3  # still pointing down
+
+
+def test_nut_insert_holds_its_height_until_the_nut_is_square_to_the_peg() -> None:
+    name = "nut_assembly.insert"
+    (publish,) = [p for n, _, p in seed_specs("nut_assembly") if n == name]
+    skill = CodeSkill(seed_source("nut_assembly", name), filename=name)
+    obs = _neutral_obs(publish)
+    obs["SquareNut_pos"] = np.array([0.1, 0.1, 1.0], dtype=np.float32)
+    obs["SquareNut_target_pos"] = np.array([0.1, 0.1, 0.83], dtype=np.float32)
+    obs["robot0_eef_quat"] = _down_quat(math.pi)
+    obs["SquareNut_quat"] = _yaw_quat(math.pi)  # turned: it goes down the peg
+    assert skill.act(obs)[2] < 0
+    obs["robot0_eef_quat"] = _down_quat(math.pi - 0.5)
+    obs["SquareNut_quat"] = _yaw_quat(math.pi - 0.5)  # not yet: it keeps its height and turns
+    turning = skill.act(obs)
+    assert turning[2] == 0 and turning[5] > 0

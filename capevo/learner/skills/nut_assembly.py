@@ -9,7 +9,9 @@ hand.
 What is hand-written (fixed; no learner changes it): the six phases and their order (the task's
 decomposition), each skill's branches (travel at hover height, wait for the fingers to open,
 descend; climb before moving sideways; servo the nut origin, not the hand), the yaw fold into
-[-pi/2, pi/2] (the grip is symmetric), the prelude's tolerances (OPEN_WIDTH, MISSED_WIDTH,
+[-pi/2, pi/2] (the grip is symmetric), the turn of the held nut until its handle points back at
+the robot (align and insert; insert lowers the nut only once it is turned, see ``handle_turn``),
+the prelude's tolerances (OPEN_WIDTH, MISSED_WIDTH,
 RELEASED_WIDTH, ROT_GAIN) and every ``PARAM_RANGES`` span (physical spans written with the
 guesses, not tuned). What is learned: the values of ``PARAMS`` inside those spans (CEM searches
 every one of them).
@@ -20,6 +22,12 @@ Version 0 is *manual and untuned*. Known weaknesses, which the learners are mean
 * align carries the nut only ``carry_dz`` = 10 cm above its seated height: the peg's top is 13 cm
   above it, so the nut hits the peg (and align's termination, above 13 cm, is never reached);
 * the lift is slow (0.2 of full speed, from :mod:`.grasping`); insert's gain is low.
+
+Why the turn (added 2026-12-04, after the first cpu-small run stayed at 0/30): with the handle
+pointing away from the robot, the hand over a centred nut is past the default Φ's ``reach_limit``,
+which held it 1-2 cm short of the peg at its creep speed; and a nut at an angle to the square peg
+has almost no play to slide down it. Turned, the handle faces the robot and the hole is square to
+the peg. Hand-written like the phases; nothing in it is searched.
 
 Invariants:
 1. Every ECM of T4's decomposition gets exactly one skill.
@@ -67,6 +75,49 @@ def grip_rotation(obs):
     half = 0.5 * nut_yaw(obs)
     target = quat_mul(np.array([0.0, 0.0, math.sin(half), math.cos(half)]), np.array(DOWN))
     return rot_error(obs["robot0_eef_quat"], target)
+
+
+HANDLE_BACK = math.pi
+"""Nut yaw with the handle pointing back at the robot (world -x). Over the peg, a handle pointing
+away puts the wrist past the Panda's reach (the Φ's ``reach_limit``: the peg is 0.79 m from the
+shoulder, the handle 5.4 cm further out), and the peg is square, so only a nut turned to a
+multiple of 90 degrees slides down it with the 6.75 mm play of its hole."""
+GRIP_YAW_SPAN = (-1.9, 3.4)
+"""Gripper yaws (radians about world z from DOWN) the wrist can turn to: measured in T4, joint 7
+reaches its limit near -2.1 and +3.7 (it turns -1 radian per radian of yaw from 0.79 at yaw 0)."""
+TURN_STEP = 0.5
+"""Largest yaw error (radians) one action asks for while turning: the turn may be longer than
+pi, and the shortest turn would run into the wrist's limit."""
+TURNED = 0.1
+"""Yaw error (radians) below which the nut counts as turned: insert lowers it only then (at 0.1
+rad the square peg's corners still clear the hole's walls by about 5 mm)."""
+
+
+def wrap(angle):
+    """``angle`` in (-pi, pi]."""
+    return angle - 2.0 * math.pi * math.floor((angle + math.pi) / (2.0 * math.pi))
+
+
+def handle_turn(obs):
+    """The gripper's yaw and the turn (radians about world z) that points the held nut's handle
+    back at the robot (:data:`HANDLE_BACK`), the way round the wrist can go."""
+    grip = wrap(yaw_of(obs["robot0_eef_quat"]))
+    if grip < GRIP_YAW_SPAN[0] - 0.2:
+        grip += 2.0 * math.pi  # read as negative, but past the wrist's limit: it is the same yaw + 2 pi
+    x, y, z, w = (float(c) for c in obs["SquareNut_quat"])
+    error = wrap(HANDLE_BACK - math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)))
+    turns = [e for e in (error, error - 2.0 * math.pi, error + 2.0 * math.pi)
+             if GRIP_YAW_SPAN[0] <= grip + e <= GRIP_YAW_SPAN[1]]
+    return grip, (min(turns, key=abs) if turns else 0.0)
+
+
+def held_rotation(obs):
+    """Rotation error that keeps the gripper pointing down while it turns the held nut's handle
+    back at the robot (:func:`handle_turn`)."""
+    grip, turn = handle_turn(obs)
+    rot = rot_error(obs["robot0_eef_quat"], down_at(grip))
+    rot[2] += min(max(turn, -TURN_STEP), TURN_STEP)
+    return rot
 
 
 def handle(obs, params):
@@ -180,7 +231,7 @@ def act(obs, params):
     if nut[2] < carry - params["climb_margin"]:
         move[0] *= 0.1
         move[1] *= 0.1
-    return pose_action(move, CLOSE, params["gain"], grip_rotation(obs))
+    return pose_action(move, CLOSE, params["gain"], held_rotation(obs))
 
 
 def done(obs, params):
@@ -207,7 +258,9 @@ def act(obs, params):
     goal = vec(obs, "SquareNut_target_pos")
     s = params["xy_gain_scale"]
     move = np.array([s * (goal[0] - nut[0]), s * (goal[1] - nut[1]), goal[2] - params["dig"] - nut[2]])
-    return pose_action(move, CLOSE, params["gain"], grip_rotation(obs))
+    if abs(handle_turn(obs)[1]) > TURNED:
+        move[2] = max(move[2], 0.0)  # not down the peg before the nut is square to it
+    return pose_action(move, CLOSE, params["gain"], held_rotation(obs))
 
 
 def done(obs, params):
