@@ -99,6 +99,7 @@ from capevo.baselines.base import CellSpec, Emit
 from capevo.baselines.governed_env import GovernedTaskEnv, held_out_record
 from capevo.errors import Invalid
 from capevo.learner.bc import LOSSES
+from capevo.learner.neural_seed import silent_logger
 from capevo.learner.presets import TRAIN_SEED_BASE
 from capevo.runtime.tasks import task_spec
 
@@ -426,6 +427,7 @@ class AgentModification:
                 learn_steps = budget - demo_steps
                 if learn_steps > 0:
                     callback = _stop_at(env, before + learn_steps) if opts.algo == "ppo" else None
+                    model.set_logger(silent_logger())
                     model.learn(total_timesteps=learn_steps, reset_num_timesteps=False, callback=callback)
                 spent = env.env_steps - before
                 if opts.algo == "ppo" and spent % model.n_steps:

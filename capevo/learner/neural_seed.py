@@ -136,6 +136,17 @@ def new_sac(
     return SAC("MlpPolicy", env, policy_kwargs=kwargs, seed=seed, device="cpu", verbose=0, **sac_kwargs)
 
 
+def silent_logger() -> Any:
+    """An SB3 logger with no outputs, for ``model.set_logger`` before ``learn``.
+
+    Without one, every ``learn`` call makes SB3 create an empty ``$TMPDIR/SB3-<time>`` directory
+    (``stable_baselines3.common.logger.configure`` makes its folder even with no output formats).
+    """
+    from stable_baselines3.common.logger import Logger
+
+    return Logger(folder=None, output_formats=[])
+
+
 def model_bytes(model: Any) -> bytes:
     """The zip ``model.save()`` writes, as bytes (the neural artifact)."""
     buf = io.BytesIO()

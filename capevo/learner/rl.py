@@ -65,7 +65,7 @@ from capevo.learner.bc import (
     torch_threads,
 )
 from capevo.learner.ecm_env import EcmEnv, EcmEnvConfig, EcmTarget, make_ecm_env, target_for
-from capevo.learner.neural_seed import new_sac, sac_policy_kwargs, warm_start
+from capevo.learner.neural_seed import new_sac, sac_policy_kwargs, silent_logger, warm_start
 from capevo.learner.reward import RewardShaping, ShapedReward
 from capevo.records import Kind, Origin, Provenance
 from capevo.registry.api import Registry
@@ -343,6 +343,7 @@ def train_sac(
 
     stats: dict[str, Any] = {"episodes": 0, "successes": 0, "returns": [], "steps": 0}
     started = time.perf_counter()
+    model.set_logger(silent_logger())
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*rich is experimental.*")
         model.learn(

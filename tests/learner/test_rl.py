@@ -412,3 +412,20 @@ def test_presets_are_found_by_name_and_unknown_ones_listed() -> None:
         make_preset("huge")
     assert info.value.code is ErrorCode.INVALID
     assert info.value.message == "unknown preset 'huge'; valid: tiny, cpu-small, paper"
+
+
+def test_training_leaves_no_sb3_log_directory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """SB3 makes an empty ``SB3-<time>`` directory in the temp dir on every ``learn`` unless the
+    model has a logger of its own; capevo's runs made hundreds."""
+    import tempfile
+
+    import gymnasium as gym
+
+    from capevo.learner.neural_seed import new_sac
+    from capevo.learner.rl import train_sac
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    model = new_sac(gym.make("Pendulum-v1"), net_arch=(8,), seed=0, learning_starts=2, batch_size=2)
+    report = train_sac(model, 4)
+    assert report.steps == 4
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("SB3-")] == []
