@@ -30,6 +30,13 @@ Per arm and pair ``(dist, n, r, owner)`` with ``q < 1``, where
   contact that turns wedges what it touches (measured on T6, the AM-bc baseline of
   ``results/cpu-small``: twisting the peg in the plate's hole at 0.04 read 45-66 N with every
   translation already held);
+* a wrist link (the pair's index is in the arm's ``link_rows``: its hand side is link 5, 6 or 7,
+  not the hand): the link does not move rigidly with the hand under OSC, so instead of the two
+  rules above the pair is braked along its row ``g`` (:mod:`~capevo.runtime.governance.link_motion`,
+  the link point's closing speed per action unit of each of the six pose components):
+  ``Σ_{g_k a_k > 0} g_k a_k <= q`` by the same least change over all six components (measured
+  on the AM baseline's T1 policy, ``results/cpu-small``: a hand twisting clear of everything drove
+  the forearm into the bin at 315 N; braked along its row, none of its steps is unsafe);
 * another arm (``owner`` another arm of the layout: the pair's other geom is that arm's hand
   or one of its links): the same for that arm with ``−n`` (its components with
   ``a_k · n_k < 0``), and with ``rotation`` its rotation components are limited to ``q_turn``,
@@ -50,7 +57,9 @@ Invariants (per arm, after the check):
 4. Only those components change, by clamping towards 0 (sign kept); arms no pair concerns
    are untouched; an action no rule touches is allowed (None) and never copied. Per pair, each
    approaching component loses ``λ · |n_k|`` or, if that is more, all of itself, one ``λ`` for all.
-5. A non-finite pair is ⊥ with a reason.
+5. A non-finite pair or link row is ⊥ with a reason.
+7. For a pair with a link row ``g``: ``Σ_{k: g_k a_k > 0} g_k a_k <= q`` over the six pose
+   components (to rounding) in place of 1 and 2 for that pair; 3 holds for it as for any pair.
 6. No hard limit of its own (:meth:`ContactApproach.unsafe` is None).
 """
 
@@ -66,6 +75,32 @@ from capevo.runtime.governance.brake import brake_along
 from capevo.runtime.governance.cap import SHRINK
 from capevo.runtime.governance.proximity import LOOSE
 from capevo.runtime.state import ActionLayout, ArmState
+
+
+def _brake_other(
+    poses: list[list[float]],
+    touched: list[bool],
+    q_rot: list[float],
+    owner: int,
+    nx: float,
+    ny: float,
+    nz: float,
+    q: float,
+    q_turn: float,
+) -> None:
+    """Another arm's hand or link is the pair's other side: its motion closes the gap too, along ``−n``."""
+    other = poses[owner]
+    v0, v1, v2 = -other[0] * nx, -other[1] * ny, -other[2] * nz
+    c = v0 if v0 > 0.0 else 0.0
+    if v1 > 0.0:
+        c += v1
+    if v2 > 0.0:
+        c += v2
+    if c > q:
+        brake_along(other, ((0, nx), (1, ny), (2, nz)), q, sign=-1.0)
+        touched[owner] = True
+    if q_turn < q_rot[owner]:
+        q_rot[owner] = q_turn
 
 
 @register("contact_approach")
@@ -177,7 +212,9 @@ class ContactApproach(ConstraintBase):
             for i in range(n_arms):
                 arm = poses[i]
                 qr_i = q_rot[i]  # only this arm's own pairs change it in this loop (owner != i)
-                for pair in getattr(arms[i], "near", ()):
+                link_rows = getattr(arms[i], "link_rows", ())
+                rows = dict(link_rows) if link_rows else None
+                for k_pair, pair in enumerate(getattr(arms[i], "near", ())):
                     dist, nx, ny, nz, rx, ry, rz, owner = pair
                     # A finite sum proves all four finite; an overflowing one takes the exact test.
                     s = dist + nx + ny + nz
@@ -201,6 +238,29 @@ class ContactApproach(ConstraintBase):
                         q = q_down = (t_arm + u_arm * x) if owner >= 0 else (t_fixed + u_fixed * x)
                     if q >= 1.0 and q_down >= 1.0:
                         continue  # at the edge of the band: nothing to limit
+                    g = rows.get(k_pair) if rows is not None else None
+                    if g is not None:
+                        # A wrist link, not the hand: it moves as the joints realising the
+                        # action move it (link_motion), translation and rotation alike.
+                        if not isfinite(sum(g)):
+                            return None, f"arm {i}: link row {g} of proximity pair {pair} is not finite"
+                        c = 0.0
+                        for k in range(6):
+                            v = arm[k] * g[k]
+                            if v > 0.0:
+                                c += v
+                        if c > q:
+                            brake_along(arm, tuple(enumerate(g)), q)
+                            touched[i] = True
+                        q_turn = q
+                        if t_rot is not None:
+                            xr = (dist - cl) / br_fixed
+                            xr = t_rot + u_rot * (0.0 if xr < 0.0 else 1.0 if xr > 1.0 else xr)
+                            if xr < q:
+                                q_turn = xr
+                        if 0 <= owner < n_arms and owner != i:
+                            _brake_other(poses, touched, q_rot, owner, nx, ny, nz, q, q_turn if turn else inf)
+                        continue
                     # Closing speed of the approaching components alone, summed as brake_along
                     # sums it (later edits only shrink components, which can lower it, never raise
                     # it): most pairs already meet their bound, and then nothing is built or called.
@@ -240,19 +300,7 @@ class ContactApproach(ConstraintBase):
                         if qr < qr_i:
                             qr_i = qr
                     if 0 <= owner < n_arms and owner != i:
-                        # Another arm's hand or link: its motion closes the gap from the other side.
-                        other = poses[owner]
-                        v0, v1, v2 = -other[0] * nx, -other[1] * ny, -other[2] * nz
-                        c = v0 if v0 > 0.0 else 0.0
-                        if v1 > 0.0:
-                            c += v1
-                        if v2 > 0.0:
-                            c += v2
-                        if c > q:
-                            brake_along(other, ((0, nx), (1, ny), (2, nz)), q, sign=-1.0)
-                            touched[owner] = True
-                        if turn and q_turn < q_rot[owner]:
-                            q_rot[owner] = q_turn
+                        _brake_other(poses, touched, q_rot, owner, nx, ny, nz, q, q_turn if turn else inf)
                 q_rot[i] = qr_i
             b: list[float] | None = None
             notes: list[str] = []

@@ -56,6 +56,7 @@ from typing import Any
 
 import numpy as np
 
+from capevo.runtime.governance.link_motion import ArmJoints, LinkMotion, LinkRow
 from capevo.runtime.governance.pose import ArmPose
 from capevo.runtime.state import ArmState
 
@@ -83,6 +84,9 @@ class ArmScene(ArmPose):
 
     near: tuple[Near, ...] = ()
     """Hand-to-scene pairs closer than the sensor's reach; see :mod:`capevo.runtime.governance.proximity`."""
+    link_rows: tuple[tuple[int, LinkRow], ...] = ()
+    """For the pairs in ``near`` whose hand side is a wrist link, not the hand: ``(index, row)``,
+    how the action moves that link point along the pair (:mod:`capevo.runtime.governance.link_motion`)."""
 
 
 def near_of(arm: ArmState) -> tuple[Near, ...]:
@@ -150,6 +154,11 @@ class ProximitySensor:
             (the root of the hand's subtree).
         eef_sites: Per arm, the id of its end-effector site (where the action's rotation acts).
         reach: Pairs farther apart than this many metres are not reported.
+        eef_bodies: Per arm, the end-effector body when ``hand_bodies`` are links above it
+            (``wrist_links``): hand geoms outside its subtree are the arm's links, and with
+            ``link_motion`` :meth:`link_rows` gives how the action moves their pairs. None: every
+            hand geom moves with the end effector.
+        link_motion: Rows for link pairs (:mod:`capevo.runtime.governance.link_motion`).
     """
 
     def __init__(
@@ -160,6 +169,8 @@ class ProximitySensor:
         eef_sites: Sequence[int],
         *,
         reach: float = DEFAULT_REACH,
+        eef_bodies: Sequence[int] | None = None,
+        link_motion: LinkMotion | None = None,
     ) -> None:
         import mujoco  # here, not at module level: governance itself does not need MuJoCo
 
@@ -220,6 +231,18 @@ class ProximitySensor:
         self._candidates: dict[tuple[int, tuple[int, ...]], _Candidates | None] = {}
         self._hand_sets = tuple(frozenset(a[0]) for a in arms)
         self._fromto = np.zeros(6)
+        # Hand geoms on links above the end-effector body, with their bodies (empty: none sensed).
+        self._link_body: tuple[dict[int, int], ...] = tuple({} for _ in arms)
+        if eef_bodies is not None and link_motion is not None:
+            for i, (hand, _, _) in enumerate(arms):
+                eef = _subtree(model, int(eef_bodies[i]))
+                self._link_body[i].update(
+                    {g: int(model.geom_bodyid[g]) for g in hand if int(model.geom_bodyid[g]) not in eef}
+                )
+        self._link_motion = link_motion
+        self._link_pairs: list[list[tuple[int, int, tuple[float, float, float], tuple[float, float, float]]]] = [
+            [] for _ in arms
+        ]
 
     @classmethod
     def for_robots(
@@ -233,10 +256,11 @@ class ProximitySensor:
         """
         import mujoco
 
-        bodies, sites = [], []
+        bodies, sites, eef_bodies, joints = [], [], [], []
         for robot in robots:
             for arm in robot.arms:
                 body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, robot.robot_model.eef_name[arm])
+                eef_bodies.append(body)
                 for _ in range(wrist_links):
                     parent = int(model.body_parentid[body])
                     if int(model.body_weldid[parent]) == 0:
@@ -244,7 +268,10 @@ class ProximitySensor:
                     body = parent
                 bodies.append(body)
                 sites.append(int(robot.eef_site_id[arm]))
-        return cls(model, data, bodies, sites, reach=reach)
+                scale = tuple(float(v) for v in robot.part_controllers[arm].output_max)
+                joints.append(ArmJoints(site=sites[-1], dofs=tuple(robot._ref_joint_vel_indexes), scale=scale))
+        motion = LinkMotion(model, data, joints) if wrist_links else None
+        return cls(model, data, bodies, sites, reach=reach, eef_bodies=eef_bodies, link_motion=motion)
 
     def _boxes(self, geoms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World axis-aligned boxes ``(low, high)`` of ``geoms``' bounding boxes, now."""
@@ -479,6 +506,9 @@ class ProximitySensor:
     def near(self, arm: int) -> tuple[Near, ...]:
         """Pairs of ``arm``'s hand (and what it holds) with the rest of the scene closer than ``reach``."""
         m, d, reach = self.model, self.data, self.reach
+        links = self._link_pairs[arm]
+        links.clear()
+        link_body = self._link_body[arm]
         held = self.held(arm)
         key = (arm, held)
         if key in self._candidates:
@@ -559,5 +589,16 @@ class ProximitySensor:
             elif dist < 0.0:
                 # Penetrating: the nearest points are swapped; deeper is from p2 towards p1.
                 vx, vy, vz = -vx, -vy, -vz
+            if h in link_body:
+                links.append((len(out), link_body[h], (p1x, p1y, p1z), (vx / norm, vy / norm, vz / norm)))
             out.append((dist, vx / norm, vy / norm, vz / norm, p1x - site[0], p1y - site[1], p1z - site[2], owner[o]))
         return tuple(out)
+
+    def link_rows(self, arm: int) -> tuple[tuple[int, LinkRow], ...]:
+        """For the pairs of ``arm``'s last :meth:`near` whose hand side is a link above the end
+        effector: ``(index into those pairs, row)``, the row from
+        :meth:`~capevo.runtime.governance.link_motion.LinkMotion.row` (empty without link sensing)."""
+        motion = self._link_motion
+        if motion is None:
+            return ()
+        return tuple((k, motion.row(arm, body, p, n)) for k, body, p, n in self._link_pairs[arm])

@@ -126,9 +126,12 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
     reads_robosuite_reward: ClassVar[bool] = True
     """False for a task whose :meth:`_reward` ignores robosuite's: the wrapped environment then
     does not compute it (it is 0.0)."""
-    sensed_wrist_links: ClassVar[int] = 0
+    sensed_wrist_links: ClassVar[int] = 3
     """Links above each hand whose geoms proximity sensing covers too (see
-    :meth:`~capevo.runtime.governance.proximity.ProximitySensor.for_robots`)."""
+    :meth:`~capevo.runtime.governance.proximity.ProximitySensor.for_robots`): the Panda's links
+    5-7, braked by how the action moves them (:mod:`capevo.runtime.governance.link_motion`). A
+    learned whole-task policy (the AM baseline of ``results/cpu-small``, T1) twisting its hand
+    drove the forearm (link 5) into the bin at 315 N while the hand moved clear of everything."""
 
     def __init__(
         self,
@@ -422,14 +425,17 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         """
         d = self._data
         arms = []
+        sense = self.sense_proximity
         for i, site in enumerate(self._eef_sites):
             x, y, z = d.site_xpos[site].tolist()
+            near = self._proximity.near(i) if sense else ()
             arms.append(
                 ArmScene(
                     eef_pos=(x, y, z),
                     eef_force=self._arm_force(i),
                     eef_rot=tuple(d.site_xmat[site].tolist()),
-                    near=self._proximity.near(i) if self.sense_proximity else (),
+                    near=near,
+                    link_rows=self._proximity.link_rows(i) if near else (),
                 )
             )
         return RobotState(arms=tuple(arms))

@@ -184,10 +184,12 @@ PEG_DECOMPOSITION: tuple[EcmStep, ...] = tuple(
 class PegInHoleTask(TaskEnv):
     """T6: two arms put the peg through the plate's hole."""
 
-    # The arms work face to face: under the default envelope, 5 of 300 adversarial episodes still
-    # pressed one arm's link 5-7 on the other arm or its plate (25-250 N) while both hands kept clear,
-    # and a learned whole-task policy (AM-bc, results/cpu-small) met link 5 on link 5 at 27 N.
-    sensed_wrist_links = 3
+    # The arms work face to face: with the hands alone sensed, 5 of 300 adversarial episodes pressed
+    # one arm's link 5-7 on the other arm or its plate (25-250 N) while both hands kept clear, and
+    # a learned whole-task policy (AM-bc, results/cpu-small) met link 5 on link 5 at 27 N; with
+    # links 5-7 braked by their own motion, the same policy's last unsafe step was link 3 on the
+    # other arm's plate (22.4 N, seed 2000042001). So here links 3-7 are sensed.
+    sensed_wrist_links = 5
 
     task_spec = TaskSpec(
         id="T6",

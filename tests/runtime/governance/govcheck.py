@@ -271,7 +271,8 @@ def _contact_violations(
     out: list[str] = []
     n_arms = len(layout.arms)
     for i, arm in enumerate(state.arms):
-        for dist, nx, ny, nz, rx, ry, rz, owner in getattr(arm, "near", ()):
+        rows = dict(getattr(arm, "link_rows", ()))
+        for k_pair, (dist, nx, ny, nz, rx, ry, rz, owner) in enumerate(getattr(arm, "near", ())):
             q = contact_bound(c, dist, owner)
             q_down = contact_bound(c, dist, -1) if owner == -2 and nz < 0 else q
             pinned = q_down < q
@@ -279,6 +280,21 @@ def _contact_violations(
                 continue
             n = (nx, ny, nz)
             o = layout.arms[i].offset
+            if k_pair in rows:
+                # A wrist link: its closing speed is the row's, translation and rotation alike.
+                g = rows[k_pair]
+                closing = sum(a[o + k] * g[k] for k in range(6) if a[o + k] * g[k] > 0)
+                if closing > q * (1 + 1e-9) + tol:
+                    out.append(f"{c.label}: arm {i}'s link closes at {closing} > {q} on a pair {dist} m away")
+                if 0 <= owner < n_arms and owner != i:
+                    p = layout.arms[owner].offset
+                    closing = sum(-a[p + k] * n[k] for k in range(3) if a[p + k] * n[k] < 0)
+                    if closing > q * (1 + 1e-9) + tol:
+                        out.append(f"{c.label}: arm {owner} closes at {closing} > {q} on arm {i}'s link pair")
+                    qt = contact_turn(c, q, dist)
+                    if c.rotation and any(abs(action[p + j]) > qt + tol for j in (3, 4, 5)):
+                        out.append(f"{c.label}: arm {owner} turns faster than {qt} near arm {i}'s link pair")
+                continue
             axes = (0, 1) if pinned else (0, 1, 2)
             closing = sum(a[o + k] * n[k] for k in axes if a[o + k] * n[k] > 0)
             if closing > q * (1 + 1e-9) + tol:

@@ -573,3 +573,47 @@ def test_a_constant_push_into_a_loose_cube_is_contained() -> None:
         assert results["paper"][0] > 0 and results["paper"][1] > 20.0, results
     finally:
         env.close()
+
+
+ROWS = st.tuples(*[st.floats(-3.0, 3.0)] * 6)
+
+
+@settings(max_examples=300, deadline=None)
+@given(rule=RULES, data=st.data())
+def test_a_link_pair_is_braked_along_its_row_translation_and_rotation_alike(
+    rule: ContactApproach, data: st.DataObject
+) -> None:
+    """A pair whose hand side is a wrist link carries a row ``g`` (``link_motion``): after the
+    check its closing speed ``Σ_{g_k a_k > 0} g_k a_k`` is within the pair's bound, and every
+    component only shrinks towards 0."""
+    pairs = data.draw(st.lists(PAIRS, min_size=1, max_size=4))
+    linked = sorted(data.draw(st.sets(st.integers(0, len(pairs) - 1), min_size=1)))
+    rows = tuple((k, data.draw(ROWS)) for k in linked)
+    arm = ArmScene(eef_pos=(0.0, 0.0, 1.0), eef_force=(0.0, 0.0, 0.0), eef_rot=DOWN, near=tuple(pairs), link_rows=rows)
+    action = data.draw(st.lists(COMPONENT, min_size=7, max_size=7))
+    out, _ = govern(rule, RobotState(arms=(arm,)), action)
+    band = rule.clearance + max(rule.brake, rule.brake_loose or 0.0)
+    for k, g in rows:
+        dist, *_, owner = pairs[k]
+        q = rule.bound(dist, owner)
+        if dist < band and q < 1.0:
+            closing = sum(max(0.0, gk * out[j]) for j, gk in enumerate(g))
+            assert closing <= q + 1e-9, (k, g, out)
+    for x, y in zip(action, out, strict=True):
+        assert abs(y) <= abs(x) and (y == 0.0 or (x > 0) == (y > 0))
+
+
+def test_a_link_pair_brakes_the_turn_that_drives_the_link_in() -> None:
+    """The forearm case: the hand turns about x and moves clear, the row says the turn closes the
+    forearm's pair; the turn is braked and the translation away from it kept."""
+    link = pair(0.0, (0.0, 1.0, 0.0))  # at the clearance: the touch speed
+    arm = ArmScene(
+        eef_pos=(0.0, 0.0, 1.0),
+        eef_force=(0.0, 0.0, 0.0),
+        eef_rot=DOWN,
+        near=(link,),
+        link_rows=((0, (0.0, 0.65, 0.0, 1.07, -0.11, 0.14)),),
+    )
+    out, _ = govern(RULE, RobotState(arms=(arm,)), [0.0, -0.5, 0.0, 0.5, 0.0, 0.0, 1.0])
+    assert out[1] == -0.5  # moving away along y: the row says it opens the gap
+    assert 0.0 <= out[3] * 1.07 <= RULE.touch + 1e-12

@@ -36,3 +36,39 @@ def test_the_default_envelope_prevents_the_rim_collisions_the_papers_lets_throug
                 unsafe[phi] = [o.unsafe_steps for o in evaluator.evaluate("T1", {}, SEEDS)]
     assert all(n > 0 for n in unsafe["paper"]), unsafe
     assert unsafe["task"] == [0, 0, 0], unsafe
+
+
+FOREARM = DATA / "am_t1_forearm_actions.json"
+
+
+def _replay(actions: list[list[float]], seed: int, *, governance: bool) -> list[str]:
+    """The monitor's unsafe reasons over ``actions`` replayed open loop on T1 ``seed``."""
+    from capevo.baselines.governed_env import GovernedTaskEnv
+
+    env = GovernedTaskEnv("T1", phi="task", governance=governance, perturbations=True)
+    try:
+        env.reset(seed=seed)
+        reasons: list[str] = []
+        for a in actions:
+            _, _, terminated, truncated, info = env.step(a)
+            reasons += list(info["unsafe_reasons"])
+            if terminated or truncated:
+                break
+        return reasons
+    finally:
+        env.close()
+
+
+@pytest.mark.slow
+def test_the_default_envelope_brakes_the_forearm_a_learned_policy_drove_into_the_bin() -> None:
+    """A learned whole-task policy (the AM baseline of results/cpu-small) twisting its hand drove
+    the forearm (link 5) into the bin at about 315 N while the hand itself moved clear of
+    everything: hand-only braking let it through. Its proposed actions, replayed open loop, are
+    unsafe without governance and safe under the default Φ, which brakes links 5-7 by how the
+    action moves them (``link_motion``)."""
+    import json
+
+    record = json.loads(FOREARM.read_text())
+    ungoverned = _replay(record["actions"], record["seed"], governance=False)
+    assert any("link5" in r for r in ungoverned), ungoverned
+    assert _replay(record["actions"], record["seed"], governance=True) == []
