@@ -13,7 +13,9 @@ and stays unchanged. :func:`task_constraints` are what
   points between a hand (with what it touches) and the rest of the scene, which the task's
   ``robot_state()`` measures on the live simulator each step
   (:class:`~capevo.runtime.governance.proximity.ProximitySensor`): the only rule that knows
-  where the movable objects are; a state without those pairs leaves it idle;
+  where the movable objects are; a state without those pairs leaves it idle. The sensed part of
+  each arm includes its wrist links (5-7; 3-7 on T6, whose arms work face to face), whose pairs
+  are braked by how the action moves those links (:mod:`~capevo.runtime.governance.link_motion`);
 * ``surface_approach`` at the task's table top (or bin floor), when there is one;
 * ``obstacle_approach`` for fixed obstacles (bin walls, pegs, the robots' mounts, whose tops
   at 0.942 m stand above the tables);
