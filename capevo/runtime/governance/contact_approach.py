@@ -204,6 +204,14 @@ class ContactApproach(ConstraintBase):
 
         n_arms = len(offsets)
 
+        def turn_bound(q: float, dist: float) -> float:
+            """The rotation bound near a pair: ``q``, or ``touch_rotation``'s ramp where lower."""
+            if t_rot is None:
+                return q
+            xr = (dist - cl) / br_fixed
+            xr = t_rot + u_rot * (0.0 if xr < 0.0 else 1.0 if xr > 1.0 else xr)
+            return xr if xr < q else q
+
         def slow(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             poses = [list(a[o : o + 6]) for o in offsets]
             q_rot = [inf] * n_arms
@@ -252,14 +260,9 @@ class ContactApproach(ConstraintBase):
                         if c > q:
                             brake_along(arm, tuple(enumerate(g)), q)
                             touched[i] = True
-                        q_turn = q
-                        if t_rot is not None:
-                            xr = (dist - cl) / br_fixed
-                            xr = t_rot + u_rot * (0.0 if xr < 0.0 else 1.0 if xr > 1.0 else xr)
-                            if xr < q:
-                                q_turn = xr
                         if 0 <= owner < n_arms and owner != i:
-                            _brake_other(poses, touched, q_rot, owner, nx, ny, nz, q, q_turn if turn else inf)
+                            q_turn = turn_bound(q, dist) if turn else inf
+                            _brake_other(poses, touched, q_rot, owner, nx, ny, nz, q, q_turn)
                         continue
                     # Closing speed of the approaching components alone, summed as brake_along
                     # sums it (later edits only shrink components, which can lower it, never raise
@@ -285,12 +288,7 @@ class ContactApproach(ConstraintBase):
                             brake_along(arm, ((0, nx), (1, ny), (2, nz)), q)
                             touched[i] = True
                     if turn:
-                        q_turn = q
-                        if t_rot is not None:
-                            xr = (dist - cl) / br_fixed
-                            xr = t_rot + u_rot * (0.0 if xr < 0.0 else 1.0 if xr > 1.0 else xr)
-                            if xr < q:
-                                q_turn = xr
+                        q_turn = turn_bound(q, dist)
                         rr = rx * rx + ry * ry + rz * rz
                         if rr < lever2:
                             qr = q_turn  # |r| < lever for sure: no sqrt needed for a factor of 1

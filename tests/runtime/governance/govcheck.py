@@ -269,7 +269,6 @@ def _contact_violations(
     c: ContactApproach, layout: ActionLayout, state: RobotState, a: list[float], action: Sequence[float], tol: float
 ) -> list[str]:
     out: list[str] = []
-    n_arms = len(layout.arms)
     for i, arm in enumerate(state.arms):
         rows = dict(getattr(arm, "link_rows", ()))
         for k_pair, (dist, nx, ny, nz, rx, ry, rz, owner) in enumerate(getattr(arm, "near", ())):
@@ -286,14 +285,7 @@ def _contact_violations(
                 closing = sum(a[o + k] * g[k] for k in range(6) if a[o + k] * g[k] > 0)
                 if closing > q * (1 + 1e-9) + tol:
                     out.append(f"{c.label}: arm {i}'s link closes at {closing} > {q} on a pair {dist} m away")
-                if 0 <= owner < n_arms and owner != i:
-                    p = layout.arms[owner].offset
-                    closing = sum(-a[p + k] * n[k] for k in range(3) if a[p + k] * n[k] < 0)
-                    if closing > q * (1 + 1e-9) + tol:
-                        out.append(f"{c.label}: arm {owner} closes at {closing} > {q} on arm {i}'s link pair")
-                    qt = contact_turn(c, q, dist)
-                    if c.rotation and any(abs(action[p + j]) > qt + tol for j in (3, 4, 5)):
-                        out.append(f"{c.label}: arm {owner} turns faster than {qt} near arm {i}'s link pair")
+                out += _other_arm_violations(c, layout, a, action, (i, owner), n, q, contact_turn(c, q, dist), tol)
                 continue
             axes = (0, 1) if pinned else (0, 1, 2)
             closing = sum(a[o + k] * n[k] for k in axes if a[o + k] * n[k] > 0)
@@ -308,13 +300,32 @@ def _contact_violations(
                 qr = qt * min(1.0, c.lever / r) if r > 0 else qt
                 if any(abs(action[o + j]) > qr + tol for j in (3, 4, 5)):
                     out.append(f"{c.label}: arm {i} turns faster than {qr} near a pair")
-            if 0 <= owner < n_arms and owner != i:
-                p = layout.arms[owner].offset
-                closing = sum(-a[p + k] * n[k] for k in range(3) if a[p + k] * n[k] < 0)
-                if closing > q * (1 + 1e-9) + tol:
-                    out.append(f"{c.label}: arm {owner} closes at {closing} > {q} on arm {i}'s pair")
-                if c.rotation and any(abs(action[p + j]) > qt + tol for j in (3, 4, 5)):
-                    out.append(f"{c.label}: arm {owner} turns faster than {qt} near arm {i}'s pair")
+            out += _other_arm_violations(c, layout, a, action, (i, owner), n, q, qt, tol)
+    return out
+
+
+def _other_arm_violations(
+    c: ContactApproach,
+    layout: ActionLayout,
+    a: list[float],
+    action: Sequence[float],
+    arms: tuple[int, int],
+    n: tuple[float, float, float],
+    q: float,
+    qt: float,
+    tol: float,
+) -> list[str]:
+    """Invariant 3: a pair of arm ``i`` whose other side is arm ``owner``'s closes no faster from there."""
+    i, owner = arms
+    if not 0 <= owner < len(layout.arms) or owner == i:
+        return []
+    out: list[str] = []
+    p = layout.arms[owner].offset
+    closing = sum(-a[p + k] * n[k] for k in range(3) if a[p + k] * n[k] < 0)
+    if closing > q * (1 + 1e-9) + tol:
+        out.append(f"{c.label}: arm {owner} closes at {closing} > {q} on arm {i}'s pair")
+    if c.rotation and any(abs(action[p + j]) > qt + tol for j in (3, 4, 5)):
+        out.append(f"{c.label}: arm {owner} turns faster than {qt} near arm {i}'s pair")
     return out
 
 
