@@ -252,14 +252,8 @@ class ContactApproach(ConstraintBase):
                         # action move it (link_motion), translation and rotation alike.
                         if not isfinite(sum(g)):
                             return None, f"arm {i}: link row {g} of proximity pair {pair} is not finite"
-                        c = 0.0
-                        for k in range(6):
-                            v = arm[k] * g[k]
-                            if v > 0.0:
-                                c += v
-                        if c > q:
-                            brake_along(arm, tuple(enumerate(g)), q)
-                            touched[i] = True
+                        brake_along(arm, tuple(enumerate(g)), q)  # a bound already met changes nothing
+                        touched[i] = True  # only asks for the comparison with ``a`` below
                         if 0 <= owner < n_arms and owner != i:
                             q_turn = turn_bound(q, dist) if turn else inf
                             _brake_other(poses, touched, q_rot, owner, nx, ny, nz, q, q_turn)

@@ -71,7 +71,6 @@ class LinkMotion:
         self._arms = tuple(arms)
         nv = model.nv
         self._jacp = np.zeros((3, nv))
-        self._jac = np.zeros((6, nv))
         self._m_inv_jac = np.zeros((6, nv))
         self._w = np.zeros((1, nv))
         self._m_inv_w = np.zeros((1, nv))

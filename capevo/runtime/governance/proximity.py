@@ -63,6 +63,9 @@ from capevo.runtime.state import ArmState
 Near = tuple[float, float, float, float, float, float, float, int]
 """One hand-to-scene pair: ``(dist, nx, ny, nz, rx, ry, rz, owner)``, see invariant 1."""
 
+_LinkPair = tuple[int, int, tuple[float, float, float], tuple[float, float, float]]
+"""A link pair found by :meth:`ProximitySensor._near`: index in its pairs, link body, nearest point, direction."""
+
 Frame = tuple[list[float], tuple[float, float, float]]
 """A geom's rotation (row-major, 9 floats) and the world centre of its bounding box."""
 
@@ -156,7 +159,7 @@ class ProximitySensor:
         reach: Pairs farther apart than this many metres are not reported.
         eef_bodies: Per arm, the end-effector body when ``hand_bodies`` are links above it
             (``wrist_links``): hand geoms outside its subtree are the arm's links, and with
-            ``link_motion`` :meth:`link_rows` gives how the action moves their pairs. None: every
+            ``link_motion`` :meth:`sense` gives how the action moves their pairs. None: every
             hand geom moves with the end effector.
         link_motion: Rows for link pairs (:mod:`capevo.runtime.governance.link_motion`).
     """
@@ -240,9 +243,6 @@ class ProximitySensor:
                     {g: int(model.geom_bodyid[g]) for g in hand if int(model.geom_bodyid[g]) not in eef}
                 )
         self._link_motion = link_motion
-        self._link_pairs: list[list[tuple[int, int, tuple[float, float, float], tuple[float, float, float]]]] = [
-            [] for _ in arms
-        ]
 
     @classmethod
     def for_robots(
@@ -505,9 +505,23 @@ class ProximitySensor:
 
     def near(self, arm: int) -> tuple[Near, ...]:
         """Pairs of ``arm``'s hand (and what it holds) with the rest of the scene closer than ``reach``."""
+        return self._near(arm, None)
+
+    def sense(self, arm: int) -> tuple[tuple[Near, ...], tuple[tuple[int, LinkRow], ...]]:
+        """:meth:`near`, and for its pairs whose hand side is a link above the end effector
+        ``(index into the pairs, row)``, the row from
+        :meth:`~capevo.runtime.governance.link_motion.LinkMotion.row` (none without link sensing)."""
+        motion = self._link_motion
+        if motion is None:
+            return self._near(arm, None), ()
+        links: list[_LinkPair] = []
+        pairs = self._near(arm, links)
+        return pairs, tuple((k, motion.row(arm, body, p, n)) for k, body, p, n in links)
+
+    def _near(self, arm: int, links: list[_LinkPair] | None) -> tuple[Near, ...]:
+        """:meth:`near`; with ``links``, each link pair's index, body, nearest point and direction
+        is appended to it."""
         m, d, reach = self.model, self.data, self.reach
-        links = self._link_pairs[arm]
-        links.clear()
         link_body = self._link_body[arm]
         held = self.held(arm)
         key = (arm, held)
@@ -589,16 +603,7 @@ class ProximitySensor:
             elif dist < 0.0:
                 # Penetrating: the nearest points are swapped; deeper is from p2 towards p1.
                 vx, vy, vz = -vx, -vy, -vz
-            if h in link_body:
+            if links is not None and h in link_body:
                 links.append((len(out), link_body[h], (p1x, p1y, p1z), (vx / norm, vy / norm, vz / norm)))
             out.append((dist, vx / norm, vy / norm, vz / norm, p1x - site[0], p1y - site[1], p1z - site[2], owner[o]))
         return tuple(out)
-
-    def link_rows(self, arm: int) -> tuple[tuple[int, LinkRow], ...]:
-        """For the pairs of ``arm``'s last :meth:`near` whose hand side is a link above the end
-        effector: ``(index into those pairs, row)``, the row from
-        :meth:`~capevo.runtime.governance.link_motion.LinkMotion.row` (empty without link sensing)."""
-        motion = self._link_motion
-        if motion is None:
-            return ()
-        return tuple((k, motion.row(arm, body, p, n)) for k, body, p, n in self._link_pairs[arm])

@@ -428,14 +428,14 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         sense = self.sense_proximity
         for i, site in enumerate(self._eef_sites):
             x, y, z = d.site_xpos[site].tolist()
-            near = self._proximity.near(i) if sense else ()
+            near, link_rows = self._proximity.sense(i) if sense else ((), ())
             arms.append(
                 ArmScene(
                     eef_pos=(x, y, z),
                     eef_force=self._arm_force(i),
                     eef_rot=tuple(d.site_xmat[site].tolist()),
                     near=near,
-                    link_rows=self._proximity.link_rows(i) if near else (),
+                    link_rows=link_rows,
                 )
             )
         return RobotState(arms=tuple(arms))
