@@ -18,7 +18,11 @@ A decision:
      whose termination still holds (a lift that stalls with the object still grasped
      retries the lift; one whose object slipped goes back to grasp or reach; in a
      multi-object task the objects already placed stay placed).
-3. Choice: the first step from the origin that is not done and is applicable. If there is
+3. Choice: the first step from the origin that is not done and is applicable. The walk may
+   pass over a step that is not done only to a step whose applicability predicate holds
+   (the world is already past the skipped step); it never passes over one to a step with no
+   applicability predicate, because such a step starts a new stage of the plan (T5's
+   ``bread.reach`` after the milk's steps) and would abandon the skipped one. If there is
    none but some step from the origin is not done, walk again from the re-plan origin (as
    after a failure of the origin step); if still none, end the episode, naming the first
    step that is not done and the applicability it waits for.
@@ -106,6 +110,8 @@ class StepStatus:
     """Its termination predicate holds."""
     applicable: bool
     """Its applicability predicate holds."""
+    unconditional: bool
+    """Its applicability predicate is empty: it can always start."""
     attempts: int
     """How many times it was started in this episode."""
 
@@ -184,6 +190,7 @@ class DecompositionPolicy:
                 ecm=s.ecm,
                 done=_holds(s, "termination", s.descriptor.termination, context.signals),
                 applicable=_holds(s, "applicability", s.descriptor.applicability, context.signals),
+                unconditional=not s.descriptor.applicability.all,
                 attempts=int(context.attempts.get(s.ecm, 0)),
             )
             for s in steps
@@ -257,7 +264,20 @@ def _holds(step: PlanStep, which: str, predicate: Predicate, signals: Mapping[st
 
 
 def _ready(status: tuple[StepStatus, ...], origin: int) -> list[StepStatus]:
-    return [s for s in status[origin:] if not s.done and s.applicable]
+    """Steps from ``origin`` that are not done and applicable, stopping at the first
+    unconditional step that would pass over an inapplicable step not done (rule 3)."""
+    ready: list[StepStatus] = []
+    passed_over = False
+    for s in status[origin:]:
+        if s.done:
+            continue
+        if passed_over and s.unconditional:
+            break
+        if s.applicable:
+            ready.append(s)
+        else:
+            passed_over = True
+    return ready
 
 
 def _replan_origin(status: tuple[StepStatus, ...], limit: int) -> int:

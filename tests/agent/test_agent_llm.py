@@ -124,10 +124,25 @@ CAPS = {
             termination=pred("drawer open", ("a", ">=", 1)),
         ),
     ),
-    "t.b": version("t.b", Descriptor(description="Wave.", termination=pred("waved", ("b", ">=", 1)))),
-    "t.c": version("t.c", Descriptor(description="Bow.", termination=pred("bowed", ("c", ">=", 1)))),
+    # b and c apply on their own condition, so the walk may pass over t.a to them (policy rule 3).
+    "t.b": version(
+        "t.b",
+        Descriptor(
+            description="Wave.",
+            applicability=pred("y positive", ("y", ">", 0)),
+            termination=pred("waved", ("b", ">=", 1)),
+        ),
+    ),
+    "t.c": version(
+        "t.c",
+        Descriptor(
+            description="Bow.",
+            applicability=pred("y positive", ("y", ">", 0)),
+            termination=pred("bowed", ("c", ">=", 1)),
+        ),
+    ),
 }
-ALL_READY = {"x": 1.0, "a": 0.0, "b": 0.0, "c": 0.0}
+ALL_READY = {"x": 1.0, "y": 1.0, "a": 0.0, "b": 0.0, "c": 0.0}
 FALLBACK = DecompositionPolicy(identity=IDENTITY)
 
 
@@ -254,7 +269,7 @@ def test_a_single_candidate_needs_no_call(server: ChatServer) -> None:
 
 
 def test_the_episode_ends_when_the_decomposition_policy_ends_it(server: ChatServer) -> None:
-    done = {"x": 1.0, "a": 1.0, "b": 1.0, "c": 1.0}
+    done = {**ALL_READY, "a": 1.0, "b": 1.0, "c": 1.0}
     assert llm(server.base_url).decide(context("t", done, CAPS)) == Decision(ecm=None, reason="all steps done")
     limited = context("t", ALL_READY, CAPS, attempts={"t.a": 3})
     assert llm(server.base_url).decide(limited) == FALLBACK.decide(limited)

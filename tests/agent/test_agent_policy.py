@@ -138,8 +138,9 @@ def test_applicability_gates_the_next_step(policy: DecompositionPolicy) -> None:
     assert "nothing applicable from pick.grasp" in d.reason
 
 
-def _abc_policy() -> tuple[DecompositionPolicy, dict[str, object]]:
-    identity = IdentityMemory(name="t", decompositions={"t": ("t.a", "t.b", "t.c")})
+def _abc_policy(order: tuple[str, ...] = ("t.a", "t.b", "t.c")) -> tuple[DecompositionPolicy, dict[str, object]]:
+    """a applies when x > 0, b always (no applicability), c when y > 0."""
+    identity = IdentityMemory(name="t", decompositions={"t": order})
     caps = {
         "t.a": version(
             "t.a",
@@ -160,12 +161,60 @@ def _abc_policy() -> tuple[DecompositionPolicy, dict[str, object]]:
     return DecompositionPolicy(identity=identity), caps
 
 
-def test_an_inapplicable_step_is_passed_over_for_the_next_applicable_one() -> None:
+def test_an_inapplicable_step_is_passed_over_for_a_later_step_whose_applicability_holds() -> None:
+    policy, caps = _abc_policy(("t.a", "t.c", "t.b"))
+    signals = {"x": 0.0, "y": 1.0, "a": 0.0, "b": 0.0, "c": 0.0}
+    assert policy.decide(context("t", signals, caps)).ecm == "t.c"
+    assert policy.candidates(context("t", signals, caps)) == ("t.c",)
+
+
+def test_the_walk_never_passes_over_a_step_to_one_that_always_applies() -> None:
+    # b has no applicability predicate: running it would abandon a, not skip a finished stage.
     policy, caps = _abc_policy()
-    signals = {"x": 0.0, "y": 0.0, "a": 0.0, "b": 0.0, "c": 0.0}
-    assert policy.decide(context("t", signals, caps)).ecm == "t.b"
-    assert policy.candidates(context("t", signals, caps)) == ("t.b",)
-    assert policy.candidates(context("t", {**signals, "x": 1.0, "y": 1.0}, caps)) == ("t.a", "t.b", "t.c")
+    signals = {"x": 0.0, "y": 1.0, "a": 0.0, "b": 0.0, "c": 0.0}
+    d = policy.decide(context("t", signals, caps))
+    assert d == Decision(ecm=None, reason="no applicable step: t.a is not done and needs 'x positive' (x > 0)")
+    assert policy.candidates(context("t", signals, caps)) == ()
+    # A planner may still reorder steps that all apply.
+    assert policy.candidates(context("t", {**signals, "x": 1.0}, caps)) == ("t.a", "t.b", "t.c")
+    assert policy.decide(context("t", {**signals, "a": 1.0}, caps)).ecm == "t.b"
+
+
+def _multi_signals(**overrides: float) -> dict[str, float]:
+    """T5 with nothing placed or grasped, the hand 30 cm from everything, gripper closed."""
+    signals = dict.fromkeys(task_spec("pick_place_multi").signal_names, 0.3)
+    for key in signals:
+        if key.endswith(("grasped", "object_in_bin", "height_above_start")) or key in ("n_placed", "success"):
+            signals[key] = 0.0
+        if key.endswith("quadrant_margin"):
+            signals[key] = -0.3  # in the source bin, outside every goal quadrant
+    signals["gripper_opening"] = 0.0
+    return {**signals, **overrides}
+
+
+@pytest.mark.parametrize(
+    ("prev", "end"),
+    [
+        ("pick_place_multi.milk.reach", StepEnd.TERMINATED),  # the hand drifted off the milk
+        ("pick_place_multi.milk.grasp", StepEnd.TERMINATED),  # the milk slipped out at once
+        ("pick_place_multi.milk.lift", StepEnd.FAILED),
+    ],
+)
+def test_a_multi_object_walk_returns_to_the_object_it_left_not_the_next_one(
+    policy: DecompositionPolicy, prev: str, end: StepEnd
+) -> None:
+    caps = task_capabilities("pick_place_multi")
+    d = policy.decide(context("pick_place_multi", _multi_signals(), caps, prev=prev, end=end))
+    assert d.ecm == "pick_place_multi.milk.reach"
+
+
+def test_a_multi_object_walk_moves_on_once_the_object_is_placed(policy: DecompositionPolicy) -> None:
+    caps = task_capabilities("pick_place_multi")
+    placed = _multi_signals(milk_object_in_bin=1.0, milk_eef_object_dist=0.2, milk_object_quadrant_margin=0.05)
+    d = policy.decide(
+        context("pick_place_multi", placed, caps, prev="pick_place_multi.milk.release", end=StepEnd.TERMINATED)
+    )
+    assert d.ecm == "pick_place_multi.bread.reach"
 
 
 def test_no_applicable_step_ends_the_episode_naming_what_it_waits_for() -> None:

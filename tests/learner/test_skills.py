@@ -26,6 +26,7 @@ from capevo.runtime.ecm.code import CodeSkill, read_params, with_params
 from capevo.runtime.evaluator import LocalEvaluator
 from capevo.runtime.sandbox import validate_source
 from capevo.runtime.tasks import make_task, task_names, task_spec
+from capevo.runtime.traces.reader import TraceReader
 
 # Tuned reference parameters: proof that the skill structure can solve T1-T3 under the
 # benchmark perturbations. They live only here; the shipped v0 stays untuned.
@@ -172,6 +173,24 @@ def test_tuned_pick_succeeds_and_v0_does_not(tmp_path) -> None:
     v0 = _evaluate(tmp_path, "pick", {}, seeds)
     assert not any(o.success for o in v0)
     assert math.isfinite(sum(o.reward for o in v0))
+
+
+@pytest.mark.slow
+def test_hand_set_t5_grasps_and_lifts_the_tall_milk_carton(tmp_path) -> None:
+    # The carton's top stops the palm 5.5 cm above its origin: with the grasp point at the
+    # origin, reach never met its termination and the milk was never grasped (T5 0/30).
+    from capevo.learner.skills.hand_set import seed_hand_set
+
+    traces = tmp_path / "traces"
+    traces.mkdir()
+    with LocalRegistry(tmp_path / "reg", actor="test") as reg:
+        seed_hand_set(reg, "T5")
+        policy = DecompositionPolicy(identity=IdentityMemory.default())
+        with LocalEvaluator(reg, policy=policy, trace_dir=traces, horizon=250) as ev:
+            ev.evaluate("T5", {}, [3])
+    (path,) = traces.rglob("*.mcap")
+    ran = [p.ecm for p in TraceReader(path).plan_steps()]
+    assert ran[:3] == ["pick_place_multi.milk.reach", "pick_place_multi.milk.grasp", "pick_place_multi.milk.lift"]
 
 
 def _yaw_quat(yaw: float) -> np.ndarray:

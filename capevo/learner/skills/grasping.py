@@ -1,6 +1,8 @@
 """Reach, grasp and lift: the first three steps of every single-arm task, as code skill templates.
 
-The object's grasp point is its origin (``${obj}_pos``) plus ``grasp_dz`` in z. The skills are
+The skills aim at the object's origin (``${obj}_pos``) raised by the task's grasp height
+(``grasp_height``, hand-written per object: 0 except T5's milk carton, see
+``capevo.runtime.tasks.pick_place.GRASP_HEIGHT``) plus the learned ``grasp_dz``. The skills are
 memoryless: each step's phase is read off the (noisy) observation, and every branch that a
 noisy reading can pick wrongly for one step only pauses the motion for that step.
 
@@ -40,7 +42,7 @@ v0 is untuned (manual): ``grasp_dz`` aims 3 cm above the origin and the gain is 
         "descend_xy": 0.02,
         "dig": 0.0,
     },
-    keys={"walls": "None"},
+    keys={"walls": "None", "grasp_height": "0.0"},
     ranges={
         "gain": GAIN_RANGE,
         "hover": (0.03, 0.2),
@@ -49,9 +51,13 @@ v0 is untuned (manual): ``grasp_dz`` aims 3 cm above the origin and the gain is 
         "dig": DIG_RANGE,
     },
     body='''
+GRASP_HEIGHT = ${grasp_height}
+"""The object's grasp point above its origin, metres (hand-written by the task)."""
+
+
 def grasp_error(obs, params):
-    """Grasp point minus end effector (world frame, metres)."""
-    goal = vec(obs, "${obj}_pos") + np.array([0.0, 0.0, params["grasp_dz"]])
+    """Aim point (grasp point raised by grasp_dz) minus end effector (world frame, metres)."""
+    goal = vec(obs, "${obj}_pos") + np.array([0.0, 0.0, GRASP_HEIGHT + params["grasp_dz"]])
     return goal - vec(obs, "robot0_eef_pos")
 
 
@@ -99,10 +105,15 @@ v0 is untuned (manual): same too-high ``grasp_dz`` as reach, low gain, closes la
         "dig": 0.0,
         "close_above": 0.01,
     },
+    keys={"grasp_height": "0.0"},
     ranges={"gain": GAIN_RANGE, "grasp_dz": GRASP_DZ_RANGE, "dig": DIG_RANGE, "close_above": (0.0, 0.08)},
     body="""
+GRASP_HEIGHT = ${grasp_height}
+\"\"\"The object's grasp point above its origin, metres (hand-written by the task).\"\"\"
+
+
 def act(obs, params):
-    goal = vec(obs, "${obj}_pos") + np.array([0.0, 0.0, params["grasp_dz"]])
+    goal = vec(obs, "${obj}_pos") + np.array([0.0, 0.0, GRASP_HEIGHT + params["grasp_dz"]])
     err = goal - vec(obs, "robot0_eef_pos")
     grip = CLOSE if -err[2] < params["close_above"] else OPEN
     move = np.array([err[0], err[1], err[2] - params["dig"]])

@@ -18,6 +18,7 @@ from collections.abc import Mapping
 
 from capevo.learner.skills._lib import GAIN_RANGE, SPEED_RANGE, SkillTemplate
 from capevo.learner.skills.grasping import GRASP, LIFT, REACH
+from capevo.runtime.tasks.pick_place import GRASP_HEIGHT
 from capevo.runtime.tasks.spec import TaskSpec
 
 MOVE = SkillTemplate(
@@ -104,5 +105,11 @@ def templates(spec: TaskSpec) -> dict[str, tuple[SkillTemplate, dict[str, str]]]
     for ecm in spec.ecm_names:
         parts = ecm.split(".")
         obj = parts[1].capitalize() if len(parts) == 3 else "Can"
-        out[ecm] = (_BY_STEP[parts[-1]], {"obj": obj, "what": f"the {obj.lower()}", "walls": SOURCE_BIN_WALLS})
+        keys = {
+            "obj": obj,
+            "what": f"the {obj.lower()}",
+            "walls": SOURCE_BIN_WALLS,
+            "grasp_height": repr(GRASP_HEIGHT[obj]),
+        }
+        out[ecm] = (_BY_STEP[parts[-1]], keys)
     return out

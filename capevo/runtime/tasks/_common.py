@@ -29,7 +29,11 @@ GRIPPER_OPEN = 0.06
 """Finger gap in metres above which the gripper counts as open (fully open is about 0.08)."""
 
 REACH_SIGNALS: tuple[SignalSpec, ...] = (
-    SignalSpec(name="eef_object_dist", description="End effector (grip site) to object distance.", units="m"),
+    SignalSpec(
+        name="eef_object_dist",
+        description="End effector (grip site) to the object's grasp point (its origin unless the task says otherwise).",
+        units="m",
+    ),
     SignalSpec(name="eef_object_xy_dist", description="Horizontal part of eef_object_dist.", units="m"),
     SignalSpec(
         name="eef_object_dz",
