@@ -47,6 +47,18 @@ def pred(text: str, *conds: tuple[str, str, float]) -> Predicate:
     return Predicate(text=text, all=tuple(Condition(signal=s, op=o, value=v) for s, o, v in conds))
 
 
+def step_version(
+    name: str, description: str, done: tuple[str, str, float], when: tuple[str, str, float] | None = None
+) -> EcmVersion:
+    """Version 1 of ECM ``name``: done when ``done`` holds, applicable when ``when`` does (always if None)."""
+    descriptor = Descriptor(
+        description=description,
+        applicability=pred("", when) if when else Predicate(),
+        termination=pred(f"{description} done", done),
+    )
+    return version(name, descriptor)
+
+
 def context(
     task: str,
     signals: Mapping[str, float],

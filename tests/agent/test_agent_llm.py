@@ -15,7 +15,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
 import pytest
-from _agent_helpers import PICK_AT_CAN_OPEN, context, pred, task_capabilities, version
+from _agent_helpers import PICK_AT_CAN_OPEN, context, pred, step_version, task_capabilities, version
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -125,22 +125,8 @@ CAPS = {
         ),
     ),
     # b and c apply on their own condition, so the walk may pass over t.a to them (policy rule 3).
-    "t.b": version(
-        "t.b",
-        Descriptor(
-            description="Wave.",
-            applicability=pred("y positive", ("y", ">", 0)),
-            termination=pred("waved", ("b", ">=", 1)),
-        ),
-    ),
-    "t.c": version(
-        "t.c",
-        Descriptor(
-            description="Bow.",
-            applicability=pred("y positive", ("y", ">", 0)),
-            termination=pred("bowed", ("c", ">=", 1)),
-        ),
-    ),
+    "t.b": step_version("t.b", "Wave.", ("b", ">=", 1), ("y", ">", 0)),
+    "t.c": step_version("t.c", "Bow.", ("c", ">=", 1), ("y", ">", 0)),
 }
 ALL_READY = {"x": 1.0, "y": 1.0, "a": 0.0, "b": 0.0, "c": 0.0}
 FALLBACK = DecompositionPolicy(identity=IDENTITY)

@@ -19,6 +19,7 @@ from _agent_helpers import (
     PICK_SLIPPED,
     context,
     pred,
+    step_version,
     task_capabilities,
     version,
 )
@@ -142,21 +143,9 @@ def _abc_policy(order: tuple[str, ...] = ("t.a", "t.b", "t.c")) -> tuple[Decompo
     """a applies when x > 0, b always (no applicability), c when y > 0."""
     identity = IdentityMemory(name="t", decompositions={"t": order})
     caps = {
-        "t.a": version(
-            "t.a",
-            Descriptor(
-                description="a",
-                applicability=pred("x positive", ("x", ">", 0)),
-                termination=pred("a done", ("a", ">=", 1)),
-            ),
-        ),
-        "t.b": version("t.b", Descriptor(description="b", termination=pred("b done", ("b", ">=", 1)))),
-        "t.c": version(
-            "t.c",
-            Descriptor(
-                description="c", applicability=pred("", ("y", ">", 0)), termination=pred("c done", ("c", ">=", 1))
-            ),
-        ),
+        "t.a": step_version("t.a", "a", ("a", ">=", 1), ("x", ">", 0)),
+        "t.b": step_version("t.b", "b", ("b", ">=", 1)),
+        "t.c": step_version("t.c", "c", ("c", ">=", 1), ("y", ">", 0)),
     }
     return DecompositionPolicy(identity=identity), caps
 
@@ -173,7 +162,7 @@ def test_the_walk_never_passes_over_a_step_to_one_that_always_applies() -> None:
     policy, caps = _abc_policy()
     signals = {"x": 0.0, "y": 1.0, "a": 0.0, "b": 0.0, "c": 0.0}
     d = policy.decide(context("t", signals, caps))
-    assert d == Decision(ecm=None, reason="no applicable step: t.a is not done and needs 'x positive' (x > 0)")
+    assert d == Decision(ecm=None, reason="no applicable step: t.a is not done and needs x > 0")
     assert policy.candidates(context("t", signals, caps)) == ()
     # A planner may still reorder steps that all apply.
     assert policy.candidates(context("t", {**signals, "x": 1.0}, caps)) == ("t.a", "t.b", "t.c")
@@ -221,7 +210,7 @@ def test_no_applicable_step_ends_the_episode_naming_what_it_waits_for() -> None:
     policy, caps = _abc_policy()
     signals = {"x": 0.0, "y": 0.0, "a": 0.0, "b": 1.0, "c": 0.0}
     d = policy.decide(context("t", signals, caps))
-    assert d == Decision(ecm=None, reason="no applicable step: t.a is not done and needs 'x positive' (x > 0)")
+    assert d == Decision(ecm=None, reason="no applicable step: t.a is not done and needs x > 0")
 
 
 def test_descriptors_from_the_capability_set_drive_the_choice(policy: DecompositionPolicy) -> None:
