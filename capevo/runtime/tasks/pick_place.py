@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Mapping
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -47,7 +49,7 @@ robosuite's own success asks for the quadrant, so the hand-off asks for it too."
 RELEASE_OVER_QUADRANT = 0.02
 """``release`` applies while the object is at least this far inside its goal quadrant, metres."""
 
-GRASP_HEIGHT: dict[str, float] = {"Milk": 0.065, "Bread": 0.0, "Can": 0.0}
+GRASP_HEIGHT: Mapping[str, float] = MappingProxyType({"Milk": 0.065, "Bread": 0.0, "Can": 0.0})
 """Height of each object's grasp point above its origin, metres: where the grip site sits when
 the fingers straddle the object. Hand-written from the meshes (measured in MuJoCo at reset): the
 Panda hand's palm is 2.8 cm above the grip site. The milk carton is a 5.4 cm box up to 5 cm above
