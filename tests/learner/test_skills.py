@@ -20,6 +20,7 @@ from capevo.learner.skills import (
     seed_specs,
     skill_tasks,
 )
+from capevo.learner.skills.hand_set import seed_hand_set
 from capevo.records import Kind, Origin, State
 from capevo.registry.local import LocalRegistry
 from capevo.runtime.ecm.code import CodeSkill, read_params, with_params
@@ -179,8 +180,6 @@ def test_tuned_pick_succeeds_and_v0_does_not(tmp_path) -> None:
 def test_hand_set_t5_grasps_and_lifts_the_tall_milk_carton(tmp_path) -> None:
     # The carton's top stops the palm 5.5 cm above its origin: with the grasp point at the
     # origin, reach never met its termination and the milk was never grasped (T5 0/30).
-    from capevo.learner.skills.hand_set import seed_hand_set
-
     traces = tmp_path / "traces"
     traces.mkdir()
     with LocalRegistry(tmp_path / "reg", actor="test") as reg:
