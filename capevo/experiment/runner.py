@@ -273,7 +273,7 @@ def start_ray(*, workers: int, address: str | None) -> bool:
     }
     if address:
         try:
-            ray.init(address=address, **kwargs)
+            _join_cluster(ray, address, kwargs)
         except ConnectionError as e:
             # Ray >= 2.59 starts clusters with token auth on; a client without the token times out
             # with a generic message, so name the likely causes here.
@@ -286,6 +286,33 @@ def start_ray(*, workers: int, address: str | None) -> bool:
     else:
         ray.init(num_cpus=workers, **kwargs)
     return True
+
+
+JOIN_ATTEMPTS = 3
+
+
+def _join_cluster(ray: Any, address: str, kwargs: Mapping[str, Any]) -> None:
+    """``ray.init`` on a Ray Client address, retrying when the head answered but failed to start
+    this client's session.
+
+    Why: on a freshly started head, Ray 2.60's client proxy loses the first client's dedicated
+    server process in about one join of three (``Starting Ray client server failed``, or
+    ``psutil.ZombieProcess`` while it waits for that process); measured with the cluster test's
+    setup, the next join always succeeded. Ray reports this as ``ConnectionAbortedError``
+    ("Initialization failure from server"), which is retried; other ``ConnectionError`` s (head
+    unreachable, a missing token) are not, because retrying cannot fix them.
+    """
+    for attempt in range(1, JOIN_ATTEMPTS + 1):
+        try:
+            ray.init(address=address, **kwargs)
+            return
+        except ConnectionAbortedError as e:
+            if attempt == JOIN_ATTEMPTS:
+                raise
+            log.warning("joining %s failed (attempt %d of %d), retrying: %s", address, attempt, JOIN_ATTEMPTS, e)
+            with contextlib.suppress(Exception):
+                ray.shutdown()  # drop the half-made client context before the next ray.init
+            time.sleep(1.0)
 
 
 def stop_ray() -> None:

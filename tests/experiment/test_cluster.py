@@ -55,9 +55,18 @@ def _wait_for_port(port: int, head: subprocess.Popen[bytes], timeout: float = 12
     raise AssertionError(f"the Ray Client port {port} did not open within {timeout} s")
 
 
+def _client_server_logs(temp: Path) -> str:
+    """The tails of the head's Ray Client server logs, where Ray says why a join failed."""
+    return "".join(
+        f"\n== {log.name}\n{log.read_text(errors='replace')[-1500:]}"
+        for log in sorted(temp.glob("session_latest/logs/ray_client_server*"))
+    )
+
+
 @pytest.fixture
-def cluster() -> Iterator[tuple[str, dict[str, str]]]:
-    """A one-node Ray cluster with token auth; yields its ``ray://`` address and the client's env."""
+def cluster() -> Iterator[tuple[str, dict[str, str], Path]]:
+    """A one-node Ray cluster with token auth; yields its ``ray://`` address, the client's env and
+    the head's temp dir (its logs explain a failed join)."""
     # a short temp dir: Ray's socket paths must fit in 107 bytes
     temp = Path(tempfile.mkdtemp(prefix="rt", dir="/tmp"))
     env = {**os.environ, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
@@ -76,7 +85,7 @@ def cluster() -> Iterator[tuple[str, dict[str, str]]]:
     )
     try:
         _wait_for_port(client, head)
-        yield f"ray://127.0.0.1:{client}", env
+        yield f"ray://127.0.0.1:{client}", env, temp
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(head.pid, signal.SIGTERM)
@@ -89,9 +98,9 @@ def cluster() -> Iterator[tuple[str, dict[str, str]]]:
 
 
 def test_a_grid_runs_on_an_existing_cluster_joined_through_its_client_address(
-    cluster: tuple[str, dict[str, str]], tmp_path: Path
+    cluster: tuple[str, dict[str, str], Path], tmp_path: Path
 ) -> None:
-    address, env = cluster
+    address, env, temp = cluster
     grid = tmp_path / "grid.yaml"
     grid.write_text(GRID, encoding="utf-8")
     run_dir = tmp_path / "run"
@@ -106,7 +115,7 @@ def test_a_grid_runs_on_an_existing_cluster_joined_through_its_client_address(
         text=True,
         timeout=600,
     )
-    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:] + _client_server_logs(temp)
     cell = run_dir / "cells" / "T1-s-ecm-s1"
     record = json.loads((cell / "metrics.jsonl").read_text(encoding="utf-8").splitlines()[0])
     assert record["iteration"] == 1 and len(record["episodes"]) == 2
@@ -114,3 +123,38 @@ def test_a_grid_runs_on_an_existing_cluster_joined_through_its_client_address(
     assert list(cell.glob("traces/**/*.mcap")) and (cell / "registry").is_dir()
     provenance = json.loads((run_dir / "provenance.json").read_text())
     assert provenance["ray"]["address"] == address and provenance["cells"]["run"] == 1
+
+
+class _FlakyHead:
+    """Stands in for the ``ray`` module's join only: ``init`` raises the given errors in turn, then
+    joins. The real join is the test above; this pins which failures the runner retries."""
+
+    def __init__(self, *errors: Exception) -> None:
+        self.errors, self.inits, self.shutdowns = list(errors), 0, 0
+
+    def init(self, **_: object) -> None:
+        self.inits += 1
+        if self.errors:
+            raise self.errors.pop(0)
+
+    def shutdown(self) -> None:
+        self.shutdowns += 1
+
+
+def test_a_join_the_head_aborted_is_retried_and_other_connection_errors_are_not() -> None:
+    from capevo.experiment.runner import JOIN_ATTEMPTS, _join_cluster
+
+    aborted = ConnectionAbortedError("Initialization failure from server: Starting Ray client server failed")
+    head = _FlakyHead(*[aborted] * (JOIN_ATTEMPTS - 1))
+    _join_cluster(head, "ray://h:1", {})
+    assert head.inits == JOIN_ATTEMPTS and head.shutdowns == JOIN_ATTEMPTS - 1
+
+    head = _FlakyHead(*[aborted] * JOIN_ATTEMPTS)
+    with pytest.raises(ConnectionAbortedError):
+        _join_cluster(head, "ray://h:1", {})
+    assert head.inits == JOIN_ATTEMPTS
+
+    head = _FlakyHead(ConnectionError("timed out"))
+    with pytest.raises(ConnectionError):
+        _join_cluster(head, "ray://h:1", {})
+    assert head.inits == 1
