@@ -13,8 +13,16 @@ direction as the gap closes.
 
 * the hand: every collidable geom in the subtree of the arm's end-effector body (gripper
   fingers and pads, a peg or a plate fixed to the hand);
-* the held set, per step: every movable object (a body on a free joint) that touches the hand,
-  with all its geoms; it moves with the hand, so it counts as part of it;
+* the held set, per step: every movable object (a body on a free joint) that the hand grasps,
+  with all its geoms; it moves with the hand, so it counts as part of it. Grasped is robosuite's
+  own test (``_check_grasp``) with its finger groups: the object touches a geom of the left finger
+  and one of the right (``important_geoms["left_finger"]``, ``["right_finger"]``, pads included).
+  The independent safety monitor decides what is held the same way
+  (:mod:`capevo.runtime.safety_monitor`). An object that only one finger or the palm touches is
+  not held: it stays among the others, so the hand's motion towards it is still slowed. (Counting every touching object as held let a
+  finger that brushed the placed milk carton drop the can-to-milk pair in a T5 episode, seed
+  250022, and the freed hand drove the held can into the milk at 32 N.) Without finger groups
+  (a sensor built without ``fingers``), every touching object counts as held;
 * the others: every collidable geom that is neither the hand, nor held, nor a link of the
   arm's own kinematic chain (those cannot be reached by the hand in a way the reach limit
   does not already cover, and MuJoCo filters parent-child contacts anyway), nor a plane (the
@@ -162,6 +170,8 @@ class ProximitySensor:
             ``link_motion`` :meth:`sense` gives how the action moves their pairs. None: every
             hand geom moves with the end effector.
         link_motion: Rows for link pairs (:mod:`capevo.runtime.governance.link_motion`).
+        fingers: Per arm, the geom ids of its two fingers ``(left, right)``; an object is held
+            when it touches both. None: when it touches any hand geom.
     """
 
     def __init__(
@@ -174,6 +184,7 @@ class ProximitySensor:
         reach: float = DEFAULT_REACH,
         eef_bodies: Sequence[int] | None = None,
         link_motion: LinkMotion | None = None,
+        fingers: Sequence[tuple[Sequence[int], Sequence[int]]] | None = None,
     ) -> None:
         import mujoco  # here, not at module level: governance itself does not need MuJoCo
 
@@ -233,6 +244,11 @@ class ProximitySensor:
         # Per arm and held set, the broad phase's index arrays and buffers (built on first use).
         self._candidates: dict[tuple[int, tuple[int, ...]], _Candidates | None] = {}
         self._hand_sets = tuple(frozenset(a[0]) for a in arms)
+        # Per arm, {finger geom: 0 left or 1 right}; empty: any hand geom grasps.
+        self._finger_of: tuple[dict[int, int], ...] = tuple(
+            {} if fingers is None else {g: side for side, group in enumerate(fingers[i]) for g in group}
+            for i in range(len(arms))
+        )
         self._fromto = np.zeros(6)
         # Hand geoms on links above the end-effector body, with their bodies (empty: none sensed).
         self._link_body: tuple[dict[int, int], ...] = tuple({} for _ in arms)
@@ -257,8 +273,16 @@ class ProximitySensor:
         import mujoco
 
         bodies, sites, eef_bodies, joints = [], [], [], []
+        fingers: list[tuple[list[int], list[int]]] = []
         for robot in robots:
             for arm in robot.arms:
+                groups = robot.gripper[arm].important_geoms
+                fingers.append(
+                    tuple(  # type: ignore[arg-type]
+                        [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name) for name in groups[side]]
+                        for side in ("left_finger", "right_finger")
+                    )
+                )
                 body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, robot.robot_model.eef_name[arm])
                 eef_bodies.append(body)
                 for _ in range(wrist_links):
@@ -271,7 +295,7 @@ class ProximitySensor:
                 scale = tuple(float(v) for v in robot.part_controllers[arm].output_max)
                 joints.append(ArmJoints(site=sites[-1], dofs=tuple(robot._ref_joint_vel_indexes), scale=scale))
         motion = LinkMotion(model, data, joints) if wrist_links else None
-        return cls(model, data, bodies, sites, reach=reach, eef_bodies=eef_bodies, link_motion=motion)
+        return cls(model, data, bodies, sites, reach=reach, eef_bodies=eef_bodies, link_motion=motion, fingers=fingers)
 
     def _boxes(self, geoms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World axis-aligned boxes ``(low, high)`` of ``geoms``' bounding boxes, now."""
@@ -453,23 +477,27 @@ class ProximitySensor:
         return tuple(self._arms[arm][0])
 
     def held(self, arm: int) -> tuple[int, ...]:
-        """Movable objects (free-body ids) touching ``arm``'s hand now."""
+        """Movable objects (free-body ids) ``arm``'s hand grasps now: touched by both fingers
+        (by any hand geom when the sensor has no finger groups)."""
         d = self.data
         n = int(d.ncon)
         if n == 0 or not self._object_of:
             return ()
-        hand = self._hand_sets[arm]
-        out: list[int] = []
+        hand, fingers = self._hand_sets[arm], self._finger_of[arm]
+        touched: dict[int, set[int]] = {}  # object -> the finger sides touching it (0 for any geom)
         for g1, g2 in d.contact.geom[:n].tolist():
             if g1 in hand and g2 in self._object_of:
-                obj = self._object_of[g2]
+                g, obj = g1, self._object_of[g2]
             elif g2 in hand and g1 in self._object_of:
-                obj = self._object_of[g1]
+                g, obj = g2, self._object_of[g1]
             else:
                 continue
-            if obj not in out:
-                out.append(obj)
-        return tuple(out)
+            if not fingers:
+                touched.setdefault(obj, set()).add(0)
+            elif g in fingers:
+                touched.setdefault(obj, set()).add(fingers[g])
+        need = 2 if fingers else 1
+        return tuple(obj for obj, sides in touched.items() if len(sides) >= need)
 
     def _candidates_of(self, arm: int, held: tuple[int, ...]) -> _Candidates | None:
         """:class:`_Candidates` of ``arm`` holding ``held`` (None: no hand or nothing else)."""

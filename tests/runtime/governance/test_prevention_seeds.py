@@ -72,3 +72,47 @@ def test_the_default_envelope_brakes_the_forearm_a_learned_policy_drove_into_the
     ungoverned = _replay(record["actions"], record["seed"], governance=False)
     assert any("link5" in r for r in ungoverned), ungoverned
     assert _replay(record["actions"], record["seed"], governance=True) == []
+
+
+HELD_CAN = DATA / "t5_held_can_strike_actions.json"
+
+
+@pytest.mark.slow
+def test_a_finger_brushing_another_object_does_not_make_it_part_of_the_hand() -> None:
+    """T5, evolved set, held-out seed 250022: carrying the can past the placed milk carton, one
+    finger brushed the milk at step 750. Counting every touching object as held put the milk on
+    the hand's side, dropped the can-to-milk pair, released the brake, and the held can struck
+    the milk at 32.4 N. Held now means grasped (both fingers, robosuite's own test), so the
+    milk stays among the others. The ECMs' proposed actions, replayed open loop, stay safe."""
+    import json
+
+    import mujoco
+    import numpy as np
+
+    from capevo.baselines.governed_env import GovernedTaskEnv
+
+    record = json.loads(HELD_CAN.read_text())
+    *before, last = record["actions"]
+    env = GovernedTaskEnv(record["task"], phi="task", horizon=record["horizon"])
+    try:
+        env.reset(seed=record["seed"])
+        reasons: list[str] = []
+        for a in before:
+            _, _, terminated, truncated, info = env.step(np.asarray(a))
+            reasons += list(info["unsafe_reasons"])
+            assert not (terminated or truncated)
+        # The scene of the strike is reached: the can is grasped and a finger touches the milk.
+        prox = env.task_env._proximity
+        model, data = prox.model, prox.data
+        milk, can = (mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"{n}_main") for n in ("Milk", "Can"))
+        hand = set(prox.sensed(0))
+        touching = {
+            int(model.geom_bodyid[g2 if g1 in hand else g1])
+            for g1, g2 in data.contact.geom[: data.ncon].tolist()
+            if (g1 in hand) != (g2 in hand)
+        }
+        assert milk in touching and prox.held(0) == (can,)
+        reasons += list(env.step(np.asarray(last))[4]["unsafe_reasons"])
+        assert reasons == []
+    finally:
+        env.close()
