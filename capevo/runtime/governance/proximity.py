@@ -19,9 +19,10 @@ direction as the gap closes.
   and one of the right (``important_geoms["left_finger"]``, ``["right_finger"]``, pads included).
   The independent safety monitor decides what is held the same way
   (:mod:`capevo.runtime.safety_monitor`). An object that only one finger or the palm touches is
-  not held: it stays among the others, so the hand's motion towards it is still slowed. (Counting every touching object as held let a
-  finger that brushed the placed milk carton drop the can-to-milk pair in a T5 episode, seed
-  250022, and the freed hand drove the held can into the milk at 32 N.) Without finger groups
+  not held: it stays among the others, so the hand's motion towards it is still slowed.
+  (Counting every touching object as held let a finger that brushed the placed milk carton drop
+  the can-to-milk pair in a T5 episode, seed 250022, and the freed hand drove the held can into
+  the milk at 32 N.) Without finger groups
   (a sensor built without ``fingers``), every touching object counts as held;
 * the others: every collidable geom that is neither the hand, nor held, nor a link of the
   arm's own kinematic chain (those cannot be reached by the hand in a way the reach limit
