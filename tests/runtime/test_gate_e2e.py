@@ -57,6 +57,8 @@ def random_sac_zip(obs_dim: int, act_dim: int) -> bytes:
     import gymnasium as gym
     from stable_baselines3 import SAC
 
+    from capevo.learner.neural_seed import silent_logger
+
     class Blank(gym.Env):
         observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
         action_space = gym.spaces.Box(-1.0, 1.0, (act_dim,), np.float32)
@@ -69,6 +71,7 @@ def random_sac_zip(obs_dim: int, act_dim: int) -> bytes:
             return np.zeros(obs_dim, np.float32), 0.0, False, False, {}
 
     model = SAC("MlpPolicy", Blank(), learning_starts=10**6, buffer_size=64, device="cpu", seed=0)
+    model.set_logger(silent_logger())  # else SB3 leaves an empty $TMPDIR/SB3-<time> folder
     model.learn(total_timesteps=1)  # one env step, no gradient update: weights stay random
     buf = io.BytesIO()
     model.save(buf)

@@ -13,6 +13,8 @@ def sac_zip() -> bytes:
     import gymnasium as gym
     from stable_baselines3 import SAC
 
+    from capevo.learner.neural_seed import silent_logger
+
     env = gym.make("Pendulum-v1")
     model = SAC(
         "MlpPolicy",
@@ -23,6 +25,7 @@ def sac_zip() -> bytes:
         device="cpu",
         seed=0,
     )
+    model.set_logger(silent_logger())  # else SB3 leaves an empty $TMPDIR/SB3-<time> folder
     model.learn(total_timesteps=1)
     buf = io.BytesIO()
     model.save(buf)
