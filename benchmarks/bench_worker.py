@@ -75,7 +75,7 @@ from capevo.runtime.traces import MemoryTraceSink, TraceMetadata, TraceWriter
 
 TARGET_OVERHEAD_PCT = 3.0
 CLOCKS = ("wall", "cpu")
-SENSING = "  of which proximity sensing (ProximitySensor.near)"
+SENSING = "  of which proximity sensing (ProximitySensor.sense)"
 """A part inside ``robot_state()``: reported, and not added again to the sum of the parts."""
 
 
@@ -157,8 +157,8 @@ def component_breakdown(
     env.robot_state = timed.wrap(env.robot_state, "robot_state() incl. sensing")
     # The sensor is the env's own and the loop builds its monitor itself: clock both classes'
     # methods for this pass (class attributes, restored below).
-    near, judge = ProximitySensor.near, SafetyMonitor.judge
-    ProximitySensor.near = timed.wrap(near, SENSING)  # type: ignore[method-assign]
+    sense, judge = ProximitySensor.sense, SafetyMonitor.judge
+    ProximitySensor.sense = timed.wrap(sense, SENSING)  # type: ignore[method-assign]
     env.step = timed.wrap(env.step, "TaskEnv.step (robosuite step inside)")
     SafetyMonitor.judge = timed.wrap(judge, "safety monitor judge()")  # type: ignore[method-assign]
     steps = 0
@@ -172,7 +172,7 @@ def component_breakdown(
             total, total_cpu = time.perf_counter() - t0, time.thread_time() - c0
     finally:
         del rs.step, env.reset, env.robot_state, env.step
-        ProximitySensor.near, SafetyMonitor.judge = near, judge  # type: ignore[method-assign]
+        ProximitySensor.sense, SafetyMonitor.judge = sense, judge  # type: ignore[method-assign]
     out: dict[str, dict[str, float]] = {}
     for k in clock:
         wall, spent = clock[k], cpu[k]
