@@ -123,38 +123,3 @@ def test_a_grid_runs_on_an_existing_cluster_joined_through_its_client_address(
     assert list(cell.glob("traces/**/*.mcap")) and (cell / "registry").is_dir()
     provenance = json.loads((run_dir / "provenance.json").read_text())
     assert provenance["ray"]["address"] == address and provenance["cells"]["run"] == 1
-
-
-class _FlakyHead:
-    """Stands in for the ``ray`` module's join only: ``init`` raises the given errors in turn, then
-    joins. The real join is the test above; this pins which failures the runner retries."""
-
-    def __init__(self, *errors: Exception) -> None:
-        self.errors, self.inits, self.shutdowns = list(errors), 0, 0
-
-    def init(self, **_: object) -> None:
-        self.inits += 1
-        if self.errors:
-            raise self.errors.pop(0)
-
-    def shutdown(self) -> None:
-        self.shutdowns += 1
-
-
-def test_a_join_the_head_aborted_is_retried_and_other_connection_errors_are_not() -> None:
-    from capevo.experiment.runner import JOIN_ATTEMPTS, _join_cluster
-
-    aborted = ConnectionAbortedError("Initialization failure from server: Starting Ray client server failed")
-    head = _FlakyHead(*[aborted] * (JOIN_ATTEMPTS - 1))
-    _join_cluster(head, "ray://h:1", {})
-    assert head.inits == JOIN_ATTEMPTS and head.shutdowns == JOIN_ATTEMPTS - 1
-
-    head = _FlakyHead(*[aborted] * JOIN_ATTEMPTS)
-    with pytest.raises(ConnectionAbortedError):
-        _join_cluster(head, "ray://h:1", {})
-    assert head.inits == JOIN_ATTEMPTS
-
-    head = _FlakyHead(ConnectionError("timed out"))
-    with pytest.raises(ConnectionError):
-        _join_cluster(head, "ray://h:1", {})
-    assert head.inits == 1
