@@ -45,7 +45,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import RESULTS_DIR, machine
+import _common
 
 EVAL_SEED_OFFSET = 50_000
 """Evaluation episodes run training-range seeds this far past the learner's own."""
@@ -126,7 +126,7 @@ def bc_regulariser(demos: Any, weight: float, stats: dict[str, int]) -> Any:
     return BcTerm()
 
 
-def run(args: argparse.Namespace) -> dict[str, Any]:
+def run(args: argparse.Namespace, scratch: Path) -> dict[str, Any]:
     import torch
 
     from capevo.evolve.loop import ensure_v0
@@ -141,9 +141,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from capevo.runtime.tasks import task_spec
 
     torch.set_num_threads(1)
-    registry = LocalRegistry(tempfile.mkdtemp(prefix="capevo-sac-diag-"))
+    registry = LocalRegistry(scratch / "registry")
     ensure_v0(registry, args.task, modality="rl")
-    preset = make_preset("cpu-small").with_seed(args.seed)
+    preset = make_preset(args.preset).with_seed(args.seed)
     env_config = dataclasses.replace(preset.env, seed=0, phi="task")
     parent = registry.get_version(args.ecm)
     target = target_for(args.task, args.ecm, parent)
@@ -202,16 +202,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     row["sac_training_episodes"] = stats
     row["after_sac"] = evaluate(model, make_env, args.eval_episodes)
     row["wall_s"] = time.perf_counter() - started
-    row["machine"] = machine()
+    row["machine"] = _common.machine()
     row["date"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    registry.close()
     return row
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--name", required=True, help="label of this run in the results file")
     parser.add_argument("--task", default="T1")
     parser.add_argument("--ecm", default="pick.reach")
+    parser.add_argument("--preset", default="cpu-small", help="learner preset (capevo.learner.presets)")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--steps", type=int, default=5_000, help="SAC env steps (critic warm-up included)")
     parser.add_argument("--eval-episodes", type=int, default=10)
@@ -223,11 +225,12 @@ def main() -> None:
     parser.add_argument("--critic-warmup", type=int, default=0)
     parser.add_argument("--bc-weight", type=float, default=0.0)
     parser.add_argument("--potential", action="store_true")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.critic_warmup >= args.steps:
         raise SystemExit("--critic-warmup must be below --steps")
-    row = run(args)
-    path = RESULTS_DIR / "sac_warm_start.json"
+    with tempfile.TemporaryDirectory(prefix="capevo-sac-diag-") as scratch:
+        row = run(args, Path(scratch))
+    path = _common.RESULTS_DIR / "sac_warm_start.json"
     rows = json.loads(path.read_text()) if path.exists() else []
     rows.append(row)
     path.write_text(json.dumps(rows, indent=1) + "\n")
@@ -240,7 +243,8 @@ def main() -> None:
             }
         )
     )
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -103,3 +103,17 @@ def test_sac_throughput_benchmark_measures_each_part_and_estimates_the_paper_bud
     assert all(r > 0 for r in result["rates_per_s"].values())
     assert all(h > 0 for h in result["estimates_hours"].values())  # no timing is judged, only that it ran
     assert json.loads((results_in / "sac_throughput.json").read_text())["steps"] == 20
+
+
+def test_sac_warm_start_diagnosis_clones_then_trains_and_records_each_stage(results_in: Path) -> None:
+    import diag_sac_warm_start
+
+    args = ["--name", "smoke", "--preset", "tiny", "--steps", "120", "--eval-episodes", "1"]
+    remedies = ["--potential", "--bc-weight", "1", "--explore-std", "0.2", "--critic-warmup", "40"]
+    assert diag_sac_warm_start.main([*args, *remedies]) == 0
+    (row,) = json.loads((results_in / "sac_warm_start.json").read_text())
+    assert row["name"] == "smoke" and row["demo_steps"] > 0
+    assert row["bc_loss"][1] < row["bc_loss"][0]  # cloning fitted the demonstrations
+    for stage in ("after_bc", "after_critic_warmup", "after_sac"):
+        assert row[stage]["episodes"] == 1 and 0 <= row[stage]["successes"] <= 1
+    assert row["settings"]["critic_warmup"] == 40
