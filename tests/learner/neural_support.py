@@ -61,12 +61,15 @@ def write_scripted_trace(
     versions: dict[str, int],
     inputs: dict[str, Any],
     run_id: str | None = None,
+    acting: str | None = None,
 ) -> list[TracedEpisode]:
     """Run scripted T1 episodes (one per seed, cut at its horizon) and trace them to ``path``.
 
     Steps are attributed to the decomposition step running, advancing when a step's
     termination predicate holds (as the runtime's plan does on a successful path).
     ``inputs`` maps ECM names to their interface inputs, to record the expected ECM observations.
+    ``acting`` attributes every step to that ECM instead: one ECM that never hands over and does
+    the whole task itself.
     """
     spec = task_spec("T1")
     env = make_task("T1", perturbations=Perturbations.none(), horizon=max(horizons))
@@ -91,7 +94,7 @@ def write_scripted_trace(
                         spec.decomposition[stage].termination, env.signals()
                     ):
                         stage += 1
-                    ecm = spec.decomposition[stage].ecm
+                    ecm = acting or spec.decomposition[stage].ecm
                     if ecm in inputs:
                         record.ecm_obs.setdefault(ecm, []).append(
                             flatten_inputs(marshal_inputs(env.obs_dict, inputs[ecm]), inputs[ecm])

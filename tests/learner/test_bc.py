@@ -198,3 +198,34 @@ def test_bad_bc_settings_are_refused(kwargs: dict, field: str, text: str) -> Non
     assert info.value.code is ErrorCode.INVALID
     assert info.value.message == text
     assert info.value.details["field"] == field
+
+
+@pytest.mark.slow
+def test_an_ecm_that_finished_the_task_alone_gives_no_demonstrations(tmp_path: Path) -> None:
+    """The successful episode's steps all came from pick.reach, which never handed over: cloning
+    them would teach the first ECM the grasp and the lift too (results/evolution/T1-il)."""
+    alone = write_scripted_trace(
+        tmp_path / "pick-alone.mcap",
+        seeds=[0],
+        horizons=[80],
+        versions={"pick.reach": 0, "pick.grasp": 0, "pick.lift": 0},
+        inputs={ECM: INPUTS},
+        acting=ECM,
+    )
+    assert alone[0].success and set(alone[0].ecm_actions) == {ECM}
+    assert len(demos_from_traces([tmp_path], task="T1", target=TARGET)) == 0
+    everything = demos_from_traces([tmp_path], task="T1", target=TARGET, only_successful=False)
+    assert len(everything) == len(alone[0].ecm_actions[ECM])  # asked for every row, it gets them
+    # the decomposition's last step has no one to hand over to: its own successes still count
+    lift = target_for("T1", "pick.lift")
+    last = write_scripted_trace(
+        tmp_path / "pick-lift.mcap",
+        seeds=[0],
+        horizons=[80],
+        versions={"pick.reach": 0, "pick.grasp": 0, "pick.lift": 0},
+        inputs={},
+        acting="pick.lift",
+    )
+    assert len(demos_from_traces([tmp_path / "pick-lift.mcap"], task="T1", target=lift)) == len(
+        last[0].ecm_actions["pick.lift"]
+    )
