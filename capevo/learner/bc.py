@@ -274,8 +274,8 @@ def demos_from_traces(
         task: Task id or name.
         target: The ECM; rows whose action came from another ECM are dropped.
         only_successful: Keep only episodes that succeeded and in which a later step of the
-            decomposition acted after this ECM (any, for its last step): see the module
-            docstring. False keeps every row of the ECM.
+            decomposition acted too (any episode, for the last step): see the module docstring.
+            False keeps every row of the ECM.
 
     Returns:
         The demonstrations (possibly empty).
