@@ -74,45 +74,56 @@ def test_the_default_envelope_brakes_the_forearm_a_learned_policy_drove_into_the
     assert _replay(record["actions"], record["seed"], governance=True) == []
 
 
-HELD_CAN = DATA / "t5_held_can_strike_actions.json"
-
-
 @pytest.mark.slow
 def test_a_finger_brushing_another_object_does_not_make_it_part_of_the_hand() -> None:
     """T5, evolved set, held-out seed 250022: carrying the can past the placed milk carton, one
-    finger brushed the milk at step 750. Counting every touching object as held put the milk on
-    the hand's side, dropped the can-to-milk pair, released the brake, and the held can struck
-    the milk at 32.4 N. Held now means grasped (both fingers, robosuite's own test), so the
-    milk stays among the others. The ECMs' proposed actions, replayed open loop, stay safe."""
-    import json
+    finger brushed the milk. Counting every touching object as held put the milk on the hand's
+    side, dropped the can-to-milk pair, released the brake, and the held can struck the milk at
+    32.4 N. Held now means grasped (both fingers, robosuite's own test), so the milk stays among
+    the others.
 
+    The scene is built in MuJoCo directly (the carton placed on one finger's pad, then between
+    both pads of a closed gripper) rather than by replaying the episode's 751 actions open loop:
+    that replay reached the scene on the AMD machine that recorded it and left it by step 230 on
+    an Intel one, so it could not hold on any machine."""
     import mujoco
     import numpy as np
 
-    from capevo.baselines.governed_env import GovernedTaskEnv
+    from capevo.runtime.tasks import make_task
 
-    record = json.loads(HELD_CAN.read_text())
-    *before, last = record["actions"]
-    env = GovernedTaskEnv(record["task"], phi="task", horizon=record["horizon"])
+    env = make_task("T5")
     try:
-        env.reset(seed=record["seed"])
-        reasons: list[str] = []
-        for a in before:
-            _, _, terminated, truncated, info = env.step(np.asarray(a))
-            reasons += list(info["unsafe_reasons"])
-            assert not (terminated or truncated)
-        # The scene of the strike is reached: the can is grasped and a finger touches the milk.
-        prox = env.task_env._proximity
+        env.reset(seed=0)
+        prox = env._proximity
         model, data = prox.model, prox.data
-        milk, can = (mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"{n}_main") for n in ("Milk", "Can"))
-        hand = set(prox.sensed(0))
-        touching = {
-            int(model.geom_bodyid[g2 if g1 in hand else g1])
-            for g1, g2 in data.contact.geom[: data.ncon].tolist()
-            if (g1 in hand) != (g2 in hand)
-        }
-        assert milk in touching and prox.held(0) == (can,)
-        reasons += list(env.step(np.asarray(last))[4]["unsafe_reasons"])
-        assert reasons == []
+        milk = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "Milk_main")
+        free = model.jnt_qposadr[model.body_jntadr[milk]]
+        fingers = prox._finger_of[0]
+        names = {g: mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or "" for g in fingers}
+        pads = {side: g for g, side in fingers.items() if "pad" in names[g]}
+        assert set(pads) == {0, 1}
+
+        def place(centre: np.ndarray) -> set[int]:
+            """Put the carton upright at ``centre``; the finger sides it then touches."""
+            data.qpos[free : free + 3] = centre
+            data.qpos[free + 3 : free + 7] = (1.0, 0.0, 0.0, 0.0)
+            mujoco.mj_forward(model, data)
+            geoms = {g for g in range(model.ngeom) if model.geom_bodyid[g] == milk}
+            return {
+                fingers[a if b in geoms else b]
+                for a, b in data.contact.geom[: data.ncon].tolist()
+                if (a in geoms and b in fingers) or (b in geoms and a in fingers)
+            }
+
+        one, other = data.geom_xpos[pads[0]].copy(), data.geom_xpos[pads[1]].copy()
+        outward = (one - other) / np.linalg.norm(one - other)
+        assert place(one + 0.02 * outward) == {0}  # pressed on one pad from outside
+        assert prox.held(0) == ()
+        for name, opening in (("gripper0_right_finger_joint1", 0.015), ("gripper0_right_finger_joint2", -0.015)):
+            data.qpos[model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)]] = opening
+        mujoco.mj_forward(model, data)
+        middle = (data.geom_xpos[pads[0]] + data.geom_xpos[pads[1]]) / 2
+        assert place(middle) == {0, 1}  # between both pads of the closed gripper
+        assert prox.held(0) == (milk,)
     finally:
         env.close()
