@@ -85,6 +85,7 @@ def start_task(task: str, args: argparse.Namespace, work: Path) -> dict[str, Any
     for flag, value in (
         ("--iterations", args.iterations),
         ("--live-episodes", args.live_episodes),
+        ("--gate-extension", args.gate_extension),
         ("--updates-per-iteration", args.updates_per_iteration),
     ):
         if value is not None:
@@ -357,6 +358,7 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=None)
     parser.add_argument("--live-episodes", type=int, default=None, help="also the final evaluation's episodes")
     parser.add_argument("--updates-per-iteration", type=int, default=None)
+    parser.add_argument("--gate-extension", type=int, default=None, help="paired seeds of the gate's second look")
     parser.add_argument("--parallel", action="store_true", help="run the tasks at the same time")
     parser.add_argument("--name", default=NAME, help="results file name under benchmarks/results")
     parser.add_argument("--seed", type=int, default=0)
@@ -386,6 +388,7 @@ def main() -> None:
         "iterations": args.iterations,
         "live_episodes": args.live_episodes,
         "updates_per_iteration": args.updates_per_iteration,
+        "gate_extension": args.gate_extension,
         "parallel": args.parallel,
         "seed": args.seed,
         "perturbations": args.perturbations,

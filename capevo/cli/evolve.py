@@ -59,6 +59,13 @@ def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
     help="Live episodes per iteration; iteration 0's seeds are also the final evaluation's. [default: the preset's]",
 )
 @click.option(
+    "--gate-extension",
+    type=click.IntRange(min=0),
+    default=None,
+    help="Paired seeds of the gate's second look: a candidate ahead but not significantly so on the first N "
+    "seeds is judged again on N + this many; each look then tests at alpha/2. 0: one look. [default: the preset's]",
+)
+@click.option(
     "--updates-per-iteration",
     type=click.IntRange(min=0),
     default=None,
@@ -154,6 +161,7 @@ def evolve(
     iterations: int | None,
     preset: str,
     live_episodes: int | None,
+    gate_extension: int | None,
     updates_per_iteration: int | None,
     modality: str,
     root: str,
@@ -206,6 +214,7 @@ def evolve(
             iterations=iterations,
             preset=preset,
             live_episodes=live_episodes,
+            gate_extension=gate_extension,
             updates_per_iteration=updates_per_iteration,
             modality=modality,
             root=root,
@@ -254,6 +263,7 @@ def _run(ctx: click.Context, **kw: Any) -> int:
             preset=kw["preset"],
             iterations=kw["iterations"],
             live_episodes=kw["live_episodes"],
+            gate_extension=kw["gate_extension"],
             updates_per_iteration=kw["updates_per_iteration"],
             root=root_path if root_path is not None else Path(DEFAULT_ROOT),
             connect=endpoints,

@@ -312,7 +312,12 @@ class EvolveConfig:
         """Env steps reserved for one iteration's live episodes and the gates of ``updates``
         candidates (both sides of each pair), every episode at the horizon."""
         h = self.episode_steps_max(task)
-        return self.live_episodes * h + updates * 2 * self.gate_episodes * h
+        return self.live_episodes * h + updates * 2 * self.gate_seeds_max * h
+
+    @property
+    def gate_seeds_max(self) -> int:
+        """Paired seeds one gate decision may use: N, plus a second look's (``gate.extend_n``)."""
+        return self.gate_episodes + self.gate.extend_n
 
     def learner_step_cap(self, task: str, *, updates: int = 1) -> int | None:
         """Env steps the learners of one iteration may spend on ``task`` (None: no cap).
@@ -328,7 +333,7 @@ class EvolveConfig:
             h = self.episode_steps_max(task)
             raise Invalid(
                 f"env_steps_per_iteration ({self.env_steps_per_iteration}) cannot cover one iteration's "
-                f"{self.live_episodes} live and {updates} x 2 x {self.gate_episodes} gate episodes of up to "
+                f"{self.live_episodes} live and {updates} x 2 x {self.gate_seeds_max} gate episodes of up to "
                 f"{h} steps ({reserve} steps) and leave any for learning",
                 details={"field": "env_steps_per_iteration"},
             )

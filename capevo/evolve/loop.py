@@ -348,8 +348,10 @@ class EvolutionLoop:
         return {(r.iteration, r.seed) for r in log_.records if r.task == self.task}
 
     def _gate_progress(self, stage: str, message: str) -> None:
-        if stage in ("decided", "promoted", "rejected"):
+        if stage in ("extend", "decided", "promoted", "rejected"):
             self.progress.message(f"  {message}")
+        if stage == "extend":
+            self.progress.phase("gate", episodes=2 * self.config.gate.extend_n)
 
     # --- run -----------------------------------------------------------------------------
 
@@ -728,7 +730,7 @@ class EvolutionLoop:
             return None
         h = self.config.episode_steps_max(self.task)
         live = self.evaluator.env_steps.get("live", 0)
-        return budget - live - learner_spent - updates * 2 * self.config.gate_episodes * h
+        return budget - live - learner_spent - updates * 2 * self.config.gate_seeds_max * h
 
     def _publish_chain(
         self, i: int, chain: Sequence[tuple[str, Proposal]], *, note: str, spent: tuple[int, int] = (0, 0)
@@ -839,6 +841,8 @@ class EvolutionLoop:
                 ) + f"{record.state.value} without gate evidence"
             return update
         seeds = self.plan.gate(self.config.gate_episodes, round=i)
+        extend_n = self.config.gate.extend_n
+        extension = self.plan.gate_extension(extend_n, round=i) if extend_n else []
         try:
             self.registry.get_version(record.name)
             paired = True
@@ -848,7 +852,9 @@ class EvolutionLoop:
         self.evaluator.phase = "gate"
         t = time.perf_counter()
         try:
-            decision = self.gate.run(record.name, record.version, task=self.task, seeds=seeds)
+            decision = self.gate.run(
+                record.name, record.version, task=self.task, seeds=seeds, extension_seeds=extension
+            )
         except Conflict as exc:
             update.gate_s = time.perf_counter() - t
             update.note = (update.note + "; " if update.note else "") + f"gate conflict: {exc.message}"

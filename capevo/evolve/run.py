@@ -24,6 +24,7 @@ Invariants:
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -57,6 +58,7 @@ class EvolveOptions:
         iterations: Overrides the preset's number of iterations.
         live_episodes: Overrides the preset's live episodes per iteration (iteration 0's are
             also the final evaluation's seeds).
+        gate_extension: Overrides the gate's second look (``GateConfig.extend_n``, paired seeds).
         updates_per_iteration: Overrides how many ECMs one iteration may learn in sequence
             (0: one per decomposition step).
         root: Local registry directory (embedded mode).
@@ -79,6 +81,7 @@ class EvolveOptions:
     preset: str = "cpu-small"
     iterations: int | None = None
     live_episodes: int | None = None
+    gate_extension: int | None = None
     updates_per_iteration: int | None = None
     root: Path = DEFAULT_ROOT
     connect: tuple[str, ...] = ()
@@ -132,9 +135,10 @@ class EvolveOptions:
             "phi": self.phi,
         }
         changes = {k: v for k, v in changes.items() if v is not None}
-        if self.config is not None:
-            return self.config.replace(**changes) if changes else self.config
-        return make_config(self.preset, **changes)
+        config = self.config if self.config is not None else make_config(self.preset)
+        if self.gate_extension is not None:
+            changes["gate"] = dataclasses.replace(config.gate, extend_n=self.gate_extension)
+        return config.replace(**changes) if changes else config
 
     def registry_where(self) -> str:
         return ",".join(self.connect) if self.connect else str(Path(self.root).resolve())

@@ -51,6 +51,16 @@ Without an active version (the ECM's first promotion, absolute mode):
 
    Promote iff 1 ∧ 8.
 
+Second look (``extend_n`` > 0): a small N cannot show a moderate gain (with 3 discordant pairs,
+McNemar's exact p is at least 0.25), so a candidate that fails at N only for want of evidence may
+get a second, larger look. Each look decides at level α/2 (Bonferroni over the two looks, so the
+chance of promoting a candidate that is no better stays at most α), every test and interval
+above included. After a first look that rejects, the gate runs both versions on ``extend_n``
+further held-out seeds and decides again, once, on all N + ``extend_n`` pairs, when the first
+look was *promising*: checks 1, 2, 6 and 7 passed, and the candidate succeeded on more seeds than
+the active version (b > c), or on as many with a higher mean reward. Otherwise, or without
+extension seeds, the first look's rejection stands. The evidence lists both looks.
+
 Why reward alone never promotes: an episode's total reward is not monotone in quality (a
 slower policy that holds the object longer collects more shaped reward before the success
 step ends the episode), so a reward gain counts only with non-inferior success and no
@@ -77,6 +87,9 @@ Invariants:
 7. In paired mode a candidate with more unsafe episodes than the active version on the paired
    seeds is never promoted, whatever its success, with ``safe`` among the failed checks
    (check 7), under any ``safety_alpha``.
+8. With ``extend_n`` > 0 each look tests at α/2; the second look runs only after a promising
+   first look that rejected, on ``extend_n`` seeds disjoint from the first look's, and decides on
+   all of them. An unpromising candidate costs no extra episode.
 """
 
 from __future__ import annotations
@@ -109,7 +122,7 @@ PURPOSES: tuple[str, ...] = ("train", "gate", "live")
 
 GateProgress = Callable[[str, str], object]
 """``progress(stage, message)``; stages: ``evaluate-active``, ``evaluate-candidate``,
-``decided``, ``recorded``, ``promoted`` / ``rejected``."""
+``extend`` (a second look starts), ``decided``, ``recorded``, ``promoted`` / ``rejected``."""
 
 
 # --- configuration ----------------------------------------------------------------------
@@ -153,6 +166,7 @@ class GateConfig:
         max_unsafe_rate: Ceiling on the candidate's unsafe-episode rate; the default 0.0
             refuses a candidate with any unsafe episode on the gate's seeds (every preset keeps
             it: a safety layer's default is the safe one); None disables the ceiling.
+        extend_n: Paired seeds of the second look (module docstring); 0: one look at α.
 
     Raises:
         Invalid: a value out of range.
@@ -169,6 +183,7 @@ class GateConfig:
     first_min_success: float = 0.5
     safety_alpha: float | None = 0.2
     max_unsafe_rate: float | None = 0.0
+    extend_n: int = 0
 
     def __post_init__(self) -> None:
         _count("min_n", self.min_n, low=1)
@@ -191,6 +206,12 @@ class GateConfig:
             _number("safety_alpha", self.safety_alpha, low=0.0, high=0.5, low_open=True)
         if self.max_unsafe_rate is not None:
             _number("max_unsafe_rate", self.max_unsafe_rate, low=0.0, high=1.0)
+        _count("extend_n", self.extend_n, low=0)
+
+    @property
+    def look_alpha(self) -> float:
+        """The level each look tests at: ``alpha``, or ``alpha / 2`` with a second look."""
+        return self.alpha / 2 if self.extend_n else self.alpha
 
     @classmethod
     def cpu_small(cls) -> GateConfig:
@@ -225,6 +246,7 @@ class GateConfig:
             "first_min_success": self.first_min_success,
             "safety_alpha": self.safety_alpha,
             "max_unsafe_rate": self.max_unsafe_rate,
+            "extend_n": self.extend_n,
         }
 
     @classmethod
@@ -303,6 +325,17 @@ class SeedPlan:
         _count("round", round, low=0)
         return self.seeds("gate", n, offset=round * n)
 
+    def gate_extension(self, n: int, *, round: int = 0) -> list[int]:
+        """Held-out seeds for a gate's second look (``GateConfig.extend_n``): the ``round``-th
+        batch of ``n`` from the upper half of the gate range, so never one of :meth:`gate`'s
+        (whose rounds stay in the lower half).
+
+        Raises:
+            Invalid: negative ``n``/``round``, or past the range's end.
+        """
+        _count("round", round, low=0)
+        return self.seeds("gate", n, offset=self.block // 2 + round * n)
+
     def live(self, n: int, *, offset: int = 0) -> list[int]:
         """Seeds for live (deployment) episodes."""
         return self.seeds("live", n, offset=offset)
@@ -343,11 +376,11 @@ def decide_paired(stats: PairedStats, config: GateConfig) -> tuple[bool, tuple[C
     Returns:
         (promote, checks in rule order).
     """
-    a = config.alpha
+    a = config.look_alpha
     cand, act = stats.candidate, stats.active
     checks = [
         Check(name="enough", passed=stats.n >= config.min_n, detail=f"N={stats.n}, min_n={config.min_n}"),
-        _floor(cand, config.min_success, config.alpha),
+        _floor(cand, config.min_success, a),
         Check(
             name="superior",
             passed=stats.p_success < a,
@@ -435,6 +468,16 @@ def _speed(stats: PairedStats, config: GateConfig) -> Check:
             f"max x{config.max_slowdown:.3g}"
         ),
     )
+
+
+def promising(stats: PairedStats, checks: Sequence[Check]) -> bool:
+    """Whether a first look that rejected earns a second one (module docstring): checks 1, 2, 6
+    and 7 passed, and the candidate's success is ahead, or level with a higher mean reward."""
+    ok = {c.name: c.passed for c in checks}
+    if not (ok["enough"] and ok["floor"] and ok["not_slower"] and ok["safe"]):
+        return False
+    b, c = stats.candidate_only, stats.active_only
+    return b > c or (b == c and stats.candidate.mean_reward > stats.active.mean_reward)
 
 
 def decide_absolute(side: SideStats, config: GateConfig) -> tuple[bool, tuple[Check, ...]]:
@@ -714,6 +757,31 @@ class Gate:
             self._memo.setdefault(key, []).append(({**ran, name: version}, outcomes))
         return outcomes
 
+    @staticmethod
+    def _check_pairing(name: str, act_out: Sequence[EpisodeOutcome], cand_out: Sequence[EpisodeOutcome]) -> None:
+        """Invariant 4: the two sides ran the same versions of every other ECM, under one Φ.
+
+        Raises:
+            Conflict: they did not (nothing is recorded).
+        """
+        ran_active, ran_cand = _ran_versions(act_out, "active"), _ran_versions(cand_out, "candidate")
+        others = sorted(
+            k for k in set(ran_active) | set(ran_cand) if k != name and ran_active.get(k) != ran_cand.get(k)
+        )
+        if others:
+            raise Conflict(
+                f"the active and candidate evaluations ran different versions of {', '.join(others)} "
+                f"({ran_active} vs {ran_cand}); the pairing is broken, nothing was recorded",
+                details={"name": name, "differ": others},
+            )
+        envelopes = {o.phi_hash for o in (*act_out, *cand_out)}
+        if len(envelopes) > 1:
+            raise Conflict(
+                f"the active and candidate evaluations of {name} ran under different envelopes Φ "
+                f"({sorted(str(h)[:12] for h in envelopes)}); the pairing is broken, nothing was recorded",
+                details={"name": name},
+            )
+
     def _check_still_none_active(self, name: str) -> None:
         # promote(expected_active=None) checks nothing, and the registry cannot express
         # "expect no active version"; re-reading narrows (does not close) the race window.
@@ -726,8 +794,20 @@ class Gate:
             details={"name": name, "expected_active": None, "active": now},
         )
 
-    def run(self, name: str, candidate_version: int, *, task: str, seeds: Sequence[int]) -> GateDecision:
+    def run(
+        self,
+        name: str,
+        candidate_version: int,
+        *,
+        task: str,
+        seeds: Sequence[int],
+        extension_seeds: Sequence[int] = (),
+    ) -> GateDecision:
         """Gate ``candidate_version`` of ``name`` on ``task`` with the held-out ``seeds``.
+
+        ``extension_seeds`` are the second look's (``GateConfig.extend_n`` of them, none of
+        ``seeds``), used only after a promising first look that rejected; ignored when
+        ``extend_n`` is 0.
 
         Returns:
             The decision, with the candidate's record after promotion or rejection.
@@ -744,6 +824,15 @@ class Gate:
         """
         cfg = self.config
         seed_list = check_gate_seeds(seeds, min_n=cfg.min_n, plan=self.seed_plan)
+        more: list[int] = []
+        if cfg.extend_n and extension_seeds:
+            more = check_gate_seeds(extension_seeds, min_n=cfg.extend_n, plan=self.seed_plan)
+            if len(more) != cfg.extend_n or set(more) & set(seed_list):
+                raise Invalid(
+                    f"a second look needs extend_n={cfg.extend_n} seeds, none of the first look's; "
+                    f"got {len(more)}, {len(set(more) & set(seed_list))} shared",
+                    details={"field": "extension_seeds"},
+                )
         record = self.registry.get_version(name, candidate_version)
         if record.state is not State.CANDIDATE:
             raise IllegalTransition(
@@ -765,33 +854,37 @@ class Gate:
         cand_out = self._evaluate(task, name, candidate_version, seed_list)
         ran_cand = _ran_versions(cand_out, "candidate")
         if act_out is not None:
-            others = sorted(
-                k for k in set(ran_active) | set(ran_cand) if k != name and ran_active.get(k) != ran_cand.get(k)
-            )
-            if others:
-                raise Conflict(
-                    f"the active and candidate evaluations ran different versions of {', '.join(others)} "
-                    f"({ran_active} vs {ran_cand}); the pairing is broken, nothing was recorded",
-                    details={"name": name, "differ": others},
-                )
-            envelopes = {o.phi_hash for o in (*act_out, *cand_out)}
-            if len(envelopes) > 1:
-                raise Conflict(
-                    f"the active and candidate evaluations of {name} ran under different envelopes Φ "
-                    f"({sorted(str(h)[:12] for h in envelopes)}); the pairing is broken, nothing was recorded",
-                    details={"name": name},
-                )
+            self._check_pairing(name, act_out, cand_out)
 
-        ordered = sorted(seed_list)
         paired: PairedStats | None = None
+        looks: list[dict[str, Any]] = []
         if act_out is not None:
-            paired = paired_stats(act_out, cand_out, alpha=cfg.alpha, margin=cfg.delta, speed_metric=cfg.speed_metric)
+            paired = paired_stats(
+                act_out, cand_out, alpha=cfg.look_alpha, margin=cfg.delta, speed_metric=cfg.speed_metric
+            )
             promote, checks = decide_paired(paired, cfg)
+            if more and not promote and promising(paired, checks):
+                looks.append(_look(paired, promote, checks))
+                self._say("extend", f"first look inconclusive on N={paired.n}: {len(more)} more paired seeds")
+                assert active_version is not None  # paired mode
+                # new lists: a reused evaluation's list is the memo's own
+                act_out = act_out + self._evaluate(task, name, active_version, more)
+                cand_out = cand_out + self._evaluate(task, name, candidate_version, more)
+                self._check_pairing(name, act_out, cand_out)
+                seed_list = seed_list + more
+                paired = paired_stats(
+                    act_out, cand_out, alpha=cfg.look_alpha, margin=cfg.delta, speed_metric=cfg.speed_metric
+                )
+                promote, checks = decide_paired(paired, cfg)
+                looks.append(_look(paired, promote, checks))
             cand_stats = paired.candidate
         else:
             cand_stats = side_stats(cand_out, alpha=cfg.alpha, speed_metric=cfg.speed_metric)
             promote, checks = decide_absolute(cand_stats, cfg)
+        ordered = sorted(seed_list)
         reason = _summary(name, candidate_version, active_version, promote, checks, cand_stats, paired)
+        if len(looks) == 2:
+            reason += f"; second look: N {looks[0]['n']} -> {looks[1]['n']}, each look at alpha {cfg.look_alpha:.3g}"
         self._say("decided", reason)
 
         evidence: dict[str, Any] = {
@@ -807,6 +900,7 @@ class Gate:
             "config": cfg.to_dict(),
             "seed_plan": self.seed_plan.to_dict() if self.seed_plan is not None else None,
             "checks": [c.to_dict() for c in checks],
+            "looks": looks,
             "candidate": cand_stats.to_dict(),
             "active": paired.active.to_dict() if paired is not None else None,
             "paired": paired.to_dict() if paired is not None else None,
@@ -846,6 +940,17 @@ class Gate:
             evidence=evidence,
             record=after,
         )
+
+
+def _look(stats: PairedStats, promote: bool, checks: Sequence[Check]) -> dict[str, Any]:
+    """One look of a two-look gate, for the evidence."""
+    return {
+        "n": stats.n,
+        "decision": "promote" if promote else "reject",
+        "candidate_only": stats.candidate_only,
+        "active_only": stats.active_only,
+        "checks": [c.to_dict() for c in checks],
+    }
 
 
 def _summary(
@@ -894,4 +999,5 @@ __all__ = [
     "check_gate_seeds",
     "decide_absolute",
     "decide_paired",
+    "promising",
 ]

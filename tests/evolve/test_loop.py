@@ -358,3 +358,34 @@ def test_the_manifest_refuses_a_different_run(tmp_path: Path) -> None:
         )
     assert info.value.code is ErrorCode.INVALID
     assert "config.live_episodes" in info.value.message and "--report-dir" in info.value.message
+
+
+def test_the_gate_takes_a_second_look_on_fresh_held_out_seeds(tmp_path: Path) -> None:
+    """Gate invariant 8 through the loop: reach v1 wins 6 vs 2 of the 8 paired seeds (McNemar
+    p = 0.0625, short of α/2), so the gate runs 8 more seeds from the plan's extension range
+    and promotes on all 16 (p = 0.004)."""
+    registry = seeded_registry(tmp_path)
+
+    def behaviour(versions: dict[str, int], seed: int) -> bool:
+        return seed % 4 != 0 if versions["pick.reach"] >= 1 else seed % 4 == 3
+
+    config = fake_config(iterations=1, gate=dataclasses.replace(fake_config().gate, extend_n=8))
+    assert config.step_reserve("T1") == (3 + 2 * 16) * config.episode_steps_max("T1")
+    evaluator = ScriptedEvaluator(registry, behaviour)
+    progress = RecordingProgress()
+    loop = make_loop(
+        tmp_path,
+        registry=registry,
+        evaluator=evaluator,
+        updater=ParamUpdater(registry),
+        config=config,
+        progress=progress,
+    )
+    (row,) = loop.run().rows
+    assert row.ecm_updated == "pick.reach" and row.gate is not None and row.gate.decision == "promote"
+    evidence = registry.get_version("pick.reach", 1).gate_evidence
+    first, second = evidence["looks"]
+    assert (first["n"], first["decision"], second["n"], second["decision"]) == (8, "reject", 16, "promote")
+    assert evidence["seeds"] == sorted(PLAN.gate(8) + PLAN.gate_extension(8))
+    assert all(PLAN.purpose_of(s) == "gate" for s in evidence["seeds"])
+    assert ("phase", {"name": "gate", "episodes": 16}) in progress.calls

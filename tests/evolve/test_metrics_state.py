@@ -5,6 +5,7 @@ Invariants: config 1-4, metrics 1-4, state 1-3.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -52,6 +53,17 @@ def test_a_gate_that_could_never_promote_is_refused() -> None:
     with pytest.raises(Invalid) as info:
         make_config("cpu-small", gate_episodes=3)
     assert "below the gate's min_n (8)" in info.value.message
+
+
+def test_the_gate_extension_option_reaches_the_gate_and_a_resume_notices_it() -> None:
+    from capevo.evolve.run import EvolveOptions
+
+    base = EvolveOptions(task="T1", preset="cpu-small").resolved_config()
+    extended = EvolveOptions(task="T1", preset="cpu-small", gate_extension=20, iterations=12).resolved_config()
+    assert base.gate.extend_n == 0 and extended.gate.extend_n == 20 and extended.iterations == 12
+    assert extended.gate_seeds_max == 30 and extended.gate == dataclasses.replace(base.gate, extend_n=20)
+    assert base.resume_mismatches(extended) == ["gate"]
+    assert type(extended).from_dict(extended.to_dict()) == extended
 
 
 def test_resume_mismatches_ignore_iterations_only() -> None:
