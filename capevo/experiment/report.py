@@ -574,7 +574,7 @@ def compute_numbers(run: Run) -> Book:
 
     Names: ``cells/<status>``; ``cell/<key>/<field>``; ``group/<task>/<label>/<field>/{mean,std,n}``;
     ``efficiency/<task>/<label>/<threshold>/{reached,mean}``; ``welch/<task>/<ours>|<am>/<field>/{t,p}``;
-    ``identity/<label>/{mean,std,n}``; ``parity/<label>/...``; ``knowledge/<method>``;
+    ``identity/<label>/{mean,std,n}``; ``parity/<label>/...``; ``knowledge/<label>``;
     ``h3/<task>/<on|off>/...``; ``totals/...``.
     """
     book = Book()
@@ -692,14 +692,15 @@ def compute_numbers(run: Run) -> Book:
         )
         book.put(f"parity/{label}/cells_over_budget", len(over), src)
 
+    # per label, not per method: what ``ours`` starts from depends on its modality option
     knowledge: dict[str, list[Cell]] = {}
     for c in run.cells:
         if c.spec is not None:
-            knowledge.setdefault(c.method, []).append(c)
-    for method in sorted(knowledge):
-        cells = knowledge[method]
+            knowledge.setdefault(c.label, []).append(c)
+    for label in sorted(knowledge):
+        cells = knowledge[label]
         texts = sorted({c.knowledge for c in cells})
-        book.put(f"knowledge/{method}", " | ".join(texts), [f"{c.path}/{CELL_JSON}" for c in cells])
+        book.put(f"knowledge/{label}", " | ".join(texts), [f"{c.path}/{CELL_JSON}" for c in cells])
 
     explorer = [c for c in done if c.method == EXPLORER]
     for task in sorted({c.task for c in explorer}):
@@ -977,7 +978,7 @@ def _comparison(add: Callable[[str], None], book: Book, groups: Groups, figures:
         ps = PAPER_PEAK_SUCCESS.get(t, {}).get(col) if col else None
         pr = PAPER_PEAK_REWARD.get(t, {}).get(col) if col else None
         add(
-            f"| {task_title(t)} | {_esc(label)} | {_esc(book.get(f'knowledge/{cells[0].method}') or '-')} | "
+            f"| {task_title(t)} | {_esc(label)} | {_esc(book.get(f'knowledge/{label}') or '-')} | "
             f"{book.get(b + '/succ_peak/n')} | {_pm_pct(book, b + '/succ_peak')} | "
             f"{_pm_pct(book, b + '/succ_last')} | {_pm(book, b + '/r_peak', _r)} | "
             f"{f'**paper** {col}: {ps} %' if ps else '-'} | {f'**paper** {col}: {pr:.2f}' if pr is not None else '-'} "
@@ -1227,9 +1228,9 @@ def _fairness(add: Any, run: Run, book: Book) -> None:
         return
     add("| method | knowledge it starts from | cells |")
     add("|---|---|---|")
-    for m in methods:
-        cells = [c for c in run.cells if c.spec and c.method == m]
-        add(f"| {_esc(m)} | {_esc(book.get(f'knowledge/{m}') or '-')} | {_links(cells, CELL_JSON)} |")
+    for label in sorted({c.label for c in run.cells if c.spec}):
+        cells = [c for c in run.cells if c.spec and c.label == label]
+        add(f"| {_esc(label)} | {_esc(book.get(f'knowledge/{label}') or '-')} | {_links(cells, CELL_JSON)} |")
     add("")
     decomposed = sorted(m for m in methods if uses_decomposition(m))
     if decomposed:
