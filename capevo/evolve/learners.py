@@ -340,8 +340,9 @@ class NeuralUpdater:
         env = dataclasses.replace(preset.env, seed_base=base, seed=offset, phi=self.context.config.phi)
         learn_request = self._request(request)
         if self.modality == "rl":
-            if request.max_env_steps is not None and request.max_env_steps < preset.sac.total_steps:
-                # the iteration's step budget (issue 20): SAC trains for what is left of it
+            if request.max_env_steps is not None and request.max_env_steps != preset.sac.total_steps:
+                # the iteration's step budget (issue 20): SAC trains for what is left of it, no
+                # less (every method of a comparison spends the same budget) and no more
                 preset = dataclasses.replace(
                     preset, sac=dataclasses.replace(preset.sac, total_steps=request.max_env_steps)
                 )

@@ -40,3 +40,20 @@ def test_an_iteration_spends_at_most_its_env_step_budget(tmp_path: Path) -> None
     if row.gate is not None:
         assert row.env_steps_gate > 0
     assert row.env_steps == row.env_steps_live + row.learner_steps + row.env_steps_gate <= budget
+
+
+@pytest.mark.slow
+def test_sac_spends_what_the_iteration_leaves_it(tmp_path: Path) -> None:
+    """Parity (issue 20): with a budget, ``rl`` trains SAC for the iteration's remaining env steps,
+    here more than the tiny preset's own 200, not the preset's figure."""
+    config = make_config("tiny", iterations=1, env_steps_per_iteration=1000, updates_per_iteration=1)
+    reserve = config.step_reserve("T1")
+    result = run_evolution(
+        EvolveOptions(
+            task="T1", config=config, modality="rl", root=tmp_path / "data", report_dir=tmp_path / "report", seed=0
+        )
+    )
+    (row,) = result.rows
+    assert row.learner_steps == 1000 - row.env_steps_live - 2 * config.gate_episodes * config.episode_steps_max("T1")
+    assert row.learner_steps > 200 and reserve < 1000
+    assert row.env_steps <= 1000
