@@ -365,7 +365,9 @@ def main() -> None:
     parser.add_argument("--work-dir", type=Path, default=None, help="keep registries and reports here")
     parser.add_argument("--perturbations", action=argparse.BooleanOptionalAction, default=True)
     parser.add_argument("--phi", default="task", help="the envelope of every episode: task (default) or paper")
-    parser.add_argument("--modality", default="code", help="code (default), rl, il or hybrid")
+    parser.add_argument(
+        "--modality", default="code", help="code (default), rl, il, hybrid, or a combination such as il+rl"
+    )
     parser.add_argument(
         "--heldout", type=int, default=30, help="episodes of the final set on fresh held-out seeds (0: none)"
     )

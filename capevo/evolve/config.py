@@ -56,10 +56,20 @@ from capevo.runtime.monitor import MonitorConfig
 if TYPE_CHECKING:
     from capevo.learner.search import CemConfig
 
-MODALITIES: tuple[str, ...] = ("code", "rl", "il", "hybrid")
+SINGLE_MODALITIES: tuple[str, ...] = ("code", "rl", "il", "hybrid")
 """How candidates are learned: CEM over a code skill's parameters, SAC, behaviour cloning, or an
 LLM edit followed by CEM."""
-NEURAL_MODALITIES: frozenset[str] = frozenset({"rl", "il"})
+COMBINED_MODALITIES: tuple[str, ...] = ("il+rl", "hybrid+rl", "hybrid+il", "hybrid+il+rl")
+"""The paper's combined rows of Table 8 (§4.6): the modalities named take turns, one iteration
+each, in the order written (:class:`capevo.evolve.learners.TurnUpdater`)."""
+MODALITIES: tuple[str, ...] = SINGLE_MODALITIES + COMBINED_MODALITIES
+NEURAL_MODALITIES: frozenset[str] = frozenset({"rl", "il", "il+rl"})
+"""Modalities whose version 0 is a randomly initialised neural policy (every part is neural)."""
+
+
+def modality_parts(modality: str) -> tuple[str, ...]:
+    """The single modalities of ``modality``, in turn order (one for a single modality)."""
+    return tuple(modality.split("+"))
 
 
 def _int(name: str, value: object, *, low: int, high: int = 10**9) -> int:
@@ -342,7 +352,7 @@ class EvolveConfig:
     def smallest_update(self, task: str, *, modality: str) -> int:
         """Env steps one learner needs at the least: one CEM candidate's episodes at the horizon
         (code modalities), one SAC step (neural)."""
-        if modality in NEURAL_MODALITIES:
+        if all(part in NEURAL_MODALITIES for part in modality_parts(modality)):
             return 1
         return self.cem.episodes_per_candidate * self.episode_steps_max(task)
 
@@ -452,11 +462,14 @@ def _paper() -> EvolveConfig:
 
 
 __all__ = [
+    "COMBINED_MODALITIES",
     "MODALITIES",
     "NEURAL_MODALITIES",
+    "SINGLE_MODALITIES",
     "CemSettings",
     "EvolveConfig",
     "config_names",
     "make_config",
+    "modality_parts",
     "register_config",
 ]

@@ -14,6 +14,8 @@ Modalities (registered with :func:`register_modality`, built with :func:`make_up
 * ``il``: behaviour cloning (:class:`~capevo.learner.bc.BcLearner`) from the set's successful
   traces and the task's scripted reference, on every demonstration gathered so far, continuing
   from its own latest candidate; origin ``il``.
+* combined (``il+rl``, ``hybrid+rl``, ``hybrid+il``, ``hybrid+il+rl``; the paper's Table 8):
+  :class:`TurnUpdater`, the named modalities taking turns, one iteration each.
 
 :class:`RemoteCandidates` instead waits for a candidate that a learner worker
 (``capevo learner serve``) publishes, and hands it to the gate.
@@ -39,7 +41,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from capevo.errors import Invalid
-from capevo.evolve.config import EvolveConfig
+from capevo.evolve.config import COMBINED_MODALITIES, EvolveConfig, modality_parts
 from capevo.evolve.progress import ProgressSink
 from capevo.learner.base import Candidate, LearnRequest
 from capevo.records import EcmVersion, Kind, State
@@ -409,6 +411,84 @@ def _il(context: UpdaterContext) -> Updater:
     return NeuralUpdater(context, modality="il")
 
 
+# --- combined: modalities taking turns -------------------------------------------------------
+
+CODE_PARTS = frozenset({"code", "hybrid"})
+"""Modalities that tune a code ECM's parameters (or edit its code): they cannot update a neural version."""
+
+
+class TurnUpdater:
+    """Several modalities taking turns: iteration ``i`` is the turn of ``parts[i % len(parts)]``.
+
+    This is what capevo runs for the paper's combined rows of Table 8 (§4.6: RL + IL, RL + LLM,
+    IL + LLM, all three). The paper does not say how its modalities combine; here each keeps its
+    own learner and state (neural learners in ``<state_dir>/<part>/``), and the gate judges every
+    candidate alike. What a turn can do depends on what the ECM's active version is:
+
+    * a code part (``code``, ``hybrid``) cannot tune a neural version, so on an ECM whose active
+      version is neural it passes the turn to the next part that can;
+    * ``rl`` on a code version first distils the code skill into its actor
+      (:mod:`capevo.learner.rl`), so SAC starts from what the hand-written skill does; ``il``
+      clones the scripted reference and the set's successes whatever the parent is.
+
+    Version 0 is the hand-written code skill when a code part is named, a random-init neural
+    policy otherwise (:data:`~capevo.evolve.config.NEURAL_MODALITIES`). Chains (several ECMs in
+    one iteration) are off: one ECM per iteration, whichever part's turn it is.
+
+    Invariants:
+    1. Iteration ``i`` asks ``parts[i % k]`` first, then the following parts in order; the
+       proposal's notes (``turn``) and its learner (``<part>/<learner>``) name the part that made it.
+    2. A code part is never asked to update an ECM whose active version is neural.
+    """
+
+    supports_companions = False
+
+    def __init__(self, context: UpdaterContext, parts: Sequence[str]) -> None:
+        if len(parts) < 2 or len(set(parts)) != len(parts) or "+" in "".join(parts):
+            raise Invalid(f"a combination needs two or more distinct single modalities, got {list(parts)}")
+        self.parts = tuple(parts)
+        self.name = "+".join(self.parts)
+        self._context = context
+        self._updaters: dict[str, Updater] = {}
+
+    def _updater(self, part: str) -> Updater:
+        if part not in self._updaters:
+            state = self._context.state_dir
+            context = dataclasses.replace(self._context, state_dir=state / part if state is not None else None)
+            self._updaters[part] = make_updater(part, context)
+        return self._updaters[part]
+
+    def turn_order(self, iteration: int) -> tuple[str, ...]:
+        """The parts in the order iteration ``iteration`` asks them (invariant 1)."""
+        k = iteration % len(self.parts)
+        return self.parts[k:] + self.parts[:k]
+
+    def propose(self, request: UpdateRequest, progress: ProgressSink) -> Proposal | None:
+        active_kind = self._context.registry.get_version(request.ecm).kind
+        for part in self.turn_order(request.iteration):
+            if part in CODE_PARTS and active_kind is Kind.NEURAL:
+                continue  # invariant 2: parameters to tune exist only in a code version
+            proposal = self._updater(part).propose(request, progress)
+            if proposal is None:
+                return None
+            return dataclasses.replace(
+                proposal, learner=f"{part}/{proposal.learner}", notes={**proposal.notes, "turn": part}
+            )
+        return None
+
+    def close(self) -> None:
+        for updater in self._updaters.values():
+            updater.close()
+
+
+def _combined(parts: tuple[str, ...]) -> UpdaterFactory:
+    return lambda context: TurnUpdater(context, parts)
+
+
+for _name in COMBINED_MODALITIES:
+    register_modality(_name)(_combined(modality_parts(_name)))
+
+
 # --- remote learners ----------------------------------------------------------------------
 
 
@@ -482,6 +562,7 @@ __all__ = [
     "NeuralUpdater",
     "Proposal",
     "RemoteCandidates",
+    "TurnUpdater",
     "UpdateRequest",
     "Updater",
     "UpdaterContext",

@@ -118,9 +118,15 @@ def _evaluator(registry: Any, cell: CellSpec, trace_dir: Path, **kwargs: Any) ->
 
 # --- ours ------------------------------------------------------------------------------------
 
+def _modalities() -> tuple[str, ...]:
+    from capevo.evolve.config import MODALITIES
+
+    return MODALITIES
+
+
 OURS_OPTIONS: Mapping[str, Callable[[Any], bool]] = {
     "preset": lambda v: isinstance(v, str),
-    "modality": lambda v: v in ("code", "rl", "il", "hybrid"),
+    "modality": lambda v: v in _modalities(),
     "live_episodes": _pos_int,
     "gate_episodes": _pos_int,
     "updates_per_iteration": lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
@@ -149,16 +155,27 @@ class Ours:
 
     @classmethod
     def knowledge_of(cls, options: Mapping[str, Any]) -> str:
+        from capevo.evolve.config import NEURAL_MODALITIES, modality_parts
+
         modality = cls.modality or str(options.get("modality") or "code")
-        if modality in ("rl", "il"):
+        if modality in NEURAL_MODALITIES:
             return (
                 "random weights (neural ECMs); the learners behaviour-clone the task's scripted reference "
                 "into a random v0 and use the task's decomposition and hand-off predicates"
+                + (f"; {' and '.join(modality_parts(modality))} take turns" if "+" in modality else "")
             )
-        extra = " and LLM edits" if modality == "hybrid" else ""
+        parts = modality_parts(modality)
+        extra = " and LLM edits" if "hybrid" in parts else ""
+        neural = [p for p in parts if p in NEURAL_MODALITIES]
+        turns = (
+            f"; {' and '.join(parts)} take turns, and {' and '.join(neural)} start from the code skills "
+            "(SAC distils them) and from the task's scripted reference (BC clones it)"
+            if neural
+            else ""
+        )
         return (
             "hand-written skill structure: phases, tolerances and v0 parameters of code ECMs, the "
-            f"decomposition and hand-off predicates (CEM over the parameters{extra})"
+            f"decomposition and hand-off predicates (CEM over the parameters{extra}){turns}"
         )
 
     def evolve_config(self, cell: CellSpec) -> Any:

@@ -146,7 +146,8 @@ def test_governance_and_options_keep_cells_apart() -> None:
     names = list(h3.cell_names())
     assert "T1-explorer-s42" in names and "T1-explorer-s42-gov-off" in names and len(names) == 12
     ablation = load_config("ablation-t3")
-    assert list(ablation.cell_names()) == [f"T3-ours-s42-modality={m}" for m in ("code", "rl", "il", "hybrid")]
+    modalities = ("code", "rl", "il", "hybrid", "il+rl", "hybrid+rl", "hybrid+il", "hybrid+il+rl")
+    assert list(ablation.cell_names()) == [f"T3-ours-s42-modality={m}" for m in modalities]
     cell = CellSpec(
         task="T1",
         method="am",
