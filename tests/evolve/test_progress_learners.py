@@ -63,7 +63,9 @@ def test_unknown_modality_lists_the_valid_ones(tmp_path: Path) -> None:
     with pytest.raises(Invalid) as info:
         make_updater("telepathy", None)  # type: ignore[arg-type]
     assert info.value.code is ErrorCode.INVALID
-    assert info.value.message == "unknown modality 'telepathy'; valid: code, hybrid, rl, il"
+    assert info.value.message == (
+        "unknown modality 'telepathy'; valid: code, hybrid, rl, il, il+rl, hybrid+rl, hybrid+il, hybrid+il+rl"
+    )
 
 
 def test_a_proposal_holds_exactly_one_of_candidate_and_record(tmp_path: Path) -> None:
