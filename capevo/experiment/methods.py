@@ -118,6 +118,7 @@ def _evaluator(registry: Any, cell: CellSpec, trace_dir: Path, **kwargs: Any) ->
 
 # --- ours ------------------------------------------------------------------------------------
 
+
 def _modalities() -> tuple[str, ...]:
     from capevo.evolve.config import MODALITIES
 
