@@ -555,6 +555,8 @@ class EvolutionLoop:
         chain, chain_note, spent = self._extend_chain(i, ecm, proposal, outcomes)
         if len(chain) > 1:
             return self._publish_chain(i, chain, note="; ".join(n for n in (note, chain_note) if n), spent=spent)
+        # the chain may have learned the first ECM again: its latest candidate is the one to gate
+        proposal = chain[0][1]
         record = self._publish(proposal)
         self.journal.write(
             "candidate",
@@ -604,7 +606,8 @@ class EvolutionLoop:
         Returns:
             ``(ecm, proposal)`` per ECM in decomposition order (one per ECM, its latest
             candidate), a note on why the chain stopped, and the (episodes, steps) the learner
-            spent on candidates the chain dropped.
+            spent on candidates the chain dropped or replaced by a later one of the same ECM (the
+            budget counts every update learned, not only those gated).
         """
         from capevo.learner.experience import handover_rate, pick_ecm_to_update, unsafe_ecm
 
@@ -688,6 +691,10 @@ class EvolutionLoop:
                     continue
                 why = f"chain stopped: {proposal.learner} found nothing better for {nxt}"
                 break
+            replaced = members.get(nxt)
+            if replaced is not None:
+                # learned again from its chain candidate: the earlier update's steps were spent all the same
+                dropped = (dropped[0] + replaced.episodes, dropped[1] + replaced.steps)
             members[nxt] = proposal
             latest, latest_ecm = proposal, nxt
         chain = sorted(members.items(), key=lambda kv: names.index(kv[0]))

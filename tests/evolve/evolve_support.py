@@ -240,8 +240,10 @@ class ChainUpdater(ParamUpdater):
         trace_dir: Where the experience traces go.
         stalls: Per learned ECM, the plan its candidate's training episodes stall with (None:
             they all succeed); an ECM not listed succeeds.
-        improved: Whether candidates claim to beat their parent on the training seeds.
+        improved: Whether candidates claim to beat their parent on the training seeds (one
+            answer for all, or one per call in order).
         unsafe: Per learned ECM, the ECM governance stops in its candidate's episodes.
+        steps: The env steps each proposal reports it spent.
     """
 
     supports_companions = True
@@ -252,14 +254,16 @@ class ChainUpdater(ParamUpdater):
         trace_dir: Path,
         stalls: Mapping[str, Sequence[str] | None],
         *,
-        improved: bool = True,
+        improved: bool | Sequence[bool] = True,
         unsafe: Mapping[str, str] | None = None,
+        steps: int = 0,
     ) -> None:
         super().__init__(registry)
         self.unsafe = dict(unsafe or {})
         self.trace_dir = trace_dir
         self.stalls = dict(stalls)
         self.improved = improved
+        self.steps = steps
 
     def propose(self, request: UpdateRequest, progress: ProgressSink) -> Proposal | None:
         from capevo.learner.base import Score
@@ -270,7 +274,8 @@ class ChainUpdater(ParamUpdater):
         path = self.trace_dir / f"exp-{len(self.requests)}.mcap"
         episodes = [(s, plan is None, plan or list(NAMES)) for s in (1, 2, 3)]
         experience = write_trace(path, episodes, unsafe=self.unsafe.get(request.ecm))
-        good = Score(success_rate=0.0, progress=0.5 if self.improved else 0.0, reward_per_step=0.0, episodes=3)
+        improved = self.improved if isinstance(self.improved, bool) else self.improved[len(self.requests) - 1]
+        good = Score(success_rate=0.0, progress=0.5 if improved else 0.0, reward_per_step=0.0, episodes=3)
         base = Score(success_rate=0.0, progress=0.0, reward_per_step=0.0, episodes=3)
         cand = Candidate(
             ecm=request.ecm,
@@ -279,7 +284,7 @@ class ChainUpdater(ParamUpdater):
             score=good,
             baseline=base,
         )
-        return Proposal(learner=self.name, candidate=cand, episodes=4, experience=tuple(experience))
+        return Proposal(learner=self.name, candidate=cand, episodes=4, steps=self.steps, experience=tuple(experience))
 
 
 def fake_config(**changes: Any) -> EvolveConfig:

@@ -26,6 +26,7 @@ from capevo.evolve.loop import UPSTREAM_BELOW
 from capevo.evolve.metrics import read_metrics
 from capevo.evolve.state import Journal
 from capevo.records import State
+from capevo.runtime.ecm.code import read_params, with_params
 
 REACH, GRASP, LIFT = NAMES
 
@@ -134,6 +135,30 @@ def test_the_chain_respects_its_limit_and_stops_without_improvement(tmp_path: Pa
     # (after nothing better for grasp, its predecessor is tried once more)
     assert [r.ecm for r in updater2.requests] == [REACH, GRASP, REACH] and row2.further == ()
     assert "found nothing better" in row2.update_note
+
+
+def test_an_ecm_learned_again_in_a_chain_counts_every_update_and_gates_its_latest(tmp_path: Path) -> None:
+    # reach's candidate still stalls in reach: the chain learns reach again from that candidate
+    # (improved), then once more (nothing better). The budget must count all three updates,
+    # and the gate must judge the second one, not the first it replaced.
+    registry = seeded_registry(tmp_path)
+    evaluator = ScriptedEvaluator(registry, _needs(REACH, GRASP))
+    spent_each = 1000
+    updater = ChainUpdater(registry, tmp_path, {REACH: [REACH]}, improved=[True, True, False], steps=spent_each)
+    config = fake_config(iterations=1, updates_per_iteration=0, env_steps_per_iteration=40_000)
+    loop = make_loop(tmp_path, registry=registry, evaluator=evaluator, updater=updater, config=config)
+    row = loop.run().rows[0]
+    assert [r.ecm for r in updater.requests] == [REACH, REACH, REACH]
+    caps = [r.max_env_steps for r in updater.requests]
+    assert caps[0] is not None and caps[1:] == [caps[0] - spent_each, caps[0] - 2 * spent_each]
+    assert row.learner_steps == 3 * spent_each and row.learner_episodes == 3 * 4
+    assert row.further == () and row.candidate_version == 1
+    # ParamUpdater's k-th proposal scales v0's first parameter by 1.5 k: v1 is the second
+    v0 = registry.get_artifact(REACH, 0).decode()
+    key = next(iter(read_params(v0)))
+    second = with_params(v0, {key: read_params(v0)[key] * 1.5 * 2})
+    assert registry.get_artifact(REACH, 1).decode() == second
+    assert "found nothing better for " + REACH in row.update_note
 
 
 def test_resume_gates_the_rest_of_a_chain_an_interrupted_attempt_published(tmp_path: Path) -> None:
