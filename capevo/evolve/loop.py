@@ -337,6 +337,8 @@ class EvolutionLoop:
             progress=self._gate_progress,
         )
         self._remembered = self._episodes_in_memory()
+        self._learned = (0, 0)
+        """(episodes, env steps) of every proposal the current update attempt made, kept or not."""
 
     # --- helpers ---------------------------------------------------------------------------
 
@@ -526,8 +528,9 @@ class EvolutionLoop:
             pick_note = f"no readable traces of the failed episodes; updating the first step {ecm}"
         self.progress.message(f"  learn: {ecm} with {self.updater.name}")
         request = self._update_request(i, ecm, outcomes, slot=i * self._chain_limit())
+        self._learned = (0, 0)
         try:
-            proposal = self.updater.propose(request, self.progress)
+            proposal = self._propose(request)
         except (IdentityViolation, KeyboardInterrupt):
             raise
         except CapevoError as exc:
@@ -618,7 +621,6 @@ class EvolutionLoop:
         went_upstream: set[str] = set()
         made_safe: set[str] = set()
         forced: str | None = None
-        dropped = (0, 0)
         why = ""
         for k in range(1, limit):
             experience = list(latest.experience)
@@ -650,7 +652,7 @@ class EvolutionLoop:
             companions = {e: p.candidate.artifact for e, p in members.items() if e != nxt and p.candidate is not None}
             start = members.get(nxt)
             source = start.candidate.source if start is not None and start.candidate is not None else None
-            spent = sum(p.steps for p in members.values()) + dropped[1]
+            spent = self._learned[1]
             updates = len(members) + (0 if nxt in members else 1)
             cap = self._learner_cap(learner_spent=spent, updates=updates)
             if cap is not None and cap < self._smallest_update():
@@ -668,7 +670,7 @@ class EvolutionLoop:
                 updates=updates,
             )
             try:
-                proposal = self.updater.propose(request, self.progress)
+                proposal = self._propose(request)
             except (IdentityViolation, KeyboardInterrupt):
                 raise
             except CapevoError as exc:
@@ -681,7 +683,6 @@ class EvolutionLoop:
                 break
             unchanged = source.encode() == cand.artifact if source is not None else self._same_as_parent(proposal)
             if unchanged or not cand.improved:
-                dropped = (dropped[0] + proposal.episodes, dropped[1] + proposal.steps)
                 where = names.index(nxt)
                 if where > 0 and nxt not in went_upstream:
                     # nothing better for this step: the fault may be in what it is handed
@@ -691,14 +692,22 @@ class EvolutionLoop:
                     continue
                 why = f"chain stopped: {proposal.learner} found nothing better for {nxt}"
                 break
-            replaced = members.get(nxt)
-            if replaced is not None:
-                # learned again from its chain candidate: the earlier update's steps were spent all the same
-                dropped = (dropped[0] + replaced.episodes, dropped[1] + replaced.steps)
             members[nxt] = proposal
             latest, latest_ecm = proposal, nxt
         chain = sorted(members.items(), key=lambda kv: names.index(kv[0]))
+        # every update learned counts, also those dropped or replaced by a later one of the same ECM
+        dropped = (
+            self._learned[0] - sum(p.episodes for p in members.values()),
+            self._learned[1] - sum(p.steps for p in members.values()),
+        )
         return chain, why, dropped
+
+    def _propose(self, request: UpdateRequest) -> Proposal | None:
+        """The updater's proposal for ``request``, its episodes and steps added to :attr:`_learned`."""
+        proposal = self.updater.propose(request, self.progress)
+        if proposal is not None:
+            self._learned = (self._learned[0] + proposal.episodes, self._learned[1] + proposal.steps)
+        return proposal
 
     def _update_request(
         self,
