@@ -11,6 +11,7 @@ import pytest
 from capevo.errors import Invalid
 from capevo.evolve.config import make_config
 from capevo.evolve.run import EvolveOptions, run_evolution
+from capevo.runtime.traces.summary import summarize
 
 
 def test_a_budget_below_live_gate_and_one_candidate_is_refused(tmp_path: Path) -> None:
@@ -31,15 +32,18 @@ def test_a_budget_below_live_gate_and_one_candidate_is_refused(tmp_path: Path) -
 def test_an_iteration_spends_at_most_its_env_step_budget(tmp_path: Path) -> None:
     budget = 600  # 440 reserved: the learners get 160 steps, 4 CEM episodes of up to 40
     config = make_config("tiny", iterations=1, env_steps_per_iteration=budget)
-    result = run_evolution(
-        EvolveOptions(task="T1", config=config, root=tmp_path / "data", report_dir=tmp_path / "report", seed=0)
-    )
+    report = tmp_path / "report"
+    result = run_evolution(EvolveOptions(task="T1", config=config, root=tmp_path / "data", report_dir=report, seed=0))
     (row,) = result.rows
     assert row.env_steps_live == sum(int(e["steps"]) for e in row.episodes) > 0
     assert row.learner_steps > 0, row.update_note
     if row.gate is not None:
         assert row.env_steps_gate > 0
     assert row.env_steps == row.env_steps_live + row.learner_steps + row.env_steps_gate <= budget
+    # the learner's own traces agree: every episode it ran is counted, kept or not (the chain's
+    # re-learned updates: tests/evolve/test_chain.py)
+    traced = [summarize(f) for f in sorted((report / "traces" / "learner").rglob("*.mcap"))]
+    assert traced and row.learner_steps == sum(e.steps for t in traced for e in t.episodes)
 
 
 @pytest.mark.slow
