@@ -52,7 +52,9 @@ def _env() -> Any:
 def _sac(env: Any) -> Any:
     from stable_baselines3 import SAC
 
-    return SAC(
+    from capevo.learner.neural_seed import silent_logger
+
+    model = SAC(
         "MlpPolicy",
         env,
         buffer_size=100_000,
@@ -65,6 +67,8 @@ def _sac(env: Any) -> Any:
         seed=0,
         verbose=0,
     )
+    model.set_logger(silent_logger())  # else every learn() leaves an empty $TMPDIR/SB3-<time> folder
+    return model
 
 
 def sim_rate(steps: int) -> float:
