@@ -12,11 +12,13 @@ A run directory::
 
     RUN_DIR/
       experiment.json        the grid (ExperimentConfig.to_dict(), with its YAML text)
-      provenance.json        commit, package versions, machine, load, times, wall time, command
+      provenance.json        commit, package versions, machine, load, times, wall time, command;
+                             a resumed run keeps the earlier runs' under earlier_runs
       cells/<name>/          ExperimentConfig.cell_names(): <task>-<method>-s<seed>[-gov-off][-k=v]
          cell.json           {"cell": CellSpec.to_dict(), "knowledge": what the method starts from}
          metrics.jsonl       one IterationRecord.to_dict() per iteration 1..n, fsynced as emitted
-         done.json           written last, atomically: wall_s, env_steps_train, env_steps_eval, attempts
+         done.json           written last, atomically: wall_s, env_steps_train, env_steps_eval, attempts,
+                             capevo_commit (the code that ran the cell)
          failed.json         instead, when every attempt failed: error, traceback, attempts
          registry/ traces/ evolve/ checkpoints/ ...   the method's own files
       report/report.md, report/*.png, report/numbers.json

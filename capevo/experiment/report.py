@@ -1322,6 +1322,14 @@ def _settings(add: Any, run: Run, book: Book) -> None:
         add("")
 
 
+def _commit(done: Mapping[str, Any] | None) -> str:
+    """The short commit that ran a cell (``done.json``), ``-`` for cells from before it was kept."""
+    commit = (done or {}).get("capevo_commit")
+    if not isinstance(commit, str) or not commit:
+        return "-"
+    return f"`{commit[:9]}{'-dirty' if commit.endswith('-dirty') else ''}`"
+
+
 def _plain(v: Any) -> str:
     """A provenance value as text: mappings as ``key value, ...``, a command list as its words."""
     if isinstance(v, Mapping):
@@ -1338,10 +1346,10 @@ def _cells(add: Any, run: Run, book: Book) -> None:
         add("The run has no cell.")
         return
     add(
-        "| cell | status | iterations | attempts | R₁ | R_peak | Succ_peak | Δπ | train steps | eval steps | wall s | "
-        "note | files |"
+        "| cell | status | iterations | attempts | commit | R₁ | R_peak | Succ_peak | Δπ | train steps | eval steps | "
+        "wall s | note | files |"
     )
-    add("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    add("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for c in run.cells:
         planned = c.spec.iterations if c.spec else "?"
         k = f"cell/{c.key}"
@@ -1356,7 +1364,8 @@ def _cells(add: Any, run: Run, book: Book) -> None:
         add(
             f"| `{c.key}` | {'**' + c.status + '**' if c.status != 'done' else c.status} | "
             f"{book.get(k + '/records')}/{planned} | {attempts if attempts is not None else '-'} | "
-            f"{_r(book.get(k + '/r_first')) if shown else '-'} | {_r(book.get(k + '/r_peak')) if shown else '-'} | "
+            f"{_commit(c.done)} | {_r(book.get(k + '/r_first')) if shown else '-'} | "
+            f"{_r(book.get(k + '/r_peak')) if shown else '-'} | "
             f"{_pct(book.get(k + '/succ_peak')) if shown else '-'} | "
             f"{_r(book.get(k + '/delta_pi')) if shown else '-'} | "
             f"{_steps(book.get(k + '/env_steps_train')) if shown else '-'} | "

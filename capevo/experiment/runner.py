@@ -86,7 +86,8 @@ def run_cell(cell_dict: Mapping[str, Any], name: str) -> dict[str, Any]:
 
     Returns:
         ``{"tar": bytes of the cell directory, "wall_s", "env_steps_train", "env_steps_eval",
-        "iterations"}``.
+        "iterations", "capevo_commit"}`` (the commit of the code that ran the cell, on the host that
+        ran it).
 
     Raises:
         Invalid: the method's records are not iterations 0..n-1.
@@ -132,6 +133,7 @@ def run_cell(cell_dict: Mapping[str, Any], name: str) -> dict[str, Any]:
             "env_steps_train": sum(r.env_steps_train for r in records),
             "env_steps_eval": sum(r.env_steps_eval for r in records),
             "iterations": len(records),
+            "capevo_commit": _git_commit(),
         }
 
 
@@ -193,6 +195,19 @@ def _git_commit() -> str | None:
     return out.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
 
 
+def _earlier_runs(run_dir: Path) -> list[dict[str, Any]]:
+    """The provenance of the runs before this one in ``run_dir``, latest first (a resumed run
+    keeps them: its cells may have been run by them)."""
+    try:
+        old = json.loads((run_dir / PROVENANCE_JSON).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return []
+    if not isinstance(old, dict):
+        return []
+    before = old.pop("earlier_runs", None)
+    return [old, *(r for r in before or () if isinstance(r, dict))]
+
+
 def _versions() -> dict[str, str | None]:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -225,6 +240,8 @@ def _extract(run_dir: Path, name: str, result: Mapping[str, Any], attempts: int)
         "env_steps_train": result["env_steps_train"],
         "env_steps_eval": result["env_steps_eval"],
         "attempts": attempts,
+        # a resumed run mixes cells of several runs: each says which code ran it
+        "capevo_commit": result.get("capevo_commit"),
     }
     write_atomically(partial / DONE, _dumps(done))
     final = cells / name
@@ -382,6 +399,9 @@ def run_experiment(
         "started_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "command": list(command) if command is not None else [sys.executable, *sys.argv],
     }
+    earlier = _earlier_runs(run_dir)
+    if earlier:
+        provenance["earlier_runs"] = earlier
     grid = list(config.cell_names().items())
     states = {name: cell_state(cells_dir / name) for name, _ in grid}
     skipped = tuple(n for n, _ in grid if states[n] == "done")

@@ -85,6 +85,11 @@ def test_cells_finish_a_failing_cell_is_retried_and_reported_and_nothing_is_redo
     provenance = json.loads((run_dir / "provenance.json").read_text())
     assert provenance["packages"]["ray"] == "2.60.0" and provenance["cells"]["failed"] == 1
     assert provenance["machine"]["cores"] and provenance["wall_s"] > 0
+    assert "earlier_runs" not in provenance
+    # each cell says which code ran it: here the driver's own checkout
+    for seed in (1, 2):
+        done = json.loads((run_dir / "cells" / f"T1-s-ecm-s{seed}" / "done.json").read_text())
+        assert "capevo_commit" in done and done["capevo_commit"] == provenance["capevo_commit"]
 
     # again: the finished cells are skipped and untouched, the failed one is tried again
     before = {k: _snapshot(run_dir / "cells" / k) for k in summary.done}
@@ -93,6 +98,9 @@ def test_cells_finish_a_failing_cell_is_retried_and_reported_and_nothing_is_redo
     assert again.failed == ("T1-explorer-s1",)
     assert json.loads((run_dir / "cells" / "T1-explorer-s1" / "failed.json").read_text())["attempts"] == 1
     assert {k: _snapshot(run_dir / "cells" / k) for k in summary.done} == before
+    # the resumed run's provenance keeps the first run's, whose cells it reused
+    resumed = json.loads((run_dir / "provenance.json").read_text())
+    assert resumed["cells"]["skipped"] == 2 and resumed["earlier_runs"] == [provenance]
 
 
 def test_a_run_whose_driver_was_sigkilled_resumes_without_redoing_finished_cells(tmp_path: Path) -> None:
