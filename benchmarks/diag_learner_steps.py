@@ -6,8 +6,9 @@ sums those traces per iteration and prints both counts, so an accounting fault i
 up without trusting the loop: before commit c898386 a chain that learned the same ECM twice
 dropped the first update's steps from both its cap and its count (``results/h1/README.md``).
 
-An episode belongs to the iteration whose ``started_at`` precedes its trace file's last write.
-Neural learners (SAC, BC) run episodes outside the traced evaluator, so their rows show 0 traced.
+The counting is :func:`capevo.evolve.audit.learner_step_checks`, which the experiment harness also
+runs on each cell's host (``learner_steps_traced`` in ``done.json``, checked by ``capevo experiment
+verify``). Neural learners (SAC, BC) run episodes outside the traced evaluator and are not checked.
 
     .venv/bin/python benchmarks/diag_learner_steps.py /tmp/h1          # an experiment directory
     .venv/bin/python benchmarks/diag_learner_steps.py /tmp/evo/report  # one evolve report directory
@@ -18,8 +19,6 @@ Exits 1 when a code learner's row disagrees with its traces.
 from __future__ import annotations
 
 import argparse
-import bisect
-import json
 import sys
 from pathlib import Path
 
@@ -31,20 +30,6 @@ def evolve_dirs(root: Path) -> list[Path]:
     return sorted(p.parent for p in root.glob("cells/*/evolve/metrics.jsonl"))
 
 
-def traced_per_iteration(report: Path) -> tuple[list[dict], list[int]]:
-    """The metrics rows of ``report`` and the env steps its learner traces hold per row."""
-    from capevo.runtime.traces.summary import summarize
-
-    rows = [json.loads(line) for line in (report / "metrics.jsonl").read_text().splitlines() if line.strip()]
-    starts = [float(r["started_at"]) for r in rows]
-    traced = [0] * len(rows)
-    for path in (report / "traces" / "learner").rglob("*.mcap"):
-        k = bisect.bisect_right(starts, path.stat().st_mtime) - 1
-        if k >= 0:
-            traced[k] += sum(e.steps for e in summarize(path).episodes)
-    return rows, traced
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("root", type=Path, help="an experiment directory or an evolve report directory")
@@ -52,19 +37,18 @@ def main(argv: list[str] | None = None) -> int:
     reports = evolve_dirs(args.root)
     if not reports:
         parser.error(f"{args.root}: no metrics.jsonl here or under cells/*/evolve/")
+    from capevo.evolve.audit import learner_step_checks
+
     bad = 0
     print("| run | iteration | learner | learner_steps | traced | |")
     print("|---|---|---|---|---|---|")
     for report in reports:
-        rows, traced = traced_per_iteration(report)
         name = report.parent.name if report.name == "evolve" else str(report)
-        for row, count in zip(rows, traced, strict=True):
-            learner = str(row.get("learner") or "")
-            neural = count == 0 and learner not in ("cem", "hybrid")
-            ok = neural or int(row.get("learner_steps") or 0) == count
-            bad += not ok
-            flag = "" if ok else "**differs**"
-            print(f"| {name} | {row['iteration']} | {learner} | {row.get('learner_steps')} | {count} | {flag} |")
+        for c in learner_step_checks(report):
+            bad += not c.ok
+            flag = "" if c.ok else "**differs**"
+            shown = c.traced if c.checked else "(not traced)"
+            print(f"| {name} | {c.iteration} | {c.learner} | {c.recorded} | {shown} | {flag} |")
     return 1 if bad else 0
 
 

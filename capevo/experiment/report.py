@@ -67,6 +67,7 @@ from typing import Any
 
 from capevo.baselines.base import CellSpec, IterationRecord
 from capevo.errors import CapevoError, NotFound
+from capevo.evolve.audit import LearnerStepCheck
 from capevo.evolve.metrics import CI_ALPHA, read_jsonl, write_atomically
 
 CELLS = "cells"
@@ -691,6 +692,19 @@ def compute_numbers(run: Run) -> Book:
             src,
         )
         book.put(f"parity/{label}/cells_over_budget", len(over), src)
+        # the loop's own count of learner steps against its learner's traces (done.json, where kept)
+        checks = [(c, ch) for c in cells for ch in _learner_step_checks(c)]
+        if checks:
+            book.put(
+                f"parity/{label}/traced_iterations",
+                len(checks),
+                [f"{c.path}/{DONE}" for c in cells],
+            )
+            book.put(
+                f"parity/{label}/traced_iterations_differing",
+                sum(ch.recorded != ch.traced for _, ch in checks),
+                [f"{c.path}/{DONE}" for c in cells],
+            )
 
     # per label, not per method: what ``ours`` starts from depends on its modality option
     knowledge: dict[str, list[Cell]] = {}
@@ -1276,6 +1290,20 @@ def _fairness(add: Any, run: Run, book: Book) -> None:
     else:
         add("No cell spent more than its budget in any iteration.")
     add("")
+    traced = [label for label in labels if book.get(f"parity/{label}/traced_iterations") is not None]
+    if traced:
+        add(
+            "The learner steps in `env_steps_train` are the loop's own sum. Each cell also counted, on the host "
+            "that ran it, the steps in its code learners' MCAP traces (`learner_steps_traced` in `done.json`; "
+            "`capevo.evolve.audit`):"
+        )
+        add("")
+        for label in traced:
+            n = book.get(f"parity/{label}/traced_iterations")
+            bad = book.get(f"parity/{label}/traced_iterations_differing")
+            verdict = "all equal" if not bad else f"**{bad} differ**"
+            add(f"- {_esc(label)}: {n} iteration(s) checked, {verdict}.")
+        add("")
 
 
 def _settings(add: Any, run: Run, book: Book) -> None:
@@ -1320,6 +1348,21 @@ def _settings(add: Any, run: Run, book: Book) -> None:
     else:
         add(f"No readable `{EXPERIMENT_JSON}`.")
         add("")
+
+
+def _learner_step_checks(cell: Cell) -> list[LearnerStepCheck]:
+    """The checked iterations of a cell's ``learner_steps_traced`` (``done.json``; none before it was kept)."""
+    out = []
+    for d in (cell.done or {}).get("learner_steps_traced") or ():
+        check = LearnerStepCheck(
+            iteration=int(d["iteration"]),
+            learner=str(d.get("learner") or ""),
+            recorded=int(d["recorded"]),
+            traced=int(d["traced"]),
+        )
+        if check.checked:
+            out.append(check)
+    return out
 
 
 def _commit(done: Mapping[str, Any] | None) -> str:

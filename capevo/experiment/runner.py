@@ -86,8 +86,9 @@ def run_cell(cell_dict: Mapping[str, Any], name: str) -> dict[str, Any]:
 
     Returns:
         ``{"tar": bytes of the cell directory, "wall_s", "env_steps_train", "env_steps_eval",
-        "iterations", "capevo_commit"}`` (the commit of the code that ran the cell, on the host that
-        ran it).
+        "iterations", "capevo_commit", "learner_steps_traced"}`` (the commit of the code that ran
+        the cell, on the host that ran it; for a method that ran an evolve loop, each iteration's
+        recorded learner steps beside those in its learner's traces, which stay on that host).
 
     Raises:
         Invalid: the method's records are not iterations 0..n-1.
@@ -96,6 +97,7 @@ def run_cell(cell_dict: Mapping[str, Any], name: str) -> dict[str, Any]:
     # robosuite sets its logger's level on import: import it first, then quiet it
     import robosuite  # noqa: F401
 
+    from capevo.evolve.audit import learner_step_checks
     from capevo.experiment.methods import knowledge_of, make_method
 
     logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
@@ -134,6 +136,8 @@ def run_cell(cell_dict: Mapping[str, Any], name: str) -> dict[str, Any]:
             "env_steps_eval": sum(r.env_steps_eval for r in records),
             "iterations": len(records),
             "capevo_commit": _git_commit(),
+            # the traces do not travel with the cell (they are large): check them here, on their host
+            "learner_steps_traced": [c.to_dict() for c in learner_step_checks(d / "evolve")],
         }
 
 
@@ -243,6 +247,8 @@ def _extract(run_dir: Path, name: str, result: Mapping[str, Any], attempts: int)
         # a resumed run mixes cells of several runs: each says which code ran it
         "capevo_commit": result.get("capevo_commit"),
     }
+    if result.get("learner_steps_traced"):
+        done["learner_steps_traced"] = result["learner_steps_traced"]
     write_atomically(partial / DONE, _dumps(done))
     final = cells / name
     shutil.rmtree(final, ignore_errors=True)

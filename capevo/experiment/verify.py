@@ -18,6 +18,8 @@ Invariants:
    the number, both values and its files; a number on one side only is a mismatch too.
 3. Every metrics line whose derived field differs from its episodes is one mismatch naming the
    file, the line and the field.
+4. Every iteration whose recorded learner steps differ from those its code learner's traces held
+   (``learner_steps_traced`` in ``done.json``, counted where the cell ran) is one mismatch.
 """
 
 from __future__ import annotations
@@ -30,9 +32,11 @@ from typing import Any
 
 from capevo.baselines.base import IterationRecord
 from capevo.errors import CapevoError, Corrupt, NotFound
+from capevo.evolve.audit import LearnerStepCheck
 from capevo.evolve.metrics import read_jsonl
 from capevo.experiment.report import (
     CELLS,
+    DONE,
     METRICS,
     NUMBERS_JSON,
     REPORT_DIR,
@@ -99,6 +103,24 @@ def check_lines(run_dir: Path) -> list[Mismatch]:
     return out
 
 
+def check_learner_steps(run_dir: Path) -> list[Mismatch]:
+    """Every iteration whose learner steps disagree with its learner's traces (Invariant 4)."""
+    out: list[Mismatch] = []
+    for path in sorted((run_dir / CELLS).glob(f"*/{DONE}")):
+        rel = path.relative_to(run_dir).as_posix()
+        try:
+            done = json.loads(path.read_text(encoding="utf-8"))
+            checks = [LearnerStepCheck(**d) for d in done.get("learner_steps_traced") or ()]
+        except (ValueError, TypeError, AttributeError) as exc:
+            out.append(Mismatch(name=rel, reported="unreadable", recomputed=str(exc), sources=(rel,)))
+            continue
+        for c in checks:
+            if not c.ok:
+                name = f"{rel}:iteration {c.iteration}:learner_steps"
+                out.append(Mismatch(name=name, reported=c.recorded, recomputed=f"{c.traced} traced", sources=(rel,)))
+    return out
+
+
 def check_run(run_dir: str | Path) -> list[Mismatch]:
     """Every mismatch between ``report/numbers.json`` and the run's files (see the module docstring).
 
@@ -131,7 +153,7 @@ def check_run(run_dir: str | Path) -> list[Mismatch]:
     for name, number in book.numbers.items():
         if name not in reported:
             out.append(Mismatch(name=name, reported=_MISSING, recomputed=number.value, sources=number.sources))
-    return out + check_lines(root)
+    return out + check_lines(root) + check_learner_steps(root)
 
 
 def verify_run(run_dir: Path) -> list[str]:
@@ -144,4 +166,4 @@ def verify_run(run_dir: Path) -> list[str]:
     return [str(m) for m in check_run(run_dir)]
 
 
-__all__ = ["Mismatch", "check_lines", "check_run", "same", "verify_run"]
+__all__ = ["Mismatch", "check_learner_steps", "check_lines", "check_run", "same", "verify_run"]

@@ -4,17 +4,14 @@ the episodes actually run; a budget that cannot cover one update is refused befo
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
 
 from capevo.errors import Invalid
+from capevo.evolve.audit import learner_step_checks
 from capevo.evolve.config import make_config
 from capevo.evolve.run import EvolveOptions, run_evolution
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-import diag_learner_steps
 
 
 def test_a_budget_below_live_gate_and_one_candidate_is_refused(tmp_path: Path) -> None:
@@ -45,9 +42,8 @@ def test_an_iteration_spends_at_most_its_env_step_budget(tmp_path: Path) -> None
     assert row.env_steps == row.env_steps_live + row.learner_steps + row.env_steps_gate <= budget
     # the learner's own traces agree: every episode it ran is counted, kept or not (the chain's
     # re-learned updates: tests/evolve/test_chain.py)
-    # (benchmarks/diag_learner_steps.py checks a finished run the same way)
-    rows, traced = diag_learner_steps.traced_per_iteration(report)
-    assert [r["learner_steps"] for r in rows] == traced == [row.learner_steps]
+    (check,) = learner_step_checks(report)
+    assert check.checked and check.ok and check.traced == row.learner_steps
 
 
 @pytest.mark.slow

@@ -46,7 +46,11 @@ def test_the_smoke_grid_runs_every_method_and_its_report_verifies(tmp_path: Path
             assert all(r.delta_pi == 0.0 for r in records), name
         if cell.method in ("s-ecm", "explorer"):
             assert all(r.env_steps_train == 0 for r in records), name
+        if cell.method == "ours-code":
+            # counted on the cell's host from its learner's traces, one per evolve iteration
+            done = json.loads((run_dir / "cells" / name / "done.json").read_text())
+            assert len(done["learner_steps_traced"]) == cell.iterations, name
 
     files = write_report(run_dir)
     assert (run_dir / "report" / "report.md") in files and (run_dir / "report" / "numbers.json").is_file()
-    assert verify_run(run_dir) == []
+    assert verify_run(run_dir) == []  # also: every traced learner count equals the loop's (verify invariant 4)

@@ -35,6 +35,27 @@ def test_a_run_just_reported_verifies(reported: Path) -> None:
     assert verify_run(reported) == []
 
 
+def test_learner_steps_that_differ_from_their_traces_are_reported_and_fail_verify(tmp_path: Path) -> None:
+    """Invariant 4: a cell's ``learner_steps_traced`` (counted on its host from the code learner's
+    traces) must equal the loop's own count; a neural learner's row is not traced, not checked."""
+    root, _ = build_run(tmp_path / "run")
+    done = root / "cells" / "T6-ours-code-s42" / "done.json"
+    doc = json.loads(done.read_text())
+    doc["learner_steps_traced"] = [
+        {"iteration": 0, "learner": "cem", "recorded": 700, "traced": 700},
+        {"iteration": 1, "learner": "hybrid/cem", "recorded": 600, "traced": 900},  # the loop missed 300
+        {"iteration": 2, "learner": "rl/rl-vm-1", "recorded": 800, "traced": 0},  # SAC: its env traces nothing
+    ]
+    done.write_text(json.dumps(doc))
+    write_report(root)
+    text = (root / "report" / "report.md").read_text()
+    assert "2 iteration(s) checked, **1 differ**" in text
+    assert verify_run(root) == [
+        "cells/T6-ours-code-s42/done.json:iteration 1:learner_steps: reported 600, recomputed '900 traced' "
+        "(cells/T6-ours-code-s42/done.json)"
+    ]
+
+
 def test_an_edited_derived_field_is_the_one_mismatch(reported: Path) -> None:
     metrics = reported / "cells" / "T6-am-s7" / "metrics.jsonl"
 

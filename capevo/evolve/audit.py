@@ -1,0 +1,76 @@
+"""Learner env steps per iteration against the learner's own MCAP traces (issue 20, parity).
+
+Every metrics row records ``learner_steps``: the env steps the iteration's learners reported. The
+loop sums them from the proposals, and a fault in that sum once let chains overrun the budget
+unseen (``results/h1/README.md``). The code learners (CEM, the LLM's attempts, hybrid) run every
+episode through an evaluator that traces it to ``traces/learner/`` of the report directory, so
+those files give a second count that does not go through the loop.
+
+Invariants:
+1. An iteration's traced steps are the steps of the episodes in the learner traces written
+   during it: a trace file belongs to the last iteration whose ``started_at`` precedes its last
+   write (the learner writes only between the live and the gate episodes of its iteration).
+2. A row is checked only when its learner is a code learner (:data:`TRACED_LEARNERS`): SAC and BC
+   run their episodes in their own environments, which trace nothing.
+3. :func:`learner_step_checks` of a directory without ``metrics.jsonl`` is ``()``.
+"""
+
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass
+from pathlib import Path
+
+from capevo.evolve.metrics import MetricsLog, read_metrics
+
+LEARNER_TRACES = Path("traces") / "learner"
+"""Where, under a report directory, the code learners' evaluator writes its traces."""
+
+TRACED_LEARNERS = ("cem", "hybrid", "llm")
+"""Learner ids (the last ``/`` part, by prefix) whose episodes are traced; see invariant 2."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class LearnerStepCheck:
+    """One iteration's recorded learner steps next to those its learner traces hold."""
+
+    iteration: int
+    learner: str
+    recorded: int
+    traced: int
+
+    @property
+    def checked(self) -> bool:
+        """Whether the learner traces its episodes, so the two counts must agree."""
+        last = self.learner.rsplit("/", 1)[-1]
+        return last.startswith(TRACED_LEARNERS)
+
+    @property
+    def ok(self) -> bool:
+        return not self.checked or self.recorded == self.traced
+
+    def to_dict(self) -> dict[str, object]:
+        return {"iteration": self.iteration, "learner": self.learner, "recorded": self.recorded, "traced": self.traced}
+
+
+def learner_step_checks(report_dir: str | Path) -> tuple[LearnerStepCheck, ...]:
+    """Per finished iteration of the evolve run in ``report_dir``, its recorded and traced learner steps."""
+    from capevo.runtime.traces.summary import summarize
+
+    report = Path(report_dir)
+    if not (report / MetricsLog.JSONL).is_file():
+        return ()
+    rows = read_metrics(report)
+    starts = [row.started_at for row in rows]
+    traced = [0] * len(rows)
+    for path in sorted((report / LEARNER_TRACES).rglob("*.mcap")):
+        k = bisect.bisect_right(starts, path.stat().st_mtime) - 1
+        if k >= 0:
+            traced[k] += sum(e.steps for e in summarize(path).episodes)
+    return tuple(
+        LearnerStepCheck(iteration=row.iteration, learner=row.learner or "", recorded=row.learner_steps, traced=t)
+        for row, t in zip(rows, traced, strict=True)
+    )
+
+
+__all__ = ["LEARNER_TRACES", "TRACED_LEARNERS", "LearnerStepCheck", "learner_step_checks"]
