@@ -18,8 +18,10 @@ Invariants:
 from __future__ import annotations
 
 import bisect
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from capevo.evolve.metrics import MetricsLog, read_metrics
 
@@ -51,6 +53,20 @@ class LearnerStepCheck:
 
     def to_dict(self) -> dict[str, object]:
         return {"iteration": self.iteration, "learner": self.learner, "recorded": self.recorded, "traced": self.traced}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> LearnerStepCheck:
+        """Read :meth:`to_dict`'s form back.
+
+        Raises:
+            KeyError, TypeError, ValueError: not that form.
+        """
+        return cls(
+            iteration=int(d["iteration"]),
+            learner=str(d.get("learner") or ""),
+            recorded=int(d["recorded"]),
+            traced=int(d["traced"]),
+        )
 
 
 def learner_step_checks(report_dir: str | Path) -> tuple[LearnerStepCheck, ...]:

@@ -702,7 +702,7 @@ def compute_numbers(run: Run) -> Book:
             )
             book.put(
                 f"parity/{label}/traced_iterations_differing",
-                sum(ch.recorded != ch.traced for _, ch in checks),
+                sum(not ch.ok for _, ch in checks),
                 [f"{c.path}/{DONE}" for c in cells],
             )
 
@@ -1352,17 +1352,8 @@ def _settings(add: Any, run: Run, book: Book) -> None:
 
 def _learner_step_checks(cell: Cell) -> list[LearnerStepCheck]:
     """The checked iterations of a cell's ``learner_steps_traced`` (``done.json``; none before it was kept)."""
-    out = []
-    for d in (cell.done or {}).get("learner_steps_traced") or ():
-        check = LearnerStepCheck(
-            iteration=int(d["iteration"]),
-            learner=str(d.get("learner") or ""),
-            recorded=int(d["recorded"]),
-            traced=int(d["traced"]),
-        )
-        if check.checked:
-            out.append(check)
-    return out
+    checks = (LearnerStepCheck.from_dict(d) for d in (cell.done or {}).get("learner_steps_traced") or ())
+    return [c for c in checks if c.checked]
 
 
 def _commit(done: Mapping[str, Any] | None) -> str:

@@ -110,8 +110,8 @@ def check_learner_steps(run_dir: Path) -> list[Mismatch]:
         rel = path.relative_to(run_dir).as_posix()
         try:
             done = json.loads(path.read_text(encoding="utf-8"))
-            checks = [LearnerStepCheck(**d) for d in done.get("learner_steps_traced") or ()]
-        except (ValueError, TypeError, AttributeError) as exc:
+            checks = [LearnerStepCheck.from_dict(d) for d in done.get("learner_steps_traced") or ()]
+        except (ValueError, TypeError, KeyError, AttributeError) as exc:
             out.append(Mismatch(name=rel, reported="unreadable", recomputed=str(exc), sources=(rel,)))
             continue
         for c in checks:
