@@ -6,12 +6,15 @@ Benchmarks are scripts, not tests: they print a markdown table and save their fi
 
 from __future__ import annotations
 
+import atexit
 import json
 import os
 import platform
+import shutil
 import socket
 import statistics
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -54,6 +57,17 @@ def time_calls(fn: Callable[[int], Any], n: int, *, warmup: int = 0) -> list[flo
         fn(i)
         out.append(time.perf_counter() - t0)
     return out
+
+
+def scratch_dir(prefix: str) -> Path:
+    """A fresh temporary directory, removed when the process exits.
+
+    Benchmarks also run inside the test suite; a directory left behind by every run there
+    piles up in ``$TMPDIR``. A process killed with SIGKILL still leaves its directory.
+    """
+    path = Path(tempfile.mkdtemp(prefix=prefix))
+    atexit.register(shutil.rmtree, path, ignore_errors=True)
+    return path
 
 
 def free_tcp_port() -> int:

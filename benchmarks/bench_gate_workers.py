@@ -36,7 +36,6 @@ import dataclasses
 import logging
 import statistics
 import sys
-import tempfile
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -47,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "runtime"))
 
-from _common import markdown_table, save_results
+from _common import markdown_table, save_results, scratch_dir
 from procs import start_server
 from runtime_support import LIFT, Proc, publish, publish_pick, start_worker
 
@@ -101,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
 
     config = dataclasses.replace(GateConfig.cpu_small(), min_n=min(GateConfig.cpu_small().min_n, args.episodes))
-    tmp = Path(tempfile.mkdtemp(prefix="bench-gate-workers-"))
+    tmp = scratch_dir("bench-gate-workers-")
     registry = start_server(tmp / "registry")
     workers: list[Proc] = []
     rows: dict[int, list[dict[str, Any]]] = {1: [], 2: []}

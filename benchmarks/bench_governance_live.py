@@ -24,7 +24,6 @@ import argparse
 import logging
 import random
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -32,7 +31,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import markdown_table, percentile, save_results
+from _common import markdown_table, percentile, save_results, scratch_dir
 
 from capevo.agent.identity import IdentityMemory
 from capevo.agent.policy import DecompositionPolicy
@@ -102,7 +101,7 @@ def ms(xs: Sequence[float], q: float) -> float:
 
 
 def measure(task: str, envelope: str, episodes: int, repeats: int, horizon: int | None) -> dict[str, Any]:
-    tmp = Path(tempfile.mkdtemp(prefix="bench-gov-live-"))
+    tmp = scratch_dir("bench-gov-live-")
     registry = LocalRegistry(tmp / "registry", actor="bench")
     env = make_task(task, horizon=horizon)
     caps = None

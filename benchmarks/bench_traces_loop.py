@@ -31,7 +31,6 @@ import argparse
 import logging
 import statistics
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -39,7 +38,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import markdown_table, save_results
+from _common import markdown_table, save_results, scratch_dir
 
 from capevo.agent.identity import IdentityMemory
 from capevo.agent.policy import DecompositionPolicy
@@ -98,7 +97,7 @@ class NoOpSink:
 
 def measure(task: str, seeds: int) -> dict[str, Any]:
     """Run ``seeds`` episodes of ``task`` per sink, alternating; the figures of the module docstring."""
-    tmp = Path(tempfile.mkdtemp(prefix="bench-traces-loop-"))
+    tmp = scratch_dir("bench-traces-loop-")
     registry = LocalRegistry(tmp / "registry", actor="bench")
     env = make_task(task)
     caps = None

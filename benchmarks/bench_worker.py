@@ -45,7 +45,6 @@ import logging
 import os
 import statistics
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -58,7 +57,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "runtime"))
 
-from _common import markdown_table, percentile, save_results
+from _common import markdown_table, percentile, save_results, scratch_dir
 from runtime_support import publish_pick
 
 import capevo
@@ -238,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
 
-    tmp = Path(tempfile.mkdtemp(prefix="bench-worker-"))
+    tmp = scratch_dir("bench-worker-")
     registry = LocalRegistry(tmp / "registry", actor="bench")
     publish_pick(registry)
     env = make_task(args.task, horizon=args.horizon)

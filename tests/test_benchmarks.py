@@ -117,3 +117,16 @@ def test_sac_warm_start_diagnosis_clones_then_trains_and_records_each_stage(resu
     for stage in ("after_bc", "after_critic_warmup", "after_sac"):
         assert row[stage]["episodes"] == 1 and 0 <= row[stage]["successes"] <= 1
     assert row["settings"]["critic_warmup"] == 40
+
+
+def test_a_benchmark_scratch_dir_is_gone_when_its_process_exits(tmp_path: Path) -> None:
+    import subprocess
+
+    code = f"import sys; sys.path.insert(0, {str(BENCHMARKS)!r}); import _common; p = _common.scratch_dir('b-'); "
+    code += "(p / 'f').write_text('x'); print(p)"
+    out = subprocess.run(
+        [sys.executable, "-c", code], env={"TMPDIR": str(tmp_path)}, capture_output=True, text=True, check=True
+    )
+    made = Path(out.stdout.strip())
+    assert made.parent == tmp_path and made.name.startswith("b-")
+    assert not made.exists() and list(tmp_path.iterdir()) == []
