@@ -55,6 +55,7 @@ Invariants:
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 import time
@@ -309,6 +310,13 @@ class EvolutionLoop:
         on_disk = load_manifest(self.report_dir)
         if on_disk is not None:
             on_disk.check_resume(manifest)
+            if on_disk.config.iterations != manifest.config.iterations:
+                # a resumed run may be given more (or fewer) iterations: the manifest keeps the
+                # current target, so the report never reads "6 of 3 iterations finished"
+                on_disk = dataclasses.replace(
+                    on_disk, config=dataclasses.replace(on_disk.config, iterations=manifest.config.iterations)
+                )
+                save_manifest(self.report_dir, on_disk)
             self.manifest = on_disk
         else:
             save_manifest(self.report_dir, manifest)

@@ -33,7 +33,7 @@ from capevo.evolve.learners import waiting_candidates
 from capevo.evolve.loop import ensure_v0, task_capability_set
 from capevo.evolve.metrics import read_metrics
 from capevo.evolve.progress import RecordingProgress
-from capevo.evolve.state import Journal
+from capevo.evolve.state import Journal, load_manifest
 from capevo.records import Action, Origin, State
 from capevo.registry.local import LocalRegistry
 from capevo.runtime.monitor import MonitorConfig
@@ -229,6 +229,8 @@ def test_resume_skips_finished_iterations(tmp_path: Path) -> None:
     assert [r.iteration for r in updater.requests] == [1]
     # iteration 1 only: live + gate (active, candidate) + the final run on iteration 0's seeds
     assert len(evaluator.calls) - calls == 3
+    # the manifest (which the report's "n of N iterations" reads) follows the run's new target
+    assert load_manifest(second.report_dir).config.iterations == 2
 
 
 def test_resume_gates_the_candidate_an_interrupted_attempt_published(tmp_path: Path) -> None:
