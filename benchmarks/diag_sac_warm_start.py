@@ -16,6 +16,13 @@ literature, so a run shows which of them keeps the cloned skill:
 * ``--bc-weight λ`` adds ``λ·MSE(actor(s), a_demo)`` on a demonstration minibatch after each
   environment step (Nair et al. 2018's behaviour-cloning term, as a callback, so SB3's SAC update
   itself is unchanged);
+* ``--residual`` trains SAC on a residual over the *frozen* clone (Silver et al. 2018, Johannink
+  et al. 2019), written as one SB3 SAC actor twice as wide: each hidden layer is ``[clone |
+  residual]`` with the cross blocks at 0, the mean head reads both halves, and gradient masks keep
+  the clone's weights, the cross blocks and the head's bias fixed. The residual's columns of the
+  head start at 0, so the deterministic actor starts as the clone (checked: ``residual_start``)
+  and the artifact stays a plain SAC zip the runtime loads. The spread head starts at
+  ``--explore-std`` (0.2 when unset);
 * ``--potential`` feeds the task's dense reward as a potential difference ``γΦ(s') − Φ(s)``
   (Ng et al. 1999) instead of as a per-step reward. Added per step, a positive dense reward pays an
   ECM for *not* reaching its termination, which ends its episode.
@@ -126,6 +133,52 @@ def bc_regulariser(demos: Any, weight: float, stats: dict[str, int]) -> Any:
     return BcTerm()
 
 
+def residual_over(clone: Any, env: Any, sac: Any, explore_std: float) -> Any:
+    """A SAC model whose actor is ``clone``'s actor plus a trainable residual (see ``--residual``)."""
+    import torch
+
+    from capevo.learner.neural_seed import new_sac
+
+    src = [m for m in clone.actor.latent_pi if isinstance(m, torch.nn.Linear)]
+    hidden = [m.out_features for m in src]
+    wide = new_sac(
+        env,
+        seed=sac.seed,
+        policy_kwargs={"net_arch": {"pi": [2 * n for n in hidden], "qf": hidden}},
+        **sac.sac_kwargs(),
+    )
+    dst = [m for m in wide.actor.latent_pi if isinstance(m, torch.nn.Linear)]
+    masks: list[tuple[Any, Any]] = []
+    with torch.no_grad():
+        for k, (s, d) in enumerate(zip(src, dst, strict=True)):
+            o, i = s.out_features, s.in_features
+            train_w, train_b = torch.zeros_like(d.weight), torch.zeros_like(d.bias)
+            if k == 0:  # the first layer reads the observation: both halves see all of it
+                d.weight[:o] = s.weight
+                train_w[o:] = 1.0
+            else:
+                d.weight[:o, :i] = s.weight
+                d.weight[:o, i:] = 0.0
+                d.weight[o:, :i] = 0.0
+                train_w[o:, i:] = 1.0
+            d.bias[:o] = s.bias
+            train_b[o:] = 1.0
+            masks += [(d.weight, train_w), (d.bias, train_b)]
+        o = hidden[-1]
+        mu = wide.actor.mu
+        mu.weight[:, :o] = clone.actor.mu.weight
+        mu.weight[:, o:] = 0.0
+        mu.bias.copy_(clone.actor.mu.bias)
+        train_mu = torch.zeros_like(mu.weight)
+        train_mu[:, o:] = 1.0
+        masks += [(mu.weight, train_mu), (mu.bias, torch.zeros_like(mu.bias))]
+        wide.actor.log_std.weight.zero_()
+        wide.actor.log_std.bias.fill_(math.log(explore_std))
+    for param, mask in masks:
+        param.register_hook(lambda grad, mask=mask: grad * mask)
+    return wide
+
+
 def run(args: argparse.Namespace, scratch: Path) -> dict[str, Any]:
     import torch
 
@@ -172,7 +225,11 @@ def run(args: argparse.Namespace, scratch: Path) -> dict[str, Any]:
         config=bc, env_config=env_config, registry=registry, scripted_episodes=preset.scripted_episodes
     ).gather(request, target)
     cloned = behaviour_clone(model, demos, bc)
-    if args.explore_std is not None:
+    clone = model
+    if args.residual:
+        model = residual_over(clone, model.get_env(), sac, args.explore_std or 0.2)
+        model.set_logger(silent_logger())
+    elif args.explore_std is not None:
         with torch.no_grad():
             model.actor.log_std.weight.zero_()
             model.actor.log_std.bias.fill_(math.log(args.explore_std))
@@ -181,8 +238,10 @@ def run(args: argparse.Namespace, scratch: Path) -> dict[str, Any]:
         "settings": {k: v for k, v in vars(args).items() if k != "name"},
         "demo_steps": len(demos),
         "bc_loss": [cloned.loss_before, cloned.loss_after],
-        "after_bc": evaluate(model, make_env, args.eval_episodes),
+        "after_bc": evaluate(clone, make_env, args.eval_episodes),
     }
+    if args.residual:
+        row["residual_start"] = evaluate(model, make_env, args.eval_episodes)
     stats = {"episodes": 0, "successes": 0}
     steps_left = args.steps
     if args.critic_warmup:
@@ -201,6 +260,10 @@ def run(args: argparse.Namespace, scratch: Path) -> dict[str, Any]:
     env.close()
     row["sac_training_episodes"] = stats
     row["after_sac"] = evaluate(model, make_env, args.eval_episodes)
+    if args.residual:
+        head = model.actor.mu.weight.detach()
+        half = head.shape[1] // 2
+        row["head_norm"] = {"clone": float(head[:, :half].norm()), "residual": float(head[:, half:].norm())}
     row["wall_s"] = time.perf_counter() - started
     row["machine"] = _common.machine()
     row["date"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
@@ -225,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--critic-warmup", type=int, default=0)
     parser.add_argument("--bc-weight", type=float, default=0.0)
     parser.add_argument("--potential", action="store_true")
+    parser.add_argument("--residual", action="store_true", help="train a residual over the frozen clone")
     args = parser.parse_args(argv)
     if args.critic_warmup >= args.steps:
         raise SystemExit("--critic-warmup must be below --steps")
@@ -238,7 +302,15 @@ def main(argv: list[str] | None = None) -> int:
         json.dumps(
             {
                 k: row[k]
-                for k in ("name", "after_bc", "after_critic_warmup", "sac_training_episodes", "after_sac")
+                for k in (
+                    "name",
+                    "after_bc",
+                    "residual_start",
+                    "after_critic_warmup",
+                    "sac_training_episodes",
+                    "after_sac",
+                    "head_norm",
+                )
                 if k in row
             }
         )

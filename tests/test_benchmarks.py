@@ -119,6 +119,50 @@ def test_sac_warm_start_diagnosis_clones_then_trains_and_records_each_stage(resu
     assert row["settings"]["critic_warmup"] == 40
 
 
+def test_sac_warm_start_diagnosis_trains_a_residual_over_the_clone(results_in: Path) -> None:
+    import diag_sac_warm_start
+
+    args = ["--name", "residual", "--preset", "tiny", "--steps", "120", "--eval-episodes", "1", "--residual"]
+    assert diag_sac_warm_start.main([*args, "--potential", "--critic-warmup", "40"]) == 0
+    (row,) = json.loads((results_in / "sac_warm_start.json").read_text())
+    for stage in ("after_bc", "residual_start", "after_critic_warmup", "after_sac"):
+        assert row[stage]["episodes"] == 1
+    assert row["head_norm"]["clone"] > 0 and row["head_norm"]["residual"] > 0  # SAC moved the residual
+
+
+def test_the_residual_actor_starts_as_the_clone_and_trains_only_its_residual() -> None:
+    import dataclasses
+
+    import diag_sac_warm_start
+    import numpy as np
+    import torch
+    from gymnasium import spaces
+
+    from capevo.learner.neural_seed import SpacesEnv, new_sac
+    from capevo.learner.presets import make_preset
+
+    env = SpacesEnv(spaces.Box(-np.inf, np.inf, (9,), np.float32), spaces.Box(-1.0, 1.0, (4,), np.float32))
+    sac = dataclasses.replace(make_preset("tiny").sac, net_arch=(16, 16))
+    clone = new_sac(env, net_arch=sac.net_arch, seed=3, **sac.sac_kwargs())
+    wide = diag_sac_warm_start.residual_over(clone, env, sac, 0.2)
+    obs = torch.as_tensor(np.random.default_rng(0).normal(size=(64, 9)), dtype=torch.float32)
+    with torch.no_grad():
+        assert torch.allclose(wide.actor(obs, deterministic=True), clone.actor(obs, deterministic=True), atol=1e-6)
+    before = {k: v.clone() for k, v in wide.actor.state_dict().items()}
+    for _ in range(5):  # any loss: only the residual's entries may move
+        wide.actor.optimizer.zero_grad()
+        (wide.actor(obs, deterministic=True) - 0.5).pow(2).mean().backward()
+        wide.actor.optimizer.step()
+    after = wide.actor.state_dict()
+    first, second = "latent_pi.0.weight", "latent_pi.2.weight"
+    assert torch.equal(after[first][:16], before[first][:16]) and not torch.equal(after[first][16:], before[first][16:])
+    assert torch.equal(after[second][:16], before[second][:16])  # the clone's block and a cross block
+    assert torch.equal(after[second][16:, :16], torch.zeros(16, 16))  # the other cross block stays 0
+    assert torch.equal(after["mu.weight"][:, :16], before["mu.weight"][:, :16])
+    assert torch.equal(after["mu.bias"], before["mu.bias"])
+    assert not torch.equal(after["mu.weight"][:, 16:], before["mu.weight"][:, 16:])
+
+
 def test_a_benchmark_scratch_dir_is_gone_when_its_process_exits(tmp_path: Path) -> None:
     import subprocess
 
