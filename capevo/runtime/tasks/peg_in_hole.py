@@ -34,7 +34,8 @@ Invariants:
    the hole centre from the peg axis < 6 cm, axial offset t in [-0.12, 0.14] m, cos > 0.95.
 2. The signals ``peg_hole_perp_dist``, ``peg_hole_axial_dist`` and ``peg_hole_cos`` are
    robosuite's ``_compute_orientation`` values.
-3. With jitter on, the peg never starts inside the plate (placement redrawn).
+3. With jitter on, the peg never starts inside the plate, nor within :data:`START_CLEARANCE` of it
+   (placement redrawn).
 4. ``robot_state()`` force per arm is the total contact force on the object that arm holds
    (peg or plate): they hang from the hand body beside, not under, the wrist force sensor, so
    the sensor never sees their contacts.
@@ -55,6 +56,14 @@ from capevo.runtime.tasks import _common as c
 from capevo.runtime.tasks.base import JITTER_TRIES, PENETRATION_LIMIT, TaskEnv
 from capevo.runtime.tasks.registry import register_task
 from capevo.runtime.tasks.spec import EcmStep, SignalSpec, TaskSpec, cond, pred
+
+START_CLEARANCE = 0.01
+"""Metres the jittered peg must start clear of the plate, else the placement is redrawn. Measured
+before any skill acted (zero action, default perturbations): on seed 100051 the peg started 1.7 mm
+inside the plate (within the objects' 2 mm overlap tolerance) and read 29.8 N after the first step;
+on seed 250206 it started 0.8 mm clear and read 35.6 N, the arms settling into it. 7 of 300 seeds
+started with the two touching. A 20 N limit broken at step 0 grades an episode unsafe that no
+skill or Φ could have kept safe."""
 
 TWO_PANDAS_NO_GRIPPER = ActionLayout(dim=12, arms=(ArmActionLayout(offset=0), ArmActionLayout(offset=6)))
 """Two Pandas, OSC_POSE via the BASIC composite controller, no grippers: robot 0 then robot 1."""
@@ -333,10 +342,20 @@ class PegInHoleTask(TaskEnv):
                 mj.mj_jacSite(m, d, jac[:3], jac[3:], site)
                 d.qpos[qadr] += np.linalg.pinv(jac[:, dofs]) @ np.array([dx, dy, 0.0, 0.0, 0.0, 0.0])
             self._sim.forward()
-            if self._max_penetration(held) <= PENETRATION_LIMIT:
+            if self._max_penetration(held) <= PENETRATION_LIMIT and self._peg_plate_gap() >= START_CLEARANCE:
                 return
             d.qpos[:] = start
             self._sim.forward()
+
+    def _peg_plate_gap(self) -> float:
+        """Distance between the peg's and the plate's collision geoms, metres (at most START_CLEARANCE)."""
+        m, d, mj = self._model, self._data, self._mj
+        gap = START_CLEARANCE
+        for g in self._held_geoms[0]:
+            for h in self._held_geoms[1]:
+                if (m.geom_contype[g] or m.geom_conaffinity[g]) and (m.geom_contype[h] or m.geom_conaffinity[h]):
+                    gap = min(gap, float(mj.mj_geomDistance(m, d, int(g), int(h), START_CLEARANCE, None)))
+        return gap
 
     def _is_success(self) -> bool:
         return bool(self._env._check_success())
