@@ -23,6 +23,11 @@ literature, so a run shows which of them keeps the cloned skill:
   head start at 0, so the deterministic actor starts as the clone (checked: ``residual_start``)
   and the artifact stays a plain SAC zip the runtime loads. The spread head starts at
   ``--explore-std`` (0.2 when unset);
+* ``--awac λ`` replaces SAC's actor update by AWAC's (Nair et al. 2020, eq. 7-8): the actor
+  maximises the log-likelihood of the replay buffer's own actions, each weighted by
+  ``min(exp(A(s, a) / λ), 20)`` with ``A = Q(s, a) − Q(s, π(s))`` from SAC's critics, so it can only
+  move towards actions it has seen do better. SAC's critic update is unchanged; its own actor
+  step is switched off by freezing the actor, and a callback takes one AWAC step per env step;
 * ``--potential`` feeds the task's dense reward as a potential difference ``γΦ(s') − Φ(s)``
   (Ng et al. 1999) instead of as a per-step reward. Added per step, a positive dense reward pays an
   ECM for *not* reaching its termination, which ends its episode.
@@ -131,6 +136,54 @@ def bc_regulariser(demos: Any, weight: float, stats: dict[str, int]) -> Any:
             return True
 
     return BcTerm()
+
+
+AWAC_MAX_WEIGHT = 20.0
+"""Cap on AWAC's weight ``exp(A / λ)``, so one over-estimated action cannot dominate a batch."""
+
+
+def awac_actor(lam: float, stats: dict[str, int]) -> Any:
+    """Callback: one AWAC actor step (module docstring, ``--awac``) after each env step."""
+    import torch
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class AwacActor(BaseCallback):
+        def _on_training_start(self) -> None:
+            for p in self.model.actor.parameters():
+                p.requires_grad_(False)  # SAC's own actor step then changes nothing
+
+        def _on_step(self) -> bool:
+            dones = self.locals.get("dones")
+            if dones is not None and bool(dones[0]):
+                stats["episodes"] += 1
+                stats["successes"] += int(bool(self.locals["infos"][0].get("is_success")))
+            model = self.model
+            if model.num_timesteps < model.learning_starts or model.replay_buffer.size() == 0:
+                return True
+            data = model.replay_buffer.sample(model.batch_size)
+            actor, critic = model.actor, model.critic
+            with torch.no_grad():
+                q_data = torch.cat(critic(data.observations, data.actions), dim=1).min(dim=1, keepdim=True)[0]
+                a_pi, _ = actor.action_log_prob(data.observations)
+                q_pi = torch.cat(critic(data.observations, a_pi), dim=1).min(dim=1, keepdim=True)[0]
+                weight = torch.exp((q_data - q_pi) / lam).clamp(max=AWAC_MAX_WEIGHT)
+            for p in actor.parameters():
+                p.requires_grad_(True)
+            mean, log_std, kwargs = actor.get_action_dist_params(data.observations)
+            log_prob = actor.action_dist.proba_distribution(mean, log_std, **kwargs).log_prob(data.actions)
+            loss = -(weight * log_prob.reshape(-1, 1)).mean()
+            actor.optimizer.zero_grad()
+            loss.backward()
+            actor.optimizer.step()
+            for p in actor.parameters():
+                p.requires_grad_(False)
+            return True
+
+        def _on_training_end(self) -> None:
+            for p in self.model.actor.parameters():
+                p.requires_grad_(True)
+
+    return AwacActor()
 
 
 def residual_over(clone: Any, env: Any, sac: Any, explore_std: float) -> Any:
@@ -252,14 +305,19 @@ def run(args: argparse.Namespace, scratch: Path) -> dict[str, Any]:
             p.requires_grad_(True)
         row["after_critic_warmup"] = evaluate(model, make_env, args.eval_episodes)
         steps_left -= args.critic_warmup
+    before = [q.detach().clone() for q in model.actor.parameters()]
     model.learn(
         total_timesteps=steps_left,
-        callback=bc_regulariser(demos, args.bc_weight, stats),
+        callback=awac_actor(args.awac, stats) if args.awac else bc_regulariser(demos, args.bc_weight, stats),
         reset_num_timesteps=not args.critic_warmup,
     )
     env.close()
     row["sac_training_episodes"] = stats
     row["after_sac"] = evaluate(model, make_env, args.eval_episodes)
+    # how far SAC's (or AWAC's) actor updates moved the actor's weights (L2 over all of them)
+    row["actor_change"] = float(
+        sum(float((q.detach() - b).pow(2).sum()) for q, b in zip(model.actor.parameters(), before, strict=True)) ** 0.5
+    )
     if args.residual:
         head = model.actor.mu.weight.detach()
         half = head.shape[1] // 2
@@ -289,7 +347,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bc-weight", type=float, default=0.0)
     parser.add_argument("--potential", action="store_true")
     parser.add_argument("--residual", action="store_true", help="train a residual over the frozen clone")
+    parser.add_argument("--awac", type=float, default=None, metavar="LAMBDA", help="AWAC's actor update, temperature λ")
     args = parser.parse_args(argv)
+    if args.awac is not None and not args.awac > 0:
+        raise SystemExit("--awac needs a temperature > 0")
+    if args.awac and args.bc_weight:
+        raise SystemExit("--awac and --bc-weight are two actor updates; choose one")
     if args.critic_warmup >= args.steps:
         raise SystemExit("--critic-warmup must be below --steps")
     with tempfile.TemporaryDirectory(prefix="capevo-sac-diag-") as scratch:

@@ -130,6 +130,18 @@ def test_sac_warm_start_diagnosis_trains_a_residual_over_the_clone(results_in: P
     assert row["head_norm"]["clone"] > 0 and row["head_norm"]["residual"] > 0  # SAC moved the residual
 
 
+def test_sac_warm_start_diagnosis_runs_awac_s_actor_update(results_in: Path) -> None:
+    import diag_sac_warm_start
+
+    args = ["--name", "awac", "--preset", "tiny", "--steps", "120", "--eval-episodes", "1", "--awac", "1.0"]
+    assert diag_sac_warm_start.main([*args, "--explore-std", "0.05", "--learning-starts", "0"]) == 0
+    (row,) = json.loads((results_in / "sac_warm_start.json").read_text())
+    assert row["settings"]["awac"] == 1.0 and row["after_sac"]["episodes"] == 1
+    assert row["actor_change"] > 0  # AWAC's own step moved the actor (SAC's is switched off)
+    with pytest.raises(SystemExit):
+        diag_sac_warm_start.main([*args, "--bc-weight", "1"])  # two actor updates at once
+
+
 def test_the_residual_actor_starts_as_the_clone_and_trains_only_its_residual() -> None:
     import dataclasses
 
