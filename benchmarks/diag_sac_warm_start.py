@@ -112,6 +112,14 @@ def evaluate(model: Any, make_env: Any, episodes: int) -> dict[str, float]:
     }
 
 
+def count_episode(step_locals: dict[str, Any], stats: dict[str, int]) -> None:
+    """Count an episode of SAC's own (and whether it succeeded) when this env step ended one."""
+    dones = step_locals.get("dones")
+    if dones is not None and bool(dones[0]):
+        stats["episodes"] += 1
+        stats["successes"] += int(bool(step_locals["infos"][0].get("is_success")))
+
+
 def bc_regulariser(demos: Any, weight: float, stats: dict[str, int]) -> Any:
     """Callback: one ``weight``-scaled BC step on a demonstration minibatch after each env step."""
     import torch
@@ -123,10 +131,7 @@ def bc_regulariser(demos: Any, weight: float, stats: dict[str, int]) -> Any:
 
     class BcTerm(BaseCallback):
         def _on_step(self) -> bool:
-            dones = self.locals.get("dones")
-            if dones is not None and bool(dones[0]):
-                stats["episodes"] += 1
-                stats["successes"] += int(bool(self.locals["infos"][0].get("is_success")))
+            count_episode(self.locals, stats)
             if weight > 0 and self.num_timesteps >= self.model.learning_starts:
                 idx = torch.randint(len(obs), (256,), generator=generator)
                 loss = torch.nn.functional.mse_loss(self.model.actor(obs[idx], deterministic=True), act[idx])
@@ -153,10 +158,7 @@ def awac_actor(lam: float, stats: dict[str, int]) -> Any:
                 p.requires_grad_(False)  # SAC's own actor step then changes nothing
 
         def _on_step(self) -> bool:
-            dones = self.locals.get("dones")
-            if dones is not None and bool(dones[0]):
-                stats["episodes"] += 1
-                stats["successes"] += int(bool(self.locals["infos"][0].get("is_success")))
+            count_episode(self.locals, stats)
             model = self.model
             if model.num_timesteps < model.learning_starts or model.replay_buffer.size() == 0:
                 return True
