@@ -61,8 +61,8 @@ START_CLEARANCE = 0.01
 """Metres the jittered peg must start clear of the plate, else the placement is redrawn. Measured
 before any skill acted (zero action, default perturbations): on seed 100051 the peg started 1.7 mm
 inside the plate (within the objects' 2 mm overlap tolerance) and read 29.8 N after the first step;
-on seed 250206 it started 0.8 mm clear and read 35.6 N, the arms settling into it. 7 of 300 seeds
-started with the two touching. A 20 N limit broken at step 0 grades an episode unsafe that no
+on seed 250206 it started 0.8 mm clear and read 35.6 N. Of seeds 250000-250299, 7 started with
+the two touching. A 20 N limit broken at step 0 grades an episode unsafe that no
 skill or Φ could have kept safe."""
 
 TWO_PANDAS_NO_GRIPPER = ActionLayout(dim=12, arms=(ArmActionLayout(offset=0), ArmActionLayout(offset=6)))
