@@ -46,6 +46,10 @@ def _p(x: float | None) -> str:
     return f"{x:.3g}"
 
 
+def _num(x: Any) -> str:
+    return f"{x:.4g}" if isinstance(x, (int, float)) else "-"
+
+
 def _ci(low: float | None, high: float | None) -> str:
     return "-" if low is None or high is None else f"[{100 * low:.0f}, {100 * high:.0f}]%"
 
@@ -99,6 +103,31 @@ def describe_v0(registry: Registry, task: str) -> list[dict[str, Any]]:
             except (CapevoError, UnicodeDecodeError):
                 row["params"] = None
         out.append(row)
+    return out
+
+
+def describe_changes(registry: Registry, versions: Mapping[str, int]) -> list[dict[str, Any]]:
+    """What search changed: each code ECM of ``versions`` past version 0, with the parameters whose
+    value differs from its version 0 (``{name: (v0, now)}``).
+
+    ECMs at version 0, neural ones and any whose source cannot be read are skipped: the report
+    only states what it can show.
+    """
+    from capevo.runtime.ecm.code import read_params
+
+    out = []
+    for name, version in sorted(versions.items()):
+        if version <= 0:
+            continue
+        try:
+            if registry.get_version(name, version).kind is not Kind.CODE:
+                continue
+            before = read_params(registry.get_artifact(name, 0).decode("utf-8"))
+            after = read_params(registry.get_artifact(name, version).decode("utf-8"))
+        except (CapevoError, UnicodeDecodeError):
+            continue
+        changed = {k: (before.get(k), v) for k, v in after.items() if before.get(k) != v}
+        out.append({"name": name, "version": version, "changed": changed})
     return out
 
 
@@ -199,7 +228,10 @@ def write_report(
     ]
     v0 = describe_v0(registry, spec.name)
     records = version_records(registry, spec.ecm_names)
-    text = _markdown(manifest, rows, v0, start_stats, final_stats, final_versions, comparison, history, records)
+    changes = describe_changes(registry, final_versions) if final_versions else []
+    text = _markdown(
+        manifest, rows, v0, start_stats, final_stats, final_versions, comparison, history, records, changes
+    )
     path = directory / REPORT
     write_atomically(path, text.encode())
     return [path, directory / "metrics.csv", *files]
@@ -235,6 +267,7 @@ def _markdown(
     comparison: Mapping[str, Any] | None,
     history: Mapping[str, Sequence[AuditEvent]],
     records: Mapping[str, Sequence[EcmVersion]],
+    changes: Sequence[Mapping[str, Any]] = (),
 ) -> str:
     spec = task_spec(manifest.task)
     cfg = manifest.config
@@ -345,6 +378,20 @@ def _markdown(
             f"(live {sum(r.wall_live_s for r in rows):.0f} s, learning {sum(r.wall_learn_s for r in rows):.0f} s, "
             f"gating {sum(r.wall_gate_s for r in rows):.0f} s)."
         )
+        add("")
+    if changes:
+        add("## What search changed")
+        add("")
+        add(
+            "The final set's code ECMs past version 0: the parameters whose value differs from version 0 "
+            "(the code around them is version 0's; only the `PARAMS` literal is rewritten)."
+        )
+        add("")
+        add("| ECM | final version | changed parameters (v0 → final) |")
+        add("|---|---|---|")
+        for c in changes:
+            shown = ", ".join(f"{k} {_num(a)} → {_num(b)}" for k, (a, b) in c["changed"].items()) or "none"
+            add(f"| `{c['name']}` | {c['version']} | {shown} |")
         add("")
     add("## The persistent agent")
     add("")
@@ -470,4 +517,13 @@ def version_records(registry: Registry, names: Sequence[str]) -> dict[str, list[
     return out
 
 
-__all__ = ["PROGRESS_PNG", "REPORT", "TIMELINE_PNG", "describe_v0", "v0_statement", "version_records", "write_report"]
+__all__ = [
+    "PROGRESS_PNG",
+    "REPORT",
+    "TIMELINE_PNG",
+    "describe_changes",
+    "describe_v0",
+    "v0_statement",
+    "version_records",
+    "write_report",
+]

@@ -49,6 +49,8 @@ def test_report_states_v0_result_gate_and_identity(tmp_path: Path) -> None:
     assert "| start (iteration 0, live seeds) | grasp@0, lift@0, reach@0 | 0/3 = 0%" in text
     assert "| final (same seeds) | grasp@0, lift@0, reach@1 | 3/3 = 100%" in text
     assert "exact McNemar p = 0.125" in text
+    # what search changed: the final set's code ECMs past v0, parameter by parameter
+    assert "## What search changed" in text and "| `pick.reach` | 1 | gain 3 → 4.5 |" in text
     # the gate table: N, intervals, p-values, decision
     assert "| 0 | `pick.reach` v1 | v0 | paired | 8 | 8/8" in text and "**promote**" in text
     assert result.identity_hash in text and "unchanged every time" in text
