@@ -246,3 +246,23 @@ def test_nut_insert_holds_its_height_until_the_nut_is_square_to_the_peg() -> Non
     obs["SquareNut_quat"] = _yaw_quat(math.pi - 0.5)  # not yet: it keeps its height and turns
     turning = skill.act(obs)
     assert turning[2] == 0 and turning[5] > 0
+
+
+@pytest.mark.parametrize(("below_hover", "descends"), [(0.03, True), (0.01, False)])
+def test_nut_reach_keeps_descending_through_observation_noise(below_hover: float, descends: bool) -> None:
+    """T4's reach, once 2 cm or more below ``hover``, keeps going down while the handle reads up to
+    twice ``descend_xy`` away sideways: σ = 1 cm noise on the hand and the nut makes the error read
+    about 1.7 cm with the hand exactly over it. Just below ``hover`` it still travels first."""
+    name = "nut_assembly.reach"
+    (publish,) = [p for n, _, p in seed_specs("nut_assembly") if n == name]
+    params = seed_params("nut_assembly", name)
+    skill = CodeSkill(seed_source("nut_assembly", name), filename=name)
+    obs = _neutral_obs(publish)
+    obs["SquareNut_pos"] = np.array([0.0, 0.1, 0.83], dtype=np.float32)
+    obs["SquareNut_quat"] = _yaw_quat(0.0)
+    obs["robot0_eef_quat"] = _down_quat(0.0)
+    obs["robot0_gripper_qpos"] = np.array([0.04, -0.04], dtype=np.float32)  # open
+    handle = np.array([params["handle_offset"], 0.1, 0.83 + params["grasp_dz"]])
+    reads_off = 1.5 * params["descend_xy"]  # between descend_xy and twice it
+    obs["robot0_eef_pos"] = (handle + [0.0, reads_off, params["hover"] - below_hover]).astype(np.float32)
+    assert bool(skill.act(obs)[2] < 0) == descends
