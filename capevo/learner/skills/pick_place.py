@@ -18,7 +18,7 @@ from collections.abc import Mapping
 
 from capevo.learner.skills._lib import GAIN_RANGE, SPEED_RANGE, SkillTemplate
 from capevo.learner.skills.grasping import GRASP, LIFT, REACH
-from capevo.runtime.tasks.pick_place import GRASP_HEIGHT
+from capevo.runtime.tasks.pick_place import GRASP_HEIGHT, RIDGED
 from capevo.runtime.tasks.spec import TaskSpec
 
 MOVE = SkillTemplate(
@@ -110,6 +110,7 @@ def templates(spec: TaskSpec) -> dict[str, tuple[SkillTemplate, dict[str, str]]]
             "what": f"the {obj.lower()}",
             "walls": SOURCE_BIN_WALLS,
             "grasp_height": repr(GRASP_HEIGHT[obj]),
+            "ridge": repr(obj in RIDGED),
         }
         out[ecm] = (_BY_STEP[parts[-1]], keys)
     return out

@@ -49,6 +49,11 @@ robosuite's own success asks for the quadrant, so the hand-off asks for it too."
 RELEASE_OVER_QUADRANT = 0.02
 """``release`` applies while the object is at least this far inside its goal quadrant, metres."""
 
+RIDGED = frozenset({"Milk"})
+"""Objects whose top is a ridge, grasped with the fingers closing along it (the milk carton: in its
+collision mesh, a 4 x 4 cm body to 5 cm above its origin, a roof sloping to a ridge along its own
+y axis at 7 cm, and a 2 mm fin to 8.3 cm; measured in MuJoCo). Their reach and grasp read the
+object's orientation (``<Object>_quat``)."""
 GRASP_HEIGHT: Mapping[str, float] = MappingProxyType({"Milk": 0.065, "Bread": 0.0, "Can": 0.0})
 """Height of each object's grasp point above its origin, metres: where the grip site sits when
 the fingers straddle the object. Hand-written from the meshes (measured in MuJoCo at reset): the
@@ -369,6 +374,8 @@ def _multi_decomposition() -> tuple[EcmStep, ...]:
         p, what = o.lower() + "_", f"the {o.lower()}"
         keys = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos", f"{o}_pos", f"{o}_to_robot0_eef_pos")
         tkeys = (*keys, f"{o}_target_pos")
+        if o in RIDGED:  # reach and grasp turn the hand to the carton's ridge
+            keys = (*keys, f"{o}_quat")
         name = f"pick_place_multi.{o.lower()}"
         steps += [
             c.reach_step(f"{name}.reach", what, keys, prefix=p),
