@@ -2,7 +2,9 @@
 
 The skills aim at the object's origin (``${obj}_pos``) raised by the task's grasp height
 (``grasp_height``, hand-written per object: 0 except T5's milk carton, see
-``capevo.runtime.tasks.pick_place.GRASP_HEIGHT``) plus the learned ``grasp_dz``. The skills are
+``capevo.runtime.tasks.pick_place.GRASP_HEIGHT``) plus the learned ``grasp_dz``; reach turns the
+hand clear of the bin's walls or, for a carton with a ridge (T5's milk, ``RIDGED`` there, added
+2026-12-05), along the ridge. Both are hand-written scene knowledge, not learned. The skills are
 memoryless: each step's phase is read off the (noisy) observation, and every branch that a
 noisy reading can pick wrongly for one step only pauses the motion for that step.
 
