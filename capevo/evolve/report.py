@@ -2,7 +2,8 @@
 
 ``report.md`` states the task, preset and modality; says plainly what version 0 is; compares
 success at the start (iteration 0's live episodes) with the final capability set on the
-same seeds; tabulates every iteration (success with 95% intervals, reward and σ², Δπ,
+same seeds; lists, for the final set's code ECMs past version 0, the parameters search changed
+(v0 → final); tabulates every iteration (success with 95% intervals, reward and σ², Δπ,
 interventions, unsafe steps, the ECM updated, the gate decision, wall time) and every gate
 decision (N, intervals, p-values, failed checks); lists rollbacks; and gives the agent's
 identity hash. Plots: ``progress.png`` (:func:`~capevo.evolve.plots.plot_progress`) and
