@@ -76,9 +76,7 @@ pads, and the grasp never held. Its grasp point is above the rim, clear of the w
 def grip_orientation(obs, quat):
     """The hand's target orientation: along the ridge (RIDGE) or clear of the walls."""
     if RIDGE:
-        x, y, z, w = (float(c) for c in obs["${obj}_quat"])
-        yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-        return down_at(yaw - math.pi * math.floor(yaw / math.pi + 0.5))  # the grip is symmetric
+        return down_at(folded(heading(obs["${obj}_quat"])))
     return clear_of_walls(vec(obs, "${obj}_pos"), quat, WALLS)
 
 

@@ -70,20 +70,14 @@ def quat_rotate(q, v):
     return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
 
 
-def heading(obs):
+def nut_heading(obs):
     """The nut's rotation about the vertical (radians, the handle's direction: 0 along world +x)."""
-    x, y, z, w = (float(c) for c in obs["SquareNut_quat"])
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return heading(obs["SquareNut_quat"])
 
 
 def nut_yaw(obs):
     """The nut's rotation about the vertical, folded into [-pi/2, pi/2] (the grip is symmetric)."""
-    yaw = heading(obs)
-    while yaw > 0.5 * math.pi:
-        yaw -= math.pi
-    while yaw < -0.5 * math.pi:
-        yaw += math.pi
-    return yaw
+    return folded(nut_heading(obs))
 
 
 def grip_rotation(obs):
@@ -120,7 +114,7 @@ def handle_turn(obs):
     grip = wrap(yaw_of(obs["robot0_eef_quat"]))
     if grip < GRIP_YAW_SPAN[0] - 0.2:
         grip += 2.0 * math.pi  # read as negative, but past the wrist's limit: it is the same yaw + 2 pi
-    error = wrap(HANDLE_BACK - heading(obs))
+    error = wrap(HANDLE_BACK - nut_heading(obs))
     turns = [e for e in (error, error - 2.0 * math.pi, error + 2.0 * math.pi)
              if GRIP_YAW_SPAN[0] <= grip + e <= GRIP_YAW_SPAN[1]]
     return grip, (min(turns, key=abs) if turns else 0.0)

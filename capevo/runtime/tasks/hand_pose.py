@@ -64,6 +64,21 @@ def yaw_of(current):
     return 2.0 * math.atan2(float(current[1]), float(current[0]))
 
 
+def heading(quat):
+    """An object's rotation about world z (radians, its own x axis: 0 along world +x)."""
+    x, y, z, w = (float(c) for c in quat)
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def folded(yaw):
+    """``yaw`` folded into [-pi/2, pi/2]: a two-finger grip turned by pi is the same grip."""
+    while yaw > 0.5 * math.pi:
+        yaw -= math.pi
+    while yaw < -0.5 * math.pi:
+        yaw += math.pi
+    return yaw
+
+
 def held_down(current):
     """Down at the hand's current yaw: holds the turn a reach chose."""
     return down_at(yaw_of(current))
