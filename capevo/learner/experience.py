@@ -13,8 +13,8 @@ Invariants:
    trace; otherwise the ECM of the decomposition with the largest blame, ties going to the
    earliest step (fix upstream first). Each failed episode spreads a blame of 1 equally over
    its failed activations: those that did not hand over to a later step (re-planned back,
-   or still running when the episode ended; at the horizon, a step that spent more than
-   HOG_SHARE of the episode in one activation instead of the last one).
+   or still running when the episode ended; at the horizon, a step that spent more than its
+   hog threshold (:func:`hog_threshold`) in one activation instead of the last one).
 3. :func:`progress` is 1.0 for a successful episode and ``k / n`` otherwise, ``k`` the index
    of the furthest decomposition step the episode started (0 when none).
 5. ``EpisodeEnd.ecm_unsafe`` attributes each step the independent safety monitor graded unsafe
@@ -40,9 +40,14 @@ from capevo.runtime.traces import Outcome as CallOutcome
 from capevo.runtime.traces.records import UnsafeStep
 
 MAX_ERRORS_KEPT = 5
-HOG_SHARE = 0.5
-"""An episode that ran out of time blames a step that spent more than this share of it."""
 """Error texts kept per episode (the first ones)."""
+HOG_SHARE = 0.5
+"""An episode that ran out of time blames a step that spent more than this share of it..."""
+HOG_FAIR_MULTIPLE = 2.0
+"""...or more than this multiple of its even share (the episode's steps over the decomposition's
+length), whichever is smaller. Written by hand, not tuned: in a long chain (T5's 15 steps over 900)
+no step can spend half of the episode, yet one reach spending 200 steps (3x its share) is where
+the time went (issue 19's T5 traces)."""
 _TOPICS = (PlanStep.TOPIC, EcmInvocation.TOPIC, EpisodeSummary.TOPIC, UnsafeStep.TOPIC)
 
 
@@ -167,6 +172,18 @@ def _ends(evidence: Sequence[EpisodeOutcome] | Sequence[EpisodeEnd]) -> list[Epi
     return episode_ends(evidence)  # type: ignore[arg-type]
 
 
+def hog_threshold(episode_steps: int, decomposition_length: int) -> float:
+    """Steps above which one activation of a step is where a timed-out episode's time went.
+
+    The smaller of :data:`HOG_SHARE` of the episode and :data:`HOG_FAIR_MULTIPLE` times an even
+    split of it over the decomposition's steps (a decomposition of 0 or 1 steps: the share alone).
+    """
+    share = HOG_SHARE * episode_steps
+    if decomposition_length <= 1:
+        return share
+    return min(share, HOG_FAIR_MULTIPLE * episode_steps / decomposition_length)
+
+
 def failed_activations(end: EpisodeEnd, decomposition: Sequence[str]) -> list[str]:
     """The activations of a failed episode that did not hand over to a later step, in order.
 
@@ -177,9 +194,10 @@ def failed_activations(end: EpisodeEnd, decomposition: Sequence[str]) -> list[st
     are skipped (not judged, and not a hand-over). A failed episode that started no step
     blames the first step.
 
-    Out of time: when the episode ended at the horizon and one step, started once, spent more
-    than :data:`HOG_SHARE` of its steps, that step, not the one the clock happened to stop,
-    takes the last activation's blame (a slow reach leaves the lift no time).
+    Out of time: when the episode ended at the horizon and the step that spent the most steps,
+    started once, spent more than :func:`hog_threshold` of them, that step, not the one the
+    clock happened to stop, takes the last activation's blame (a slow reach leaves the lift no
+    time).
     """
     steps = list(decomposition)
     if end.success or not steps:
@@ -194,7 +212,7 @@ def failed_activations(end: EpisodeEnd, decomposition: Sequence[str]) -> list[st
         hog = max(spent, key=lambda k: (spent[k], -steps.index(k)))
         # one activation spent it: a step re-planned back to many times is slow because a
         # later step keeps failing, which the plan rule already blames
-        if spent[hog] > HOG_SHARE * end.steps and plan.count(hog) == 1:
+        if spent[hog] > hog_threshold(end.steps, len(steps)) and plan.count(hog) == 1:
             out[-1] = hog
     return out or [steps[0]]
 

@@ -631,7 +631,7 @@ def test_candidates_rank_safety_then_success_then_handover_then_speed() -> None:
 def test_an_episode_out_of_time_blames_the_step_that_spent_it() -> None:
     import dataclasses
 
-    from capevo.learner.experience import HOG_SHARE
+    from capevo.learner.experience import HOG_SHARE, hog_threshold
 
     plan = ["stack.reach", "stack.grasp", "stack.lift"]
     slow_reach = dataclasses.replace(
@@ -639,9 +639,20 @@ def test_an_episode_out_of_time_blames_the_step_that_spent_it() -> None:
     )
     assert HOG_SHARE * 150 < 124
     assert failed_activations(slow_reach, STACK) == ["stack.reach"]
-    # no step spent most of the time: the step the clock stopped keeps the blame
-    even = dataclasses.replace(slow_reach, ecm_steps={"stack.reach": 60, "stack.grasp": 30, "stack.lift": 60})
+    # no step spent more than twice its even share (150 / 6 steps = 25): the step the clock
+    # stopped keeps the blame
+    even = dataclasses.replace(slow_reach, ecm_steps={"stack.reach": 48, "stack.grasp": 40, "stack.lift": 30})
+    assert hog_threshold(150, len(STACK)) == 50
     assert failed_activations(even, STACK) == ["stack.lift"]
+    # in a long chain no step can spend half of the episode, but one that spent three times its
+    # even share (T5: 15 steps over 900) is where the time went
+    chain = task_spec("pick_place_multi").ecm_names
+    milk = [n for n in chain if n.split(".")[1] == "milk"]
+    long_reach = dataclasses.replace(
+        _end(milk), steps=900, ecm_steps={milk[0]: 200, milk[1]: 40, milk[2]: 30, milk[3]: 100, milk[4]: 20}
+    )
+    assert hog_threshold(900, len(chain)) == 120 < HOG_SHARE * 900
+    assert failed_activations(long_reach, chain) == [milk[0]]
     # a step that took long because it was re-planned back to is not the time hog
     retried = dataclasses.replace(slow_reach, plan=("stack.reach", "stack.grasp", "stack.reach", "stack.grasp"))
     assert failed_activations(retried, STACK) == ["stack.grasp", "stack.grasp"]
