@@ -270,3 +270,25 @@ def test_nut_reach_keeps_descending_through_observation_noise(below_hover: float
     offset = np.array([0.0, reads_off, params["hover"] - below_hover])
     obs["robot0_eef_pos"] = (handle + offset).astype(np.float32)
     assert bool(skill.act(obs)[2] < 0) == descends
+
+
+@pytest.mark.parametrize("side", [-1.0, 1.0])
+def test_the_peg_turns_towards_the_plate_from_its_own_side_and_backs_off(side: float) -> None:
+    """T6: at reset the peg hangs beside the plate's face (``cos`` = 0), so which way it turns is
+    the facing rule's: towards the plate from the side the peg is on, never through the plate
+    from the far side; with ``axial_gain`` > 0 it backs away from the plate while it turns."""
+    name = "peg_in_hole.orient_peg"
+    (publish,) = [p for n, _, p in seed_specs("peg_in_hole") if n == name]
+    source = with_params(seed_source("peg_in_hole", name), {"axial_gain": 5.0, "axial_target": 0.2}, filename=name)
+    skill = CodeSkill(source, filename=name)
+    obs = _neutral_obs(publish)
+    s45 = math.sqrt(0.5)
+    obs["hole_quat"] = np.array([0.0, -s45, 0.0, s45], dtype=np.float32)  # normal -x, hole 0.1 m up
+    obs["hole_pos"] = np.array([0.0, 0.1, 1.0], dtype=np.float32)
+    obs["peg_quat"] = np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32)  # hanging: axis -z
+    peg = np.array([0.04 * side, -0.1, 1.1])  # 4 cm beside the plate's face, on this side
+    obs["peg_to_hole"] = (obs["hole_pos"] - peg).astype(np.float32)
+    a = skill.act(obs)
+    # arm 0's action frame is the world turned by +90 degrees of yaw: a[1] is -x, a[3] turns about y
+    assert a[1] * side < 0  # moves away from the plate along x
+    assert a[3] * side > 0  # tips the peg's axis towards the plate: from -z to -side * x
