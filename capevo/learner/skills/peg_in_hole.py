@@ -28,9 +28,8 @@ Actions are computed in the world frame and turned into each arm's OSC action fr
 What is hand-written (fixed; no learner changes it): the eight phases and their order (the task's
 decomposition, with its termination thresholds), the controller above (which arm turns and moves
 for which error, the facing rule and its 0.7 switch, the tenth-speed sideways motion while the peg
-is too near,
-the hole centre 0.1 m along the plate's x axis as robosuite computes it), the arms' action-frame
-yaws, and every ``PARAM_RANGES`` span (physical spans written with the guesses, not tuned). What
+is too near, the hole centre 0.1 m along the plate's x axis as robosuite computes it), the arms'
+action-frame yaws, and every ``PARAM_RANGES`` span (physical spans written with the guesses, not tuned). What
 is learned: the values of ``PARAMS`` inside those spans. Every step declares all six parameters
 with a range that contains 0, so a gain that is 0 in v0 (the arm it drives holds still) is searched
 too rather than frozen.
