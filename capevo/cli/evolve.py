@@ -40,8 +40,10 @@ from capevo.cli import (
 )
 from capevo.errors import CapevoError
 
+# Spelled out here so that `capevo --help` does not import scipy through capevo.evolve.config;
+# tests/cli/test_cli_choices.py holds them equal to config_names() and config.MODALITIES.
 PRESETS = ("tiny", "cpu-small", "paper")
-MODALITIES = ("code", "rl", "il", "hybrid")
+MODALITIES = ("code", "rl", "il", "hybrid", "il+rl", "hybrid+rl", "hybrid+il", "hybrid+il+rl")
 
 
 def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
@@ -78,7 +80,10 @@ def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
     default="code",
     show_default=True,
     help="How candidates are learned: code (CEM over a skill's parameters), rl (SAC), il (behaviour cloning), "
-    "hybrid (LLM edit + CEM; CEM alone without CAPEVO_LLM_BASE_URL). rl/il seed neural v0 ECMs.",
+    "hybrid (LLM edit + CEM; CEM alone without CAPEVO_LLM_BASE_URL). rl/il seed neural v0 ECMs. "
+    "A combination (il+rl, hybrid+rl, hybrid+il, hybrid+il+rl) takes turns, one modality per iteration "
+    "and one ECM each; with hybrid in it, v0 is the code skill and il clones the set's successes into a "
+    "neural version that the gate weighs against it.",
 )
 @click.option(
     "--root",
