@@ -1,4 +1,4 @@
-"""``capevo runtime ...``: run a runtime worker, list the running ones, ask one to evaluate.
+"""``capevo runtime ...``: run a runtime worker, list the running ones, ask one to evaluate, gate a candidate.
 
 Invariants:
 1. ``serve`` exits 0 after SIGTERM or SIGINT once the worker has closed its traces and
@@ -12,6 +12,7 @@ Invariants:
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import sys
@@ -379,6 +380,159 @@ def evaluate_cmd(
     emit(as_json, [o.to_dict() for o in outcomes], render)
 
 
+@runtime.command("gate")
+@click.argument("name")
+@click.argument("version", type=click.IntRange(min=0))
+@click.option(
+    "--connect",
+    multiple=True,
+    metavar="ENDPOINT",
+    envvar="CAPEVO_CONNECT",
+    help="Zenoh endpoint of the registry: the episodes run on its runtime workers; repeatable.",
+)
+@click.option(
+    "--root",
+    envvar="CAPEVO_ROOT",
+    default=None,
+    help="Local registry directory: the episodes run in this process instead (env CAPEVO_ROOT).",
+)
+@click.option("--namespace", default="capevo", show_default=True, envvar="CAPEVO_NAMESPACE", help="Zenoh key prefix.")
+@click.option("--user", default=None, envvar="CAPEVO_USER", help="Registry user (env CAPEVO_USER).")
+@click.option("--password", default=None, envvar="CAPEVO_PASSWORD", help="Registry password (env CAPEVO_PASSWORD).")
+@click.option("--task", default=None, help="Task: T1..T6 or its name. [default: the ECM name's prefix]")
+@click.option(
+    "--preset",
+    type=click.Choice(["tiny", "cpu-small", "paper"]),
+    default="cpu-small",
+    show_default=True,
+    help="The gate's thresholds and paired seeds N, as capevo evolve uses them.",
+)
+@click.option(
+    "--extension",
+    type=click.IntRange(min=0),
+    default=None,
+    help="Paired seeds of the gate's second look (0: one look). [default: the preset's]",
+)
+@click.option(
+    "--seed-plan", type=click.IntRange(min=0), default=0, show_default=True, help="The run's seed plan (evolve --seed)."
+)
+@click.option(
+    "--round",
+    "round_",
+    type=click.IntRange(min=0),
+    required=True,
+    help="Which disjoint batch of the plan's gate seeds to use. capevo evolve uses batch i in iteration i: "
+    "pick one no earlier decision has used, or the gate sees seeds it was already judged on.",
+)
+@click.option("--worker-id", default=None, help="With --connect: ask this worker. [default: any worker of the task]")
+@click.option("--timeout", type=click.FloatRange(min=0.01), default=600.0, show_default=True, help="Seconds to wait.")
+@phi_option
+@json_option
+def gate_cmd(
+    name: str,
+    version: int,
+    connect: tuple[str, ...],
+    root: str | None,
+    namespace: str,
+    user: str | None,
+    password: str | None,
+    task: str | None,
+    preset: str,
+    extension: int | None,
+    seed_plan: int,
+    round_: int,
+    worker_id: str | None,
+    timeout: float,
+    phi: str,
+    as_json: bool,
+) -> None:
+    """Gate candidate VERSION of NAME against the active version: promote or reject it.
+
+    The same decision as an iteration of capevo evolve: both versions run on the seed plan's
+    held-out gate seeds (batch --round), paired, with the preset's thresholds; the evidence is
+    recorded in the registry. For candidates published outside a run (capevo learner serve
+    --once, capevo ecm publish).
+
+    \b
+    --connect EP: episodes on the task's runtime workers (their Φ, horizon and perturbations).
+    --root DIR: in this process, on the local registry, under --phi, perturbations on.
+    """
+    import dataclasses
+
+    from capevo.evolve.config import make_config
+    from capevo.records.names import validate_name
+    from capevo.runtime.gate import Gate, SeedPlan
+
+    validate_name(name)
+    ctx = click.get_current_context()
+    root_path, endpoints = resolve_target(
+        root=root,
+        root_source=ctx.get_parameter_source("root"),
+        connect=connect,
+        connect_source=ctx.get_parameter_source("connect"),
+    )
+    config = make_config(preset)
+    gate_config = config.gate if extension is None else dataclasses.replace(config.gate, extend_n=extension)
+    plan = SeedPlan(base_seed=seed_plan)
+    seeds = plan.gate(config.gate_episodes, round=round_)
+    more = plan.gate_extension(gate_config.extend_n, round=round_) if gate_config.extend_n else []
+    task_name = task or name.split(".", 1)[0]
+    with contextlib.ExitStack() as stack:
+        if root_path is not None:
+            registry, evaluator = _local_registry_and_evaluator(stack, root_path, phi=phi, actor=user or "gate")
+        else:
+            from capevo.registry.open import open_registry
+            from capevo.runtime.worker import RemoteEvaluator
+
+            password = remember_password(password)
+            registry = open_registry(connect=list(endpoints), namespace=namespace, user=user or None, password=password)
+            stack.callback(registry.close)
+            evaluator = stack.enter_context(
+                RemoteEvaluator(
+                    list(endpoints),
+                    namespace=namespace,
+                    user=user or None,
+                    password=password,
+                    worker_id=worker_id,
+                    timeout=timeout,
+                )
+            )
+        gate = Gate(registry, evaluator, gate_config, actor=user or "gate", seed_plan=plan)  # type: ignore[arg-type]
+        decision = gate.run(name, version, task=task_name, seeds=seeds, extension_seeds=more)
+
+    def render(console: Console) -> None:
+        console.print(decision.reason)
+
+    emit(as_json, decision.to_dict(), render)
+
+
+def _local_registry_and_evaluator(
+    stack: contextlib.ExitStack, root: Path, *, phi: str, actor: str, horizon: int | None = None
+) -> tuple[Any, Any]:
+    """A local registry and an in-process evaluator on it, both closed with ``stack``."""
+    from capevo.agent import DecompositionPolicy, IdentityMemory, identity_hash
+    from capevo.registry.local import LocalRegistry
+    from capevo.runtime.evaluator import LocalEvaluator
+
+    if not (root / "registry.sqlite3").is_file():
+        raise Invalid(f"no registry at {str(root)!r} (no registry.sqlite3 there)", details={"field": "root"})
+    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
+    policy = DecompositionPolicy(identity=IdentityMemory.default())
+    registry = stack.enter_context(LocalRegistry(root, actor=actor))
+    evaluator = stack.enter_context(
+        LocalEvaluator(
+            registry,
+            policy=policy,
+            phi=phi,
+            horizon=horizon,
+            trace_dir=None,
+            agent_identity_hash=identity_hash(policy, policy.identity),
+            worker_id="capevo-runtime-evaluate",
+        )
+    )
+    return registry, evaluator
+
+
 def _evaluate_locally(
     root: Path,
     task: str,
@@ -389,26 +543,8 @@ def _evaluate_locally(
     horizon: int | None,
     actor: str | None,
 ) -> list[Any]:
-    from capevo.agent import DecompositionPolicy, IdentityMemory, identity_hash
-    from capevo.registry.local import LocalRegistry
-    from capevo.runtime.evaluator import LocalEvaluator
-
-    if not (root / "registry.sqlite3").is_file():
-        raise Invalid(f"no registry at {str(root)!r} (no registry.sqlite3 there)", details={"field": "root"})
-    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
-    policy = DecompositionPolicy(identity=IdentityMemory.default())
-    with (
-        LocalRegistry(root, actor=actor or "evaluate") as registry,
-        LocalEvaluator(
-            registry,
-            policy=policy,
-            phi=phi,
-            horizon=horizon,
-            trace_dir=None,
-            agent_identity_hash=identity_hash(policy, policy.identity),
-            worker_id="capevo-runtime-evaluate",
-        ) as evaluator,
-    ):
+    with contextlib.ExitStack() as stack:
+        _, evaluator = _local_registry_and_evaluator(stack, root, phi=phi, actor=actor or "evaluate", horizon=horizon)
         return evaluator.evaluate(task, pinned, seeds)
 
 
