@@ -59,10 +59,11 @@ from capevo.errors import Invalid
 from capevo.learner.base import Candidate, LearnRequest, config_hash
 from capevo.learner.ecm_env import EcmEnv, EcmEnvConfig, EcmTarget, make_ecm_env, target_for
 from capevo.learner.neural_seed import NEURAL_MEDIA_TYPE, model_bytes, offline_sac, sac_policy_kwargs, warm_start
-from capevo.records import IOSpec, Kind, Origin, Provenance, PublishSpec
+from capevo.records import IOSpec, Kind, Origin, Predicate, Provenance, PublishSpec
 from capevo.registry.api import Registry
+from capevo.registry.predicates import condition_holds
 from capevo.runtime.ecm.marshal import spec_size
-from capevo.runtime.tasks import TaskSpec, task_spec
+from capevo.runtime.tasks import SUCCESS_SIGNAL, TaskSpec, task_spec
 
 log = logging.getLogger(__name__)
 
@@ -255,9 +256,27 @@ def task_trace_files(paths: Sequence[str | os.PathLike[str]], task: str) -> list
 
 
 def _later_steps(spec: TaskSpec, ecm: str) -> list[str]:
-    """The ECMs after ``ecm`` in ``spec``'s decomposition (none if it is the last or not in it)."""
+    """The ECMs after ``ecm`` in ``spec``'s decomposition that can act (none if it is the last or
+    not in it).
+
+    A step that applies only once the task has succeeded (T4's ``release``, T6's ``hold``: their
+    applicability needs the ``success`` signal) never acts, because success ends the episode; the
+    step before it hands over to nothing, so it counts as the last.
+    """
     names = list(spec.ecm_names)
-    return names[names.index(ecm) + 1 :] if ecm in names else []
+    if ecm not in names:
+        return []
+    return [s.ecm for s in spec.decomposition[names.index(ecm) + 1 :] if not _only_after_success(s.applicability)]
+
+
+def _only_after_success(applicability: Predicate) -> bool:
+    """Whether ``applicability`` can hold only while the task's success signal is 1."""
+    return any(
+        c.signal == SUCCESS_SIGNAL.name
+        and condition_holds(c, {c.signal: 1.0})
+        and not condition_holds(c, {c.signal: 0.0})
+        for c in applicability.all
+    )
 
 
 def demos_from_traces(

@@ -21,6 +21,7 @@ from capevo.learner.bc import (
     BcConfig,
     BcLearner,
     Demos,
+    _later_steps,
     behaviour_clone,
     collect_demos,
     demos_from_traces,
@@ -229,3 +230,23 @@ def test_an_ecm_that_finished_the_task_alone_gives_no_demonstrations(tmp_path: P
     assert len(demos_from_traces([tmp_path / "pick-lift.mcap"], task="T1", target=lift)) == len(
         last[0].ecm_actions["pick.lift"]
     )
+
+
+@pytest.mark.parametrize(
+    ("task", "ecm", "later"),
+    [
+        ("T1", "pick.reach", ["pick.grasp", "pick.lift"]),
+        ("T1", "pick.lift", []),
+        # hold applies only once the peg is inside (success), and success ends the episode, so
+        # insert, which makes it succeed, hands over to nothing and counts as the last step
+        ("T6", "peg_in_hole.insert", []),
+        ("T6", "peg_in_hole.pre_insert", ["peg_in_hole.insert"]),
+        # the same for NutAssembly's release
+        ("T4", "nut_assembly.insert", []),
+        ("T4", "nut_assembly.align", ["nut_assembly.insert"]),
+    ],
+)
+def test_a_step_that_only_applies_after_success_is_no_later_step(task: str, ecm: str, later: list[str]) -> None:
+    """Before, T6's insert gave no demonstration row from any successful episode: it never handed
+    over to hold (results/evolution/T6-distil)."""
+    assert _later_steps(task_spec(task), ecm) == later

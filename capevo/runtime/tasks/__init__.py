@@ -6,6 +6,7 @@ spec (decomposition, signals, action layout) without building a simulator.
 
 from __future__ import annotations
 
+from capevo.runtime.tasks._common import SUCCESS_SIGNAL
 from capevo.runtime.tasks.base import RESERVED_ENV_KWARGS, TaskEnv
 from capevo.runtime.tasks.perturbations import Perturbations
 from capevo.runtime.tasks.registry import (
@@ -21,6 +22,7 @@ from capevo.runtime.tasks.spec import EcmStep, SignalSpec, TaskSpec
 
 __all__ = [
     "RESERVED_ENV_KWARGS",
+    "SUCCESS_SIGNAL",
     "EcmStep",
     "Perturbations",
     "SignalSpec",
