@@ -35,6 +35,7 @@ from capevo.cli import (
     remember_password,
     resolve_target,
 )
+from capevo.cli.evolve import PRESETS
 from capevo.errors import Invalid
 
 
@@ -283,23 +284,48 @@ def _parse_seeds(text: str) -> list[int]:
     return seeds
 
 
+def _where_episodes_run(root: str | None, connect: tuple[str, ...]) -> tuple[Path | None, tuple[str, ...]]:
+    """``(root, ())`` to run episodes in this process, or ``(None, endpoints)`` for runtime workers."""
+    ctx = click.get_current_context()
+    return resolve_target(
+        root=root,
+        root_source=ctx.get_parameter_source("root"),
+        connect=connect,
+        connect_source=ctx.get_parameter_source("connect"),
+    )
+
+
+def _episode_target_options(func: Any) -> Any:
+    """``--connect``/``--root`` (where the episodes run) and the login options of ``evaluate`` and ``gate``."""
+    decorators = [
+        click.option(
+            "--connect",
+            multiple=True,
+            metavar="ENDPOINT",
+            envvar="CAPEVO_CONNECT",
+            help="Zenoh endpoint of the registry: the episodes run on its runtime workers; repeatable.",
+        ),
+        click.option(
+            "--root",
+            envvar="CAPEVO_ROOT",
+            default=None,
+            help="Local registry directory: the episodes run in this process instead (env CAPEVO_ROOT).",
+        ),
+        click.option(
+            "--namespace", default="capevo", show_default=True, envvar="CAPEVO_NAMESPACE", help="Zenoh key prefix."
+        ),
+        click.option("--user", default=None, envvar="CAPEVO_USER", help="Registry user (env CAPEVO_USER)."),
+        click.option(
+            "--password", default=None, envvar="CAPEVO_PASSWORD", help="Registry password (env CAPEVO_PASSWORD)."
+        ),
+    ]
+    for deco in reversed(decorators):
+        func = deco(func)
+    return func
+
+
 @runtime.command("evaluate")
-@click.option(
-    "--connect",
-    multiple=True,
-    metavar="ENDPOINT",
-    envvar="CAPEVO_CONNECT",
-    help="Zenoh endpoint of the registry: the episodes run on one of its runtime workers; repeatable.",
-)
-@click.option(
-    "--root",
-    envvar="CAPEVO_ROOT",
-    default=None,
-    help="Local registry directory: the episodes run in this process instead (env CAPEVO_ROOT).",
-)
-@click.option("--namespace", default="capevo", show_default=True, envvar="CAPEVO_NAMESPACE", help="Zenoh key prefix.")
-@click.option("--user", default=None, envvar="CAPEVO_USER", help="Registry user (env CAPEVO_USER).")
-@click.option("--password", default=None, envvar="CAPEVO_PASSWORD", help="Registry password (env CAPEVO_PASSWORD).")
+@_episode_target_options
 @click.option("--task", required=True, help="Task: T1..T6 or its name.")
 @click.option("--seeds", default="0-4", show_default=True, help="Seeds, e.g. 0-9 or 1,5,7.")
 @click.option("--version", "versions", multiple=True, metavar="NAME=VERSION", help="Run NAME at VERSION; repeatable.")
@@ -331,13 +357,7 @@ def evaluate_cmd(
     """
     from capevo.runtime.gate_stats import wilson_interval
 
-    ctx = click.get_current_context()
-    root_path, endpoints = resolve_target(
-        root=root,
-        root_source=ctx.get_parameter_source("root"),
-        connect=connect,
-        connect_source=ctx.get_parameter_source("connect"),
-    )
+    root_path, endpoints = _where_episodes_run(root, connect)
     pinned = _parse_versions(versions)
     seed_list = _parse_seeds(seeds)
     if root_path is not None:
@@ -383,26 +403,11 @@ def evaluate_cmd(
 @runtime.command("gate")
 @click.argument("name")
 @click.argument("version", type=click.IntRange(min=0))
-@click.option(
-    "--connect",
-    multiple=True,
-    metavar="ENDPOINT",
-    envvar="CAPEVO_CONNECT",
-    help="Zenoh endpoint of the registry: the episodes run on its runtime workers; repeatable.",
-)
-@click.option(
-    "--root",
-    envvar="CAPEVO_ROOT",
-    default=None,
-    help="Local registry directory: the episodes run in this process instead (env CAPEVO_ROOT).",
-)
-@click.option("--namespace", default="capevo", show_default=True, envvar="CAPEVO_NAMESPACE", help="Zenoh key prefix.")
-@click.option("--user", default=None, envvar="CAPEVO_USER", help="Registry user (env CAPEVO_USER).")
-@click.option("--password", default=None, envvar="CAPEVO_PASSWORD", help="Registry password (env CAPEVO_PASSWORD).")
+@_episode_target_options
 @click.option("--task", default=None, help="Task: T1..T6 or its name. [default: the ECM name's prefix]")
 @click.option(
     "--preset",
-    type=click.Choice(["tiny", "cpu-small", "paper"]),
+    type=click.Choice(PRESETS),
     default="cpu-small",
     show_default=True,
     help="The gate's thresholds and paired seeds N, as capevo evolve uses them.",
@@ -464,13 +469,7 @@ def gate_cmd(
     from capevo.runtime.gate import Gate, SeedPlan
 
     validate_name(name)
-    ctx = click.get_current_context()
-    root_path, endpoints = resolve_target(
-        root=root,
-        root_source=ctx.get_parameter_source("root"),
-        connect=connect,
-        connect_source=ctx.get_parameter_source("connect"),
-    )
+    root_path, endpoints = _where_episodes_run(root, connect)
     config = make_config(preset)
     gate_config = config.gate if extension is None else dataclasses.replace(config.gate, extend_n=extension)
     plan = SeedPlan(base_seed=seed_plan)
