@@ -57,7 +57,7 @@ for e in orient_peg orient_hole approach_peg approach_hole align pre_insert inse
   [ -f "$OUT/gate-$e.json" ] || continue
   pins+=(--version "$T.$e=$("$PY" -c "import json,sys; print(json.load(open(sys.argv[1]))['candidate_version'])" "$OUT/gate-$e.json")")
 done
-for seeds in 250000-250029 260000-260029; do
+for seeds in 250000-250029 260000-260029 270000-270029; do
   capevo runtime evaluate --root "$OUT/data" --task T6 --seeds $seeds --json > "$OUT/heldout-final-$seeds.json" 2>/dev/null
   capevo runtime evaluate --root "$CODE_RUN/T6/data" --task T6 --seeds $seeds --json > "$OUT/heldout-code-$seeds.json" 2>/dev/null
   capevo runtime evaluate --root "$OUT/data" --task T6 --seeds $seeds "${pins[@]}" --json > "$OUT/heldout-distilled-$seeds.json" 2>/dev/null
