@@ -26,6 +26,7 @@ from capevo.errors import Invalid, Unavailable, error_from_payload
 from capevo.registry.client import Client
 from capevo.registry.zconfig import client_config
 from capevo.runtime.evaluation import Evaluator
+from capevo.runtime.gate import SeedPlan
 from capevo.runtime.tasks import task_ids, task_names
 from capevo.runtime.traces import TraceReader
 from capevo.runtime.worker import Adoption, RemoteEvaluator, RuntimeKeys, list_workers
@@ -189,6 +190,33 @@ def test_cli_lists_workers_and_evaluates_through_them(running: Running) -> None:
     refused = cli("evaluate", "--connect", running.endpoint, "--task", "pick", "--version", "pick.lift=99")
     assert refused.returncode == 4, refused.stderr  # not_found, raised by the worker's registry lookup
     assert refused.stderr.startswith("error [not_found]: ")
+
+
+def test_cli_gates_a_candidate_on_the_workers(running: Running) -> None:
+    """``capevo runtime gate --connect``: the pair runs on the task's runtime workers, the decision
+    and its evidence go to the registry server."""
+    with Client([running.endpoint], actor="tester") as client:
+        candidate = publish(client, "pick.lift", LIFT, promote=False)
+    gated = cli(
+        "gate",
+        "pick.lift",
+        str(candidate.version),
+        "--connect",
+        running.endpoint,
+        "--preset",
+        "tiny",
+        "--round",
+        "0",
+        "--json",
+        timeout=300,
+    )
+    assert gated.returncode == 0, gated.stderr
+    decision = json.loads(gated.stdout)
+    assert (decision["name"], decision["candidate_version"]) == ("pick.lift", candidate.version)
+    assert decision["seeds"] == SeedPlan(base_seed=0).gate(4, round=0)  # tiny: N = 4, batch 0
+    with Client([running.endpoint]) as client:
+        record = client.get_version("pick.lift", candidate.version)
+    assert record.gate_evidence and record.state.value == ("active" if decision["promoted"] else "rejected")
 
 
 def test_no_worker_for_a_task_is_unavailable(running: Running) -> None:
