@@ -4,7 +4,8 @@ Demonstrations (:class:`Demos`: ECM observations and the actions taken) come fro
 
 * traces (:func:`demos_from_traces`): the ``/env/step`` rows of MCAP files whose action came
   from this ECM, in episodes that succeeded and in which this ECM handed over to a later step
-  of the decomposition (or is its last step); the flat task observation is cut down to the
+  of the decomposition (or is its last step; a step that applies only after success never acts,
+  since success ends the episode, so it does not count); the flat task observation is cut down to the
   ECM's interface inputs (:func:`input_columns`). Why the hand-off: an ECM that never reached
   its own termination and finished the task alone did the later steps' jobs under its name;
   cloning those rows into it would teach it the whole task, and its successes would feed the
