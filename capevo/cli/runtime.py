@@ -467,6 +467,7 @@ def gate_cmd(
     from capevo.evolve.config import make_config
     from capevo.records.names import validate_name
     from capevo.runtime.gate import Gate, SeedPlan
+    from capevo.runtime.tasks import task_of
 
     validate_name(name)
     root_path, endpoints = _where_episodes_run(root, connect)
@@ -475,7 +476,7 @@ def gate_cmd(
     plan = SeedPlan(base_seed=seed_plan)
     seeds = plan.gate(config.gate_episodes, round=round_)
     more = plan.gate_extension(gate_config.extend_n, round=round_) if gate_config.extend_n else []
-    task_name = task or name.split(".", 1)[0]
+    task_name = task or task_of(name)
     with contextlib.ExitStack() as stack:
         if root_path is not None:
             registry, evaluator = _local_registry_and_evaluator(stack, root_path, phi=phi, actor=user or "gate")

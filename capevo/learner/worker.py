@@ -64,7 +64,7 @@ from capevo.registry.api import Registry
 from capevo.runtime.envelope import DEFAULT_PHI, check_phi_choice
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.gate import SeedPlan
-from capevo.runtime.tasks import Perturbations, task_spec
+from capevo.runtime.tasks import Perturbations, task_of, task_spec
 from capevo.shutdown import stop_on_signals
 
 log = logging.getLogger(__name__)
@@ -91,21 +91,6 @@ def worker_training_seeds(plan: SeedPlan, seed: int) -> tuple[int, ...]:
 
 
 # --- configuration -----------------------------------------------------------------------
-
-
-def task_of(ecm: str) -> str:
-    """The task an ECM belongs to, from its name (``pick.reach`` -> ``pick``).
-
-    Raises:
-        Invalid: the prefix is not a task, or the task has no such ECM.
-    """
-    prefix = ecm.split(".", 1)[0]
-    spec = task_spec(prefix)
-    if ecm not in spec.ecm_names:
-        raise Invalid(
-            f"task {spec.name!r} has no ECM {ecm!r}; valid: {', '.join(spec.ecm_names)}", details={"field": "ecm"}
-        )
-    return spec.name
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -67,7 +67,7 @@ def test_the_gate_promotes_a_better_candidate_and_rejects_an_equal_one(root: Pat
     ("args", "code", "message"),
     [
         (("pick.reach", 1, "--round", "0"), ErrorCode.INVALID, "give --root DIR or --connect ENDPOINT"),
-        (("pick.nothing", 1, "--round", "0", "--root", "{root}"), ErrorCode.NOT_FOUND, "pick.nothing"),
+        (("pick.nothing", 1, "--round", "0", "--root", "{root}"), ErrorCode.INVALID, "has no ECM 'pick.nothing'"),
         (("pick.reach", 9, "--round", "0", "--root", "{root}"), ErrorCode.NOT_FOUND, "9"),
     ],
 )

@@ -16,6 +16,7 @@ from capevo.runtime.tasks.registry import (
     task_class,
     task_ids,
     task_names,
+    task_of,
     task_spec,
 )
 from capevo.runtime.tasks.spec import EcmStep, SignalSpec, TaskSpec
@@ -34,5 +35,6 @@ __all__ = [
     "task_class",
     "task_ids",
     "task_names",
+    "task_of",
     "task_spec",
 ]

@@ -109,6 +109,20 @@ def task_spec(name_or_id: str) -> TaskSpec:
     return task_class(name_or_id).task_spec
 
 
+def task_of(ecm: str) -> str:
+    """The task an ECM belongs to, from its name (``pick.reach`` -> ``pick``).
+
+    Raises:
+        Invalid: the prefix is not a task, or the task has no such ECM.
+    """
+    spec = task_spec(ecm.split(".", 1)[0])
+    if ecm not in spec.ecm_names:
+        raise Invalid(
+            f"task {spec.name!r} has no ECM {ecm!r}; valid: {', '.join(spec.ecm_names)}", details={"field": "ecm"}
+        )
+    return spec.name
+
+
 def all_task_specs() -> tuple[TaskSpec, ...]:
     """Every registered task's spec, ordered by id."""
     return tuple(task_class(n).task_spec for n in task_names())
