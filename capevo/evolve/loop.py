@@ -335,6 +335,7 @@ class EvolutionLoop:
             config=config.monitor,
             actor=MONITOR_ACTOR,
             on_action=lambda a: self.monitor_actions.append(a.to_dict()),
+            replay=self._monitor_replay,
         )
         self.gate = Gate(
             registry,  # type: ignore[arg-type]
@@ -356,6 +357,16 @@ class EvolutionLoop:
         except NotFound:
             return set()
         return {(r.iteration, r.seed) for r in log_.records if r.task == self.task}
+
+    def _monitor_replay(self, versions: Mapping[str, int], seeds: Sequence[int]) -> list[EpisodeOutcome]:
+        """The degradation monitor's confirmation episodes: their own phase, traces and env steps."""
+        before = self.evaluator.phase
+        self.evaluator.phase = "monitor"
+        self.progress.phase("monitor", episodes=len(seeds))
+        try:
+            return self.evaluator.evaluate(self.task, versions, seeds)
+        finally:
+            self.evaluator.phase = before
 
     def _gate_progress(self, stage: str, message: str) -> None:
         if stage in ("extend", "decided", "promoted", "rejected"):
@@ -472,6 +483,7 @@ class EvolutionLoop:
             learner_steps=update.steps,
             env_steps_live=self.evaluator.env_steps.get("live", 0),
             env_steps_gate=self.evaluator.env_steps.get("gate", 0),
+            env_steps_monitor=self.evaluator.env_steps.get("monitor", 0),
             gate=update.gate,
             further=tuple(u.summary() for u in update.further),
             update_note=update.note,
@@ -747,14 +759,15 @@ class EvolutionLoop:
 
     def _learner_cap(self, *, learner_spent: int, updates: int) -> int | None:
         """Env steps the next learner may spend: the iteration's budget less the live steps
-        taken, the learner steps the chain took already, and a gate at the horizon for each of
-        the ``updates`` candidates the iteration would then gate (None: no budget)."""
+        taken (and the monitor's confirmation episodes, which come out of the learner's share),
+        the learner steps the chain took already, and a gate at the horizon for each of the
+        ``updates`` candidates the iteration would then gate (None: no budget)."""
         budget = self.config.env_steps_per_iteration
         if budget is None:
             return None
         h = self.config.episode_steps_max(self.task)
-        live = self.evaluator.env_steps.get("live", 0)
-        return budget - live - learner_spent - updates * 2 * self.config.gate_seeds_max * h
+        taken = self.evaluator.env_steps.get("live", 0) + self.evaluator.env_steps.get("monitor", 0)
+        return budget - taken - learner_spent - updates * 2 * self.config.gate_seeds_max * h
 
     def _publish_chain(
         self, i: int, chain: Sequence[tuple[str, Proposal]], *, note: str, spent: tuple[int, int] = (0, 0)
@@ -1011,8 +1024,13 @@ def _summary_line(row: IterationMetrics) -> str:
         parts.append(gate + ")")
     elif row.update_note:
         parts.append(row.update_note)
-    if row.rollbacks:
-        parts.append("rolled back " + ", ".join(f"{r['name']} v{r['version']}" for r in row.rollbacks))
+    rolled = [r for r in row.rollbacks if r.get("rolled_back")]
+    kept = [r for r in row.rollbacks if not r.get("rolled_back") and not r.get("error")]
+    if rolled:
+        parts.append("rolled back " + ", ".join(f"{r['name']} v{r['version']}" for r in rolled))
+    if kept:
+        kept_names = ", ".join(f"{r['name']} v{r['version']}" for r in kept)
+        parts.append(f"kept {kept_names} (drop not confirmed on the same seeds)")
     parts.append(f"{row.wall_s:.0f}s")
     return "; ".join(parts)
 

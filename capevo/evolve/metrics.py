@@ -320,6 +320,9 @@ class IterationMetrics:
     """Env steps of the iteration's live episodes."""
     env_steps_gate: int = 0
     """Env steps of the iteration's gate episodes (both sides of every pair)."""
+    env_steps_monitor: int = 0
+    """Env steps of the degradation monitor's confirmation episodes (the replaced version
+    replayed on a live window's seeds; see :mod:`capevo.runtime.monitor`)."""
     gate: GateSummary | None = None
     further: tuple[ChainUpdate, ...] = ()
     """The chain's later updates, when the iteration learned several ECMs (``ecm_updated``,
@@ -327,6 +330,8 @@ class IterationMetrics:
     update_note: str = ""
     """Why there was no candidate (no failures, learner error, ...), or where it came from."""
     rollbacks: tuple[Mapping[str, Any], ...] = ()
+    """Every action of the degradation monitor (:meth:`~capevo.runtime.monitor.MonitorAction.to_dict`):
+    rollbacks, failed rollbacks (``error``) and firings not confirmed on the same seeds."""
     wall_live_s: float = 0.0
     wall_learn_s: float = 0.0
     wall_gate_s: float = 0.0
@@ -335,8 +340,8 @@ class IterationMetrics:
 
     @property
     def env_steps(self) -> int:
-        """Every env step the iteration spent: live, learner and gate episodes (issue 20's budget)."""
-        return self.env_steps_live + self.learner_steps + self.env_steps_gate
+        """Every env step the iteration spent: live, monitor, learner and gate episodes (issue 20's budget)."""
+        return self.env_steps_live + self.env_steps_monitor + self.learner_steps + self.env_steps_gate
 
     @property
     def gate_decision(self) -> str:
@@ -366,6 +371,7 @@ class IterationMetrics:
             "learner_steps": self.learner_steps,
             "env_steps_live": self.env_steps_live,
             "env_steps_gate": self.env_steps_gate,
+            "env_steps_monitor": self.env_steps_monitor,
             "gate": self.gate.to_dict() if self.gate is not None else None,
             "further": [u.to_dict() for u in self.further],
             "update_note": self.update_note,
@@ -402,6 +408,7 @@ class IterationMetrics:
                 learner_steps=int(d.get("learner_steps") or 0),
                 env_steps_live=int(d.get("env_steps_live") or 0),
                 env_steps_gate=int(d.get("env_steps_gate") or 0),
+                env_steps_monitor=int(d.get("env_steps_monitor") or 0),
                 gate=GateSummary.from_dict(d["gate"]) if d.get("gate") else None,
                 further=tuple(ChainUpdate.from_dict(u) for u in d.get("further") or ()),
                 update_note=str(d.get("update_note") or ""),
@@ -448,7 +455,11 @@ class IterationMetrics:
             "gate_p_success": _num(g.p_success) if g else "",
             "gate_p_noninferiority": _num(g.p_noninferiority) if g else "",
             "gate_p_reward": _num(g.p_reward) if g else "",
-            "rollbacks": ";".join(f"{r.get('name')}@{r.get('version')}->{r.get('to_version')}" for r in self.rollbacks),
+            "rollbacks": ";".join(
+                f"{r.get('name')}@{r.get('version')}->{r.get('to_version')}"
+                for r in self.rollbacks
+                if r.get("rolled_back") or r.get("error")
+            ),
             "active_after": _versions(self.active_after),
             "wall_live_s": _num(self.wall_live_s),
             "wall_learn_s": _num(self.wall_learn_s),

@@ -372,9 +372,11 @@ def _markdown(
         add("")
         promoted = [g for r in rows for g in r.gates if g.decision == "promote"]
         rejected = [g for r in rows for g in r.gates if g.decision == "reject"]
-        rollbacks = [rb for r in rows for rb in r.rollbacks]
+        rollbacks = [rb for r in rows for rb in r.rollbacks if rb.get("rolled_back")]
+        unconfirmed = [rb for r in rows for rb in r.rollbacks if not rb.get("rolled_back") and not rb.get("error")]
+        kept = f" ({len(unconfirmed)} more not confirmed on the same seeds)" if unconfirmed else ""
         add(
-            f"Gate: {len(promoted)} promoted, {len(rejected)} rejected; monitor rollbacks: {len(rollbacks)}. "
+            f"Gate: {len(promoted)} promoted, {len(rejected)} rejected; monitor rollbacks: {len(rollbacks)}{kept}. "
             f"Total wall time of the iterations: {sum(r.wall_s for r in rows):.0f} s "
             f"(live {sum(r.wall_live_s for r in rows):.0f} s, learning {sum(r.wall_learn_s for r in rows):.0f} s, "
             f"gating {sum(r.wall_gate_s for r in rows):.0f} s)."
@@ -474,7 +476,7 @@ def _markdown(
         for i, rb in rbs:
             add(f"- iteration {i}: {rb.get('reason')}")
     else:
-        add("The degradation monitor rolled nothing back.")
+        add("The degradation monitor did not fire.")
     add("")
     add("## Version history (registry)")
     add("")

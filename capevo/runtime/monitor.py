@@ -30,6 +30,17 @@ the watched versions in its ``capability_set``; with ``attribution="latest"`` (d
 for the one whose watch started last (the most recent change is the suspect), with
 ``"all"`` for each of them.
 
+Confirmation on the same seeds (``replay``): the reference above comes from other seeds than
+the live window's, so one hard block of live seeds can fire the signal for a version that is
+no worse there than the one it replaced (issue 19's T1 ``il`` run on seed plan 1: the live
+block 500100–500109 gave 2/10 to the promoted ``pick.grasp`` v2 *and* to the v1 it replaced).
+Given a ``replay`` function, a firing signal is only a screen: the monitor runs the replaced
+version on the window's own seeds (each episode's capability set with the watched ECM swapped
+back) and asks the signal again with the threshold ``replayed rate - margin``. Only if it
+fires again is the version rolled back; otherwise the action is recorded as not confirmed, the
+window is emptied and watching goes on. The replay's episodes never count for any watch. A
+first promotion (nothing replaced) is judged on the configured reference alone.
+
 Invariants:
 1. Nothing is rolled back before the window holds ``min_episodes`` outcomes of the version.
 2. Every rollback passes ``expected_active`` = the watched version, so a version that is no
@@ -37,6 +48,8 @@ Invariants:
 3. Outcomes of versions that are not active (e.g. a candidate's gate episodes) never count.
 4. A version is rolled back at most once per watch; later outcomes of it are ignored.
 5. A version with no gate evidence and no ``fallback_reference`` is not monitored.
+6. With ``replay``, a version that replaced another is rolled back only when the signal also
+   fires against the replaced version's success on the same seeds.
 """
 
 from __future__ import annotations
@@ -79,6 +92,10 @@ class SignalResult:
 
 Signal = Callable[[int, int, float, float], SignalResult]
 """``signal(successes, n, threshold, alpha) -> SignalResult``."""
+
+Replay = Callable[[Mapping[str, int], Sequence[int]], Sequence[EpisodeOutcome]]
+"""``replay(capability_set, seeds) -> outcomes``: run ``capability_set`` on ``seeds`` (one
+outcome per seed), e.g. an :class:`~capevo.runtime.evaluation.Evaluator` bound to the task."""
 
 _SIGNALS: dict[str, Signal] = {}
 
@@ -229,6 +246,15 @@ class MonitorAction:
     reason: str
     error: str | None = None
     at: float = 0.0
+    replayed: Mapping[str, Any] | None = None
+    """The confirmation on the window's seeds: ``version`` (the replaced one), ``n``,
+    ``successes``, ``steps`` (env steps it spent), ``statistic``, ``threshold`` and
+    ``confirmed``; None when there was no replay."""
+
+    @property
+    def confirmed(self) -> bool:
+        """The signal fired and, where the replaced version was replayed, fired again."""
+        return self.replayed is None or bool(self.replayed.get("confirmed"))
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -246,6 +272,7 @@ class MonitorAction:
             "reason": self.reason,
             "error": self.error,
             "at": self.at,
+            "replayed": dict(self.replayed) if self.replayed is not None else None,
         }
 
 
@@ -256,8 +283,9 @@ class WatchStatus:
     name: str
     version: int
     state: str
-    """``watching``, ``unmonitored`` (no reference), ``rolling_back``, ``rolled_back`` or ``stopped``
-    (superseded by a newer watch of the same ECM, or its rollback failed)."""
+    """``watching``, ``unmonitored`` (no reference), ``rolling_back`` (confirming or rolling
+    back), ``rolled_back`` or ``stopped`` (superseded by a newer watch of the same ECM, or its
+    rollback failed)."""
     reference: Reference | None
     n: int
     successes: int
@@ -312,16 +340,41 @@ def reference_of(record: EcmVersion, config: MonitorConfig) -> Reference | None:
     )
 
 
-class _Watch:
-    __slots__ = ("name", "reference", "seq", "state", "version", "window")
+def replaced_version(record: EcmVersion) -> int | None:
+    """The version ``record``'s promotion replaced, from its gate evidence (None: a first promotion)."""
+    ev = record.gate_evidence
+    if isinstance(ev, Mapping) and ev.get("schema") == EVIDENCE_SCHEMA and ev.get("active"):
+        replaced = ev.get("active_version")
+        return int(replaced) if replaced is not None else None
+    return None
 
-    def __init__(self, name: str, version: int, reference: Reference | None, seq: int, window: int) -> None:
+
+@dataclass(frozen=True, slots=True)
+class _Seen:
+    """One live episode in a watch's window."""
+
+    seed: int
+    success: bool
+    capability_set: tuple[tuple[str, int], ...]
+
+
+class _Watch:
+    __slots__ = ("name", "reference", "replaced", "seq", "state", "version", "window")
+
+    def __init__(
+        self, name: str, version: int, reference: Reference | None, replaced: int | None, seq: int, window: int
+    ) -> None:
         self.name = name
         self.version = version
         self.reference = reference
+        self.replaced = replaced
         self.seq = seq
         self.state = "watching" if reference is not None else "unmonitored"
-        self.window: deque[bool] = deque(maxlen=window)
+        self.window: deque[_Seen] = deque(maxlen=window)
+
+    @property
+    def successes(self) -> int:
+        return sum(e.success for e in self.window)
 
 
 class DegradationMonitor:
@@ -332,6 +385,8 @@ class DegradationMonitor:
         config: Window, threshold and signal.
         actor: Audit actor of rollbacks.
         on_action: Called with every :class:`MonitorAction` (e.g. to log or alert).
+        replay: Runs a capability set on seeds; given, a firing signal is confirmed against the
+            replaced version on the window's own seeds before any rollback (module docstring).
 
     Raises:
         Invalid: ``config`` is not a :class:`MonitorConfig`.
@@ -344,6 +399,7 @@ class DegradationMonitor:
         config: MonitorConfig | None = None,
         actor: str = "monitor",
         on_action: Callable[[MonitorAction], object] | None = None,
+        replay: Replay | None = None,
     ) -> None:
         if config is not None and not isinstance(config, MonitorConfig):
             raise Invalid(f"config must be a MonitorConfig, got {type(config).__name__}", details={"field": "config"})
@@ -351,6 +407,7 @@ class DegradationMonitor:
         self.config = config if config is not None else MonitorConfig()
         self.actor = actor
         self.on_action = on_action
+        self.replay = replay
         self._signal = make_signal(self.config.signal)
         self._watches: dict[tuple[str, int], _Watch] = {}
         self._seq = itertools.count()
@@ -377,7 +434,14 @@ class DegradationMonitor:
             return self._status(self._watches[(record.name, record.version)])
 
     def _start(self, record: EcmVersion) -> _Watch:
-        w = _Watch(record.name, record.version, reference_of(record, self.config), next(self._seq), self.config.window)
+        w = _Watch(
+            record.name,
+            record.version,
+            reference_of(record, self.config),
+            replaced_version(record),
+            next(self._seq),
+            self.config.window,
+        )
         for (n, _), other in self._watches.items():
             if n == record.name and other.state == "watching":
                 other.state = "stopped"
@@ -409,7 +473,7 @@ class DegradationMonitor:
             state=w.state,
             reference=w.reference,
             n=len(w.window),
-            successes=sum(w.window),
+            successes=w.successes,
         )
 
     # --- feeding ------------------------------------------------------------------------
@@ -439,13 +503,14 @@ class DegradationMonitor:
             if self.config.attribution == "latest" and targets:
                 targets = [max(targets, key=lambda w: w.seq)]
             firing = []
+            seen = _Seen(int(outcome.seed), bool(outcome.success), tuple(ran))
             for w in targets:
-                w.window.append(bool(outcome.success))
+                w.window.append(seen)
                 verdict = self._verdict(w)
                 if verdict is not None and w.reference is not None:
                     w.state = "rolling_back"
-                    firing.append((w, w.reference, len(w.window), sum(w.window), verdict))
-        actions = [self._roll_back(w, ref, n, k, verdict) for w, ref, n, k, verdict in firing]
+                    firing.append((w, w.reference, tuple(w.window), verdict))
+        actions = [self._act(w, ref, window, verdict) for w, ref, window, verdict in firing]
         for a in actions:
             if self.on_action is not None:
                 self.on_action(a)
@@ -471,17 +536,104 @@ class DegradationMonitor:
         n = len(w.window)
         if n < cfg.min_episodes or w.reference is None:
             return None
-        verdict = self._signal(sum(w.window), n, w.reference.value - cfg.margin, cfg.alpha)
+        verdict = self._signal(w.successes, n, w.reference.value - cfg.margin, cfg.alpha)
         return verdict if verdict.fired else None
 
-    def _roll_back(self, w: _Watch, ref: Reference, n: int, k: int, verdict: SignalResult) -> MonitorAction:
+    def _replay(self, w: _Watch, window: Sequence[_Seen]) -> tuple[int, int]:
+        """(successes, env steps) of ``w.replaced`` on the window's seeds, each episode's set otherwise kept."""
+        assert self.replay is not None and w.replaced is not None
+        by_set: dict[tuple[tuple[str, int], ...], list[int]] = {}
+        for e in window:
+            swapped = tuple((n, w.replaced if n == w.name else v) for n, v in e.capability_set)
+            by_set.setdefault(swapped, []).append(e.seed)
+        successes = steps = 0
+        for caps, seeds in by_set.items():
+            outcomes = list(self.replay(dict(caps), seeds))
+            if sorted(int(o.seed) for o in outcomes) != sorted(seeds):
+                raise Invalid(
+                    f"replay of {w.name} v{w.replaced} returned seeds {[o.seed for o in outcomes]}, asked {seeds}",
+                    details={"field": "replay"},
+                )
+            successes += sum(bool(o.success) for o in outcomes)
+            steps += sum(int(o.steps) for o in outcomes)
+        return successes, steps
+
+    def _act(self, w: _Watch, ref: Reference, window: Sequence[_Seen], verdict: SignalResult) -> MonitorAction:
+        """Confirm a firing signal on the same seeds where possible, then roll back or go on watching."""
+        if self.replay is None or w.replaced is None:
+            return self._roll_back(w, ref, window, verdict)
         cfg = self.config
+        n, k = len(window), sum(e.success for e in window)
+        try:
+            k_old, steps = self._replay(w, window)
+        except BaseException:
+            with self._lock:
+                w.state = "watching"  # the window stays: the next outcome asks again
+            raise
+        paired = Reference(
+            value=k_old / n, source=f"v{w.replaced} replayed on the same {n} seeds ({k_old}/{n}, replaced)"
+        )
+        second = self._signal(k, n, paired.value - cfg.margin, cfg.alpha)
+        replayed = {
+            "version": w.replaced,
+            "n": n,
+            "successes": k_old,
+            "steps": steps,
+            "statistic": second.statistic,
+            "threshold": paired.value - cfg.margin,
+            "confirmed": second.fired,
+        }
+        if second.fired:
+            return self._roll_back(w, ref, window, verdict, confirmation=(paired, second, replayed))
+        reason = (
+            f"monitor: keep {w.name} v{w.version}: live success {k}/{n} = {k / n:.2f} fired the screen "
+            f"({verdict.detail}; reference {ref.value:.3f} [{ref.source}] - margin {cfg.margin:.3f}), "
+            f"but not against {paired.source}: {second.detail}; window emptied"
+        )
+        log.info("%s", reason)
+        action = MonitorAction(
+            name=w.name,
+            version=w.version,
+            rolled_back=False,
+            to_version=None,
+            n=n,
+            successes=k,
+            live_rate=k / n,
+            statistic=verdict.statistic,
+            reference=ref.value,
+            threshold=ref.value - cfg.margin,
+            signal=cfg.signal,
+            reason=reason,
+            at=time.time(),
+            replayed=replayed,
+        )
+        with self._lock:
+            if w.state == "rolling_back":
+                w.state = "watching"
+                w.window.clear()
+            self.actions.append(action)
+        return action
+
+    def _roll_back(
+        self,
+        w: _Watch,
+        ref: Reference,
+        window: Sequence[_Seen],
+        verdict: SignalResult,
+        *,
+        confirmation: tuple[Reference, SignalResult, Mapping[str, Any]] | None = None,
+    ) -> MonitorAction:
+        cfg = self.config
+        n, k = len(window), sum(e.success for e in window)
         threshold = ref.value - cfg.margin
         reason = (
             f"monitor: roll back {w.name} v{w.version}: live success {k}/{n} = {k / n:.2f} over the last "
             f"{n} episodes; {verdict.detail}; threshold = reference {ref.value:.3f} "
             f"[{ref.source}] - margin {cfg.margin:.3f} (signal {cfg.signal}, alpha {cfg.alpha:.3g})"
         )
+        if confirmation is not None:
+            paired, second, _ = confirmation
+            reason += f"; confirmed against {paired.source}: {second.detail}"
         to_version: int | None = None
         error: str | None = None
         try:
@@ -508,6 +660,7 @@ class DegradationMonitor:
             reason=reason,
             error=error,
             at=time.time(),
+            replayed=confirmation[2] if confirmation is not None else None,
         )
         with self._lock:
             w.state = "rolled_back" if action.rolled_back else "stopped"
@@ -523,12 +676,14 @@ __all__ = [
     "MonitorConfig",
     "MonitorRegistry",
     "Reference",
+    "Replay",
     "SignalResult",
     "WatchStatus",
     "binomial",
     "make_signal",
     "reference_of",
     "register_signal",
+    "replaced_version",
     "signal_names",
     "wilson_upper",
 ]

@@ -130,31 +130,74 @@ def test_rejected_candidate_keeps_the_active_version(tmp_path: Path) -> None:
 
 def test_monitor_rolls_back_a_version_that_degrades_live(tmp_path: Path) -> None:
     registry = seeded_registry(tmp_path)
+    second_live = set(PLAN.live(3, offset=3))
 
     def behaviour(versions: dict, seed: int) -> bool:
-        # v1 of reach wins on the held-out gate seeds but fails every live episode
+        # v1 of reach wins on the held-out gate seeds but fails every live episode, where v0
+        # (replayed by the monitor on iteration 1's live seeds) succeeds
+        if versions["pick.reach"] == 0:
+            return seed in second_live
         return versions["pick.reach"] >= 1 and PLAN.purpose_of(seed) == "gate"
 
     config = fake_config(
         iterations=2, monitor=MonitorConfig(window=6, min_episodes=3, margin=0.1, reference="gate_rate")
     )
-    loop = make_loop(
-        tmp_path,
-        registry=registry,
-        evaluator=ScriptedEvaluator(registry, behaviour),
-        updater=ParamUpdater(registry),
-        config=config,
-    )
+    evaluator = ScriptedEvaluator(registry, behaviour)
+    loop = make_loop(tmp_path, registry=registry, evaluator=evaluator, updater=ParamUpdater(registry), config=config)
     rows = loop.run().rows
     assert rows[0].gate is not None and rows[0].gate.decision == "promote"
     assert rows[1].active_versions["pick.reach"] == 1
     assert len(rows[1].rollbacks) == 1
     rb = rows[1].rollbacks[0]
     assert (rb["name"], rb["version"], rb["to_version"]) == ("pick.reach", 1, 0)
+    assert rb["replayed"]["successes"] == 3 and rb["replayed"]["confirmed"]
+    # the confirmation ran v0 on the live seeds, in its own phase, and its steps are counted
+    on_live_seeds = [ran["pick.reach"] for ran, seeds in evaluator.calls if set(seeds) == second_live]
+    assert on_live_seeds == [1, 0]  # the live episodes, then the replay
+    assert rows[1].env_steps_monitor == 3 * 20 and rows[0].env_steps_monitor == 0
+    assert rows[1].env_steps == rows[1].env_steps_live + 60 + rows[1].learner_steps + rows[1].env_steps_gate
     assert registry.get_version("pick.reach").version == 2  # rolled back to 0, then v2 promoted
     rollbacks = [e for e in registry.history("pick.reach") if e.action is Action.ROLLBACK]
     assert len(rollbacks) == 1 and rollbacks[0].actor == "evolve-monitor"
-    assert "live success 0/3" in rollbacks[0].reason
+    assert "live success 0/3" in rollbacks[0].reason and "confirmed against v0 replayed" in rollbacks[0].reason
+
+
+def test_monitor_keeps_a_version_whose_replaced_version_fails_the_same_live_seeds(tmp_path: Path) -> None:
+    registry = seeded_registry(tmp_path)
+
+    def behaviour(versions: dict, seed: int) -> bool:
+        # v1 wins on the gate seeds; live seeds are hard for every version (issue 19, T1 il, seed plan 1)
+        return versions["pick.reach"] >= 1 and PLAN.purpose_of(seed) == "gate"
+
+    config = fake_config(
+        iterations=2, monitor=MonitorConfig(window=6, min_episodes=3, margin=0.1, reference="gate_rate")
+    )
+    progress = RecordingProgress()
+    evaluator = ScriptedEvaluator(registry, behaviour)
+    loop = make_loop(
+        tmp_path,
+        registry=registry,
+        evaluator=evaluator,
+        updater=ParamUpdater(registry),
+        config=config,
+        progress=progress,
+    )
+    rows = loop.run().rows
+    (action,) = rows[1].rollbacks
+    assert not action["rolled_back"] and action["to_version"] is None
+    replayed = action["replayed"]
+    assert (replayed["version"], replayed["n"], replayed["successes"], replayed["steps"]) == (0, 3, 0, 3 * 40)
+    assert not replayed["confirmed"] and replayed["threshold"] == pytest.approx(-0.1)
+    assert rows[1].env_steps_monitor == 3 * 40
+    assert not [e for e in registry.history("pick.reach") if e.action is Action.ROLLBACK]
+    assert rows[1].csv_row()["rollbacks"] == ""
+    assert any(
+        call == "iteration_finished" and "kept pick.reach v1 (drop not confirmed" in kw["summary"]
+        for call, kw in progress.calls
+    )
+    assert ("phase", {"name": "monitor", "episodes": 3}) in progress.calls
+    assert rows[1].active_versions["pick.reach"] == 1
+    assert registry.get_version("pick.reach", 1).state is State.ACTIVE  # v2 ties it at the gate
 
 
 def test_identity_change_stops_the_run(tmp_path: Path) -> None:

@@ -17,13 +17,20 @@ from hypothesis import strategies as st
 from runtime_support import REACH, skill_spec
 from scipy import stats as sps
 
-from capevo.errors import ErrorCode, IllegalTransition, Invalid
+from capevo.errors import ErrorCode, IllegalTransition, Invalid, Unavailable
 from capevo.records import Action, State
 from capevo.registry.local import LocalRegistry
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.gate import FakeEvaluator, Gate, GateConfig, SeedPlan
 from capevo.runtime.gate_stats import wilson_interval
-from capevo.runtime.monitor import DegradationMonitor, MonitorConfig, binomial, make_signal, wilson_upper
+from capevo.runtime.monitor import (
+    DegradationMonitor,
+    MonitorAction,
+    MonitorConfig,
+    binomial,
+    make_signal,
+    wilson_upper,
+)
 
 NAME = "pick.reach"
 LIFT = "pick.lift"
@@ -259,3 +266,133 @@ def test_never_rolls_back_before_min_episodes(feed: list[bool], min_episodes: in
                     break
         finally:
             reg.close()
+
+
+# --- confirmation on the same seeds (invariant 6) -------------------------------------------
+
+
+def replay_with(behaviours: dict[int, bool], calls: list[tuple[dict[str, int], tuple[int, ...]]]):
+    """A replay that runs ``NAME`` at version v with success ``behaviours[v]`` on every seed (50 steps)."""
+
+    def replay(versions, seeds):
+        calls.append((dict(versions), tuple(seeds)))
+        return [
+            EpisodeOutcome(
+                seed=int(s),
+                success=behaviours[versions[NAME]],
+                reward=1.0,
+                steps=50,
+                duration_s=0.1,
+                interventions=0,
+                unsafe_steps=0,
+                ecm_failures=0,
+                capability_set=dict(versions),
+            )
+            for s in seeds
+        ]
+
+    return replay
+
+
+def test_a_drop_the_replaced_version_shows_on_the_same_seeds_is_not_rolled_back(registry: LocalRegistry) -> None:
+    # Issue 19's T1 il run on seed plan 1: one hard block of live seeds, hard for both versions.
+    calls: list = []
+    monitor = DegradationMonitor(registry, config=MON_CFG, replay=replay_with({0: False, 1: False}, calls))
+    registry.add_listener(monitor)
+    v0, v1 = gate_in(registry)
+    window = [live(v1, False, seed=i) for i in range(8)]
+    (action,) = monitor.observe_many(window)
+
+    assert not action.rolled_back and action.error is None and not action.confirmed
+    assert action.statistic < action.threshold == pytest.approx(0.4)  # the unpaired screen fired
+    assert action.replayed == {
+        "version": v0,
+        "n": 8,
+        "successes": 0,
+        "steps": 400,
+        "statistic": pytest.approx(wilson_interval(0, 8, alpha=0.05).high),
+        "threshold": pytest.approx(-0.1),
+        "confirmed": False,
+    }
+    assert calls == [({NAME: v0}, tuple(o.seed for o in window))]
+    assert "keep pick.reach v1" in action.reason and "v0 replayed on the same 8 seeds (0/8, replaced)" in action.reason
+    assert registry.get_version(NAME).version == v1
+    assert all(e.action is not Action.ROLLBACK for e in registry.history(NAME))
+    (status,) = [s for s in monitor.status() if s.version == v1]
+    assert (status.state, status.n) == ("watching", 0)  # the window starts again
+    assert monitor.observe_many([live(v1, False, seed=10 + i) for i in range(7)]) == []  # invariant 1 again
+    assert len(calls) == 1
+
+
+def test_a_drop_confirmed_on_the_same_seeds_is_rolled_back(registry: LocalRegistry) -> None:
+    calls: list = []
+    monitor = DegradationMonitor(registry, config=MON_CFG, replay=replay_with({0: True, 1: False}, calls))
+    registry.add_listener(monitor)
+    v0, v1 = gate_in(registry)
+    window = [live(v1, False, seed=i) for i in range(8)]
+    (action,) = monitor.observe_many(window)
+
+    assert action.rolled_back and action.confirmed and action.to_version == v0
+    assert action.replayed is not None and action.replayed["successes"] == 8 and action.replayed["confirmed"]
+    assert action.replayed["threshold"] == pytest.approx(0.9)
+    assert calls == [({NAME: v0}, tuple(o.seed for o in window))]
+    last = registry.history(NAME)[-1]
+    assert last.action is Action.ROLLBACK and "confirmed against v0 replayed on the same 8 seeds (8/8" in last.reason
+    assert isinstance(action, MonitorAction) and action.to_dict()["replayed"]["version"] == v0
+
+
+def test_the_replay_swaps_only_the_watched_ecm(tmp_path: Path) -> None:
+    reg = LocalRegistry(tmp_path / "r", actor="tester")
+    calls: list = []
+    monitor = DegradationMonitor(reg, config=MON_CFG, replay=replay_with({0: False, 1: False}, calls))
+    reg.add_listener(monitor)
+    _, reach = gate_in(reg, NAME)
+    lift0, lift = gate_in(reg, LIFT)
+    (action,) = monitor.observe_many([live(reach, False, seed=i, extra={LIFT: lift}) for i in range(8)])
+    assert action.name == LIFT and not action.rolled_back  # latest change screened, then kept
+    assert [c[0] for c in calls] == [{NAME: reach, LIFT: lift0}]
+    reg.close()
+
+
+def test_a_first_promotion_is_judged_without_a_replay(registry: LocalRegistry) -> None:
+    calls: list = []
+    monitor = DegradationMonitor(
+        registry, config=MonitorConfig(window=20, min_episodes=8, margin=0.0), replay=replay_with({}, calls)
+    )
+    v0 = publish(registry)
+    fake = FakeEvaluator({(NAME, v0): lambda s: (True, 1.0, 50)})
+    assert Gate(registry, fake, GATE_CFG).run(NAME, v0, task="T1", seeds=SEEDS).promoted
+    (action,) = monitor.observe_many([live(v0, False, seed=i) for i in range(8)])
+    assert action.replayed is None and action.confirmed and calls == []  # nothing it replaced
+
+
+def test_a_failed_replay_keeps_the_window_and_asks_again(registry: LocalRegistry) -> None:
+    calls: list = []
+    good = replay_with({0: True, 1: False}, calls)
+
+    def down(versions, seeds):
+        raise Unavailable("no runtime worker")
+
+    monitor = DegradationMonitor(registry, config=MON_CFG, replay=down)
+    registry.add_listener(monitor)
+    v0, v1 = gate_in(registry)
+    assert monitor.observe_many([live(v1, False, seed=i) for i in range(7)]) == []
+    with pytest.raises(Unavailable):
+        monitor.observe(live(v1, False, seed=7))
+    (status,) = [s for s in monitor.status() if s.version == v1]
+    assert (status.state, status.n) == ("watching", 8)
+    monitor.replay = good
+    (action,) = monitor.observe(live(v1, False, seed=8))
+    assert action.rolled_back and action.n == 9 and registry.get_version(NAME).version == v0
+
+
+def test_a_replay_that_skips_a_seed_is_refused(registry: LocalRegistry) -> None:
+    def short(versions, seeds):
+        return replay_with({0: True}, [])(versions, seeds[1:])
+
+    monitor = DegradationMonitor(registry, config=MON_CFG, replay=short)
+    registry.add_listener(monitor)
+    _, v1 = gate_in(registry)
+    with pytest.raises(Invalid, match=r"replay of pick\.reach v0 returned seeds"):
+        monitor.observe_many([live(v1, False, seed=i) for i in range(8)])
+    assert registry.get_version(NAME).version == v1
