@@ -591,28 +591,44 @@ class DegradationMonitor:
             f"but not against {paired.source}: {second.detail}; window emptied"
         )
         log.info("%s", reason)
-        action = MonitorAction(
-            name=w.name,
-            version=w.version,
-            rolled_back=False,
-            to_version=None,
-            n=n,
-            successes=k,
-            live_rate=k / n,
-            statistic=verdict.statistic,
-            reference=ref.value,
-            threshold=ref.value - cfg.margin,
-            signal=cfg.signal,
-            reason=reason,
-            at=time.time(),
-            replayed=replayed,
-        )
+        action = self._action(w, ref, window, verdict, reason=reason, replayed=replayed)
         with self._lock:
             if w.state == "rolling_back":
                 w.state = "watching"
                 w.window.clear()
             self.actions.append(action)
         return action
+
+    def _action(
+        self,
+        w: _Watch,
+        ref: Reference,
+        window: Sequence[_Seen],
+        verdict: SignalResult,
+        *,
+        reason: str,
+        to_version: int | None = None,
+        error: str | None = None,
+        replayed: Mapping[str, Any] | None = None,
+    ) -> MonitorAction:
+        n, k = len(window), sum(e.success for e in window)
+        return MonitorAction(
+            name=w.name,
+            version=w.version,
+            rolled_back=to_version is not None,
+            to_version=to_version,
+            n=n,
+            successes=k,
+            live_rate=k / n,
+            statistic=verdict.statistic,
+            reference=ref.value,
+            threshold=ref.value - self.config.margin,
+            signal=self.config.signal,
+            reason=reason,
+            error=error,
+            at=time.time(),
+            replayed=replayed,
+        )
 
     def _roll_back(
         self,
@@ -625,7 +641,6 @@ class DegradationMonitor:
     ) -> MonitorAction:
         cfg = self.config
         n, k = len(window), sum(e.success for e in window)
-        threshold = ref.value - cfg.margin
         reason = (
             f"monitor: roll back {w.name} v{w.version}: live success {k}/{n} = {k / n:.2f} over the last "
             f"{n} episodes; {verdict.detail}; threshold = reference {ref.value:.3f} "
@@ -645,21 +660,14 @@ class DegradationMonitor:
             # unreachable: report it; the watch stops so it does not retry every episode.
             error = str(exc)
             log.error("%s: rollback failed: %s", reason, exc)
-        action = MonitorAction(
-            name=w.name,
-            version=w.version,
-            rolled_back=to_version is not None,
-            to_version=to_version,
-            n=n,
-            successes=k,
-            live_rate=k / n,
-            statistic=verdict.statistic,
-            reference=ref.value,
-            threshold=threshold,
-            signal=cfg.signal,
+        action = self._action(
+            w,
+            ref,
+            window,
+            verdict,
             reason=reason,
+            to_version=to_version,
             error=error,
-            at=time.time(),
             replayed=confirmation[2] if confirmation is not None else None,
         )
         with self._lock:
