@@ -13,6 +13,13 @@ Per arm and face, with ``d`` the distance of the end effector inside that face (
   that face is set to at least ``restore`` inward, and every other pose component of the arm is
   clamped to ``[−restore, restore]``, so the arm moves back slowly. Zeroing alone cannot do that:
   a zero command holds the arm where it is.
+* steer back before the face (``restore_within`` w > 0): while ``0 <= d < w`` the component
+  through that face is set to at least ``restore·(1 − d/w)`` inward; the arm's other components
+  are left alone. Zeroing outward motion within the margin does not stop an arm from creeping
+  out: motion along the face and OSC's tracking carried a learned T6 policy's hand (AM-bc,
+  ``results/cpu-small``, seed 2000042002) through the whole margin with its outward command at 0,
+  then 0.3 mm past the top face in 6 steps, each restored only after the breach. The default
+  w = 1 cm is hand-written: about 25 times that creep per step.
 * freeze_rotation: while ``d <= margin`` on some face (or outside), the arm's three rotation
   components are set to 0. Turning the hand moves the end-effector site a little every step,
   and OSC's re-anchoring integrates that drift; near a face it is drift out of the box.
@@ -25,6 +32,8 @@ along the face's outward normal, after the check):
    components lies in ``[−restore, restore]`` (so the arm's pose-delta norm is at most
    ``restore·√6``).
 3. With ``freeze_rotation``, ``d <= margin`` on some face implies the arm's rotation components are 0.
+7. With ``restore > 0`` and ``restore_within`` w > 0, ``0 <= d < w`` implies
+   ``a <= −restore·(1 − d/w)``.
 4. A component no rule applies to is unchanged; an action no rule touches is allowed (None) and
    never copied.
 5. A non-finite end-effector position is ⊥ with a reason.
@@ -67,6 +76,8 @@ class WorkspaceGuard(ConstraintBase):
         brake: Width in metres of the band inside the margin over which outward motion is
             limited in proportion to the remaining distance; >= 0 (0: no band).
         restore: Inward speed in action units for an arm outside the box; 0 (off) to 0.6.
+        restore_within: Distance in metres inside a face below which the arm is steered back
+            (at ``restore`` at the face, falling to 0 at this distance); 0 (off) to ``margin``.
         freeze_rotation: Zero the arm's rotation within the margin of a face or outside.
         name: Label for interventions; defaults to the kind.
 
@@ -81,6 +92,7 @@ class WorkspaceGuard(ConstraintBase):
     margin: float = 0.08
     brake: float = 0.1
     restore: float = 0.2
+    restore_within: float = 0.01
     freeze_rotation: bool = True
     name: str | None = None
 
@@ -93,6 +105,8 @@ class WorkspaceGuard(ConstraintBase):
             raise invalid("brake", f"must be >= 0, got {self.brake}")
         if not 0 <= self.restore <= MAX_RESTORE:
             raise invalid("restore", f"must be in [0, {MAX_RESTORE}], got {self.restore}")
+        if not 0 <= self.restore_within <= self.margin:
+            raise invalid("restore_within", f"must be in [0, margin = {self.margin}], got {self.restore_within}")
         for k, axis in enumerate(AXES):
             # Opposite bands must not overlap, so steering in through one face never brakes at the other.
             if not self.high[k] - self.low[k] > 2 * (self.margin + self.brake):
@@ -104,6 +118,7 @@ class WorkspaceGuard(ConstraintBase):
 
     def compile(self, layout: ActionLayout) -> Check:
         low, high, m, br, rs, freeze = self.low, self.high, self.margin, self.brake, self.restore, self.freeze_rotation
+        rw = self.restore_within if rs > 0.0 else 0.0
         band = m + br
         # Strictly inside this inner box, no rule applies: the fast path.
         inner_low = tuple(v + band for v in low)
@@ -114,6 +129,7 @@ class WorkspaceGuard(ConstraintBase):
                 f"arm {i}: approaching a face of the workspace box: outward motion braked",
                 f"arm {i}: outside the workspace box: steered back inward at {rs}",
                 f"arm {i}: within {m} m of a workspace-box face: rotation stopped",
+                f"arm {i}: within {rw} m of a workspace-box face: steered back inward",
             )
             for i in range(len(offsets))
         )
@@ -128,6 +144,7 @@ class WorkspaceGuard(ConstraintBase):
                     return None, f"arm {i}: end-effector position {p} is not finite"  # rare: format here
                 braked = near = False
                 out: list[tuple[int, float]] = []  # (axis, inward sign) of faces the arm is outside
+                close: list[tuple[int, float, float]] = []  # (axis, inward sign, push) within rw inside
                 for k in (0, 1, 2):
                     for d, s in ((high[k] - p[k], 1.0), (p[k] - low[k], -1.0)):
                         if d >= band and d > m:
@@ -136,6 +153,8 @@ class WorkspaceGuard(ConstraintBase):
                             near = True
                         if d < 0.0 and rs > 0.0:
                             out.append((k, -s))
+                        elif d < rw:
+                            close.append((k, -s, rs * (1.0 - d / rw)))
                         bound = (d - m) / br if br > 0.0 else 0.0
                         if bound < 0.0:
                             bound = 0.0
@@ -160,6 +179,16 @@ class WorkspaceGuard(ConstraintBase):
                         notes.append(reasons[i][0])
                 elif braked:
                     notes.append(reasons[i][0])
+                steered = False
+                for k, inward, push in close:
+                    v = (a if b is None else b)[o + k]
+                    if v * inward < push:
+                        if b is None:
+                            b = list(a)
+                        b[o + k] = push * inward
+                        steered = True
+                if steered:
+                    notes.append(reasons[i][3])
                 if freeze and near:
                     src = a if b is None else b
                     if src[o + 3] != 0.0 or src[o + 4] != 0.0 or src[o + 5] != 0.0:

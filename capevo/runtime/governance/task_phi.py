@@ -5,7 +5,7 @@ and stays unchanged. :func:`task_constraints` are what
 :func:`~capevo.runtime.governance.phi.phi_for_task` (``Phi.for_task``) adds, before the cap:
 
 * ``workspace_guard`` on the same box: a braking band inside the margin, an inward push when
-  an end effector is outside, and no turning within the margin;
+  an end effector is outside or within 1 cm of a face, and no turning within the margin;
 * ``force_ramp`` just under the same force limit (:data:`FORCE_MARGIN`): into-contact motion
   slowed from half the limit, a slow back-off above it, and motion into a contact that went
   above it held until the hand has backed off (:data:`FORCE_RELEASE`);

@@ -156,6 +156,10 @@ def violations(
                             bound = max(0.0, (d - c.margin) / c.brake) if c.brake > 0 else 0.0
                             if a[o + k] * s > bound + tol:
                                 out.append(f"{c.label}: arm {i} outward {a[o + k] * s} > {bound} along {k}")
+                        if c.restore > 0 and 0.0 <= d < c.restore_within:
+                            push = c.restore * (1.0 - d / c.restore_within)
+                            if a[o + k] * s > -push + tol:
+                                out.append(f"{c.label}: arm {i} {d} m inside a face, not steered back at {push}")
                 if c.freeze_rotation and near and any(a[o + j] != 0.0 for j in (3, 4, 5)):
                     out.append(f"{c.label}: arm {i} turns within the margin")
             elif isinstance(c, ForceRamp):

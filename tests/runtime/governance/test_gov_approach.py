@@ -151,7 +151,7 @@ def test_workspace_guard_steers_an_arm_outside_the_box_back_slowly(p, action, re
             assert out[k] * inward >= restore - TOL
         assert all(abs(x) <= restore + TOL for x in out[:6])
         assert out[3:6] == (0.0, 0.0, 0.0)  # frozen: outside is within the margin
-    else:
+    else:  # including invariant 7: within restore_within of a face, steered back in proportion
         assert violations(Phi((guard,)), SINGLE_PANDA, state, out, tol=TOL) == []
 
 
@@ -170,12 +170,28 @@ def test_workspace_guard_examples() -> None:
     out, (rec,) = gov(above, a)
     assert out == (0.2, 0.2, -0.2, 0.0, 0.0, 0.0, 1.0)
     assert "steered back inward" in rec.reason
+    # 4 mm under the ceiling (within restore_within, 1 cm): the zero or upward command becomes a
+    # push down at 0.2 * (1 - 0.4); no clamp of the rest, rotation frozen (within the margin).
+    creeping = RobotState(arms=(ArmState(eef_pos=(0.0, 0.0, 1.296), eef_force=(0.0, 0.0, 0.0)),))
+    out, records = gov(creeping, (0.5, 0.3, 0.0, 0.4, 0.0, 0.0, 1.0))
+    assert out[:3] == (0.5, 0.3, pytest.approx(-0.12)) and out[3:] == (0.0, 0.0, 0.0, 1.0)
+    assert any("within 0.01 m of a workspace-box face: steered back inward" in r.reason for r in records)
+    assert gov(creeping, (0.0, 0.0, -0.5, 0.0, 0.0, 0.0, 1.0)) == ((0.0, 0.0, -0.5, 0.0, 0.0, 0.0, 1.0), ())
+    # 1 cm or more inside: nothing pushes back
+    level = RobotState(arms=(ArmState(eef_pos=(0.0, 0.0, 1.29), eef_force=(0.0, 0.0, 0.0)),))
+    assert gov(level, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)) == ((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), ())
+    off = Phi((WorkspaceGuard(restore_within=0.0),)).governor(SINGLE_PANDA)
+    assert off(creeping, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)) == ((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), ())
 
 
 def test_workspace_guard_rejects_bad_config() -> None:
     with pytest.raises(Invalid) as e:
         WorkspaceGuard(restore=0.7)
     assert e.value.details["field"] == "restore" and e.value.message == "restore: must be in [0, 0.6], got 0.7"
+    with pytest.raises(Invalid) as e:
+        WorkspaceGuard(margin=0.05, restore_within=0.06)
+    assert e.value.details["field"] == "restore_within"
+    assert e.value.message == "restore_within: must be in [0, margin = 0.05], got 0.06"
     with pytest.raises(Invalid) as e:
         WorkspaceGuard(low=(0.0, 0.0, 0.0), high=(0.3, 1.0, 1.0))
     assert e.value.details["field"] == "high" and "must be longer than 2 * (margin + brake)" in e.value.message
@@ -350,6 +366,12 @@ def test_per_arm_obstacle_rules_only_govern_their_arm(arm: int) -> None:
 TASK_PHIS = {t: Phi.for_task(task_spec(t)) for t in ("T1", "T3", "T4")}
 
 
+def clear_of_faces(guard: WorkspaceGuard, p: tuple[float, float, float]) -> bool:
+    """Inside the box and at least ``restore_within`` from each face, where the guard steers back."""
+    w = guard.restore_within
+    return all(guard.low[k] + w <= p[k] <= guard.high[k] - w for k in range(3))
+
+
 @pytest.mark.parametrize("task", list(TASK_PHIS))
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.filter_too_much])
 @given(data=st.data())
@@ -359,7 +381,8 @@ def test_per_task_phi_satisfies_every_rule_at_once_where_nothing_restores(task, 
     phi = TASK_PHIS[task]
     reach = next(c for c in phi.constraints if isinstance(c, ReachLimit))
     p = data.draw(in_reach(reach.centres[0], reach))
-    assume(all(-0.6 <= p[k] <= 0.6 for k in (0, 1)) and 0.6 <= p[2] <= 1.3)
+    guard = next(c for c in phi.constraints if isinstance(c, WorkspaceGuard))
+    assume(clear_of_faces(guard, p))
     # Up to the force ramp's limit (2 N under the paper's 20 N): above it the ramp backs off.
     limit = next(c for c in phi.constraints if isinstance(c, ForceRamp)).max_force
     f = data.draw(st.tuples(*[st.floats(-limit, limit)] * 3).filter(lambda f: math.hypot(*f) <= limit))
@@ -378,10 +401,11 @@ def test_per_task_phi_satisfies_every_rule_at_once_where_nothing_restores(task, 
 def test_two_arm_task_phi_satisfies_every_rule_at_once_where_nothing_restores(data) -> None:
     phi = Phi.for_task(task_spec("T6"))
     reach = next(c for c in phi.constraints if isinstance(c, ReachLimit))
+    guard = next(c for c in phi.constraints if isinstance(c, WorkspaceGuard))
     arms_ = []
     for i in range(2):
         p = data.draw(in_reach(reach.centres[i], reach))
-        assume(all(-0.6 <= p[k] <= 0.6 for k in (0, 1)) and 0.6 <= p[2] <= 1.3)
+        assume(clear_of_faces(guard, p))
         f = data.draw(st.tuples(*[st.floats(-10.0, 10.0)] * 3).filter(lambda f: math.hypot(*f) <= 18.0))
         arms_.append(ArmPose(eef_pos=p, eef_force=f, eef_rot=rotation(data.draw(QUATS))))
         assume(within_reach(reach, i, arms_[-1]))
