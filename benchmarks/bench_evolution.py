@@ -149,6 +149,7 @@ def finish_task(run: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]
         "promoted": sum(1 for g in s["gate"] if g["decision"] == "promote"),
         "rejected": sum(1 for g in s["gate"] if g["decision"] == "reject"),
         "rollbacks": len(s["rollbacks"]),
+        "monitor_not_confirmed": len(s.get("monitor_not_confirmed") or ()),
         "live_success_per_iteration": [r["live"]["success_rate"] for r in rows],
         "learner_episodes": sum(r["learner_episodes"] for r in rows),
         "identity_hash": s["identity_hash"],

@@ -336,7 +336,11 @@ def summary_dict(result: Any) -> dict[str, Any]:
         "final": fstats.to_dict() if fstats else None,
         "final_versions": dict(final.final_versions) if final is not None else None,
         "gate": [{"iteration": r.iteration, **g.to_dict()} for r in rows for g in r.gates],
-        "rollbacks": [rb for r in rows for rb in r.rollbacks],
+        "rollbacks": [rb for r in rows for rb in r.rollbacks if rb.get("rolled_back") or rb.get("error")],
+        # the monitor's screen fired but the replaced version did no better on the same seeds
+        "monitor_not_confirmed": [
+            rb for r in rows for rb in r.rollbacks if not rb.get("rolled_back") and not rb.get("error")
+        ],
         "wall_s": result.wall_s,
         "files": [str(f) for f in result.report_files],
     }
@@ -359,7 +363,8 @@ def _print_result(result: Any, as_json: bool) -> None:
         table.add_row("final success", f"{f['successes']}/{f['episodes']} (same seeds)")
     decisions = [f"it{g['iteration']}: {g['decision']} {g['ecm']} v{g['candidate_version']}" for g in data["gate"]]
     table.add_row("gate", "; ".join(decisions) or "-")
-    table.add_row("rollbacks", str(len(data["rollbacks"])))
+    kept = len(data["monitor_not_confirmed"])
+    table.add_row("rollbacks", str(len(data["rollbacks"])) + (f" ({kept} drops not confirmed)" if kept else ""))
     table.add_row("identity hash", data["identity_hash"])
     table.add_row("Δπ", f"{data['delta_pi']:g}")
     table.add_row("wall time", f"{data['wall_s']:.0f} s")

@@ -499,7 +499,10 @@ def _markdown(
     add("")
     add(f"- `{PROGRESS_PNG}`: success and reward per iteration; `{TIMELINE_PNG}`: versions per ECM over time")
     add("- `metrics.csv` / `metrics.jsonl`: one row per iteration (fsynced as each iteration finishes)")
-    add("- `traces/live`, `traces/gate`, `traces/final`, `traces/learner`: MCAP traces (`capevo trace summary FILE`)")
+    add(
+        "- `traces/live`, `traces/monitor`, `traces/gate`, `traces/final`, `traces/learner`: MCAP traces "
+        "(`capevo trace summary FILE`; `monitor`: the replaced version replayed on a live window's seeds)"
+    )
     add("- `agent/episodic.jsonl`: the agent's episodic memory M_ep; `journal.jsonl`, `run.json`: resume state")
     add("")
     add(f"![progress]({PROGRESS_PNG})")
