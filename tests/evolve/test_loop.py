@@ -170,17 +170,15 @@ def test_monitor_keeps_a_version_whose_replaced_version_fails_the_same_live_seed
         return versions["pick.reach"] >= 1 and PLAN.purpose_of(seed) == "gate"
 
     config = fake_config(
-        iterations=2, monitor=MonitorConfig(window=6, min_episodes=3, margin=0.1, reference="gate_rate")
+        iterations=2,
+        monitor=MonitorConfig(window=6, min_episodes=3, margin=0.1, reference="gate_rate"),
+        env_steps_per_iteration=100_000,
     )
     progress = RecordingProgress()
     evaluator = ScriptedEvaluator(registry, behaviour)
+    updater = ParamUpdater(registry)
     loop = make_loop(
-        tmp_path,
-        registry=registry,
-        evaluator=evaluator,
-        updater=ParamUpdater(registry),
-        config=config,
-        progress=progress,
+        tmp_path, registry=registry, evaluator=evaluator, updater=updater, config=config, progress=progress
     )
     rows = loop.run().rows
     (action,) = rows[1].rollbacks
@@ -189,6 +187,9 @@ def test_monitor_keeps_a_version_whose_replaced_version_fails_the_same_live_seed
     assert (replayed["version"], replayed["n"], replayed["successes"], replayed["steps"]) == (0, 3, 0, 3 * 40)
     assert not replayed["confirmed"] and replayed["threshold"] == pytest.approx(-0.1)
     assert rows[1].env_steps_monitor == 3 * 40
+    # the replay comes out of the learner's share of the iteration's budget
+    gates = 2 * config.gate_seeds_max * config.episode_steps_max("T1")
+    assert updater.requests[1].max_env_steps == 100_000 - rows[1].env_steps_live - 3 * 40 - gates
     assert not [e for e in registry.history("pick.reach") if e.action is Action.ROLLBACK]
     assert rows[1].csv_row()["rollbacks"] == ""
     assert any(
