@@ -294,14 +294,22 @@ def replay_with(behaviours: dict[int, bool], calls: list[tuple[dict[str, int], t
     return replay
 
 
-def test_a_drop_the_replaced_version_shows_on_the_same_seeds_is_not_rolled_back(registry: LocalRegistry) -> None:
-    # Issue 19's T1 il run on seed plan 1: one hard block of live seeds, hard for both versions.
+def screened(registry: LocalRegistry, replaced_succeeds: bool):
+    """v1 promoted over v0, then 8 failed live episodes of v1 (the screen fires); v0 replays with
+    ``replaced_succeeds`` on every seed. Returns (monitor, replay calls, v0, v1, window, action)."""
     calls: list = []
-    monitor = DegradationMonitor(registry, config=MON_CFG, replay=replay_with({0: False, 1: False}, calls))
+    replay = replay_with({0: replaced_succeeds, 1: False}, calls)
+    monitor = DegradationMonitor(registry, config=MON_CFG, replay=replay)
     registry.add_listener(monitor)
     v0, v1 = gate_in(registry)
     window = [live(v1, False, seed=i) for i in range(8)]
     (action,) = monitor.observe_many(window)
+    return monitor, calls, v0, v1, window, action
+
+
+def test_a_drop_the_replaced_version_shows_on_the_same_seeds_is_not_rolled_back(registry: LocalRegistry) -> None:
+    # Issue 19's T1 il run on seed plan 1: one hard block of live seeds, hard for both versions.
+    monitor, calls, v0, v1, window, action = screened(registry, replaced_succeeds=False)
 
     assert not action.rolled_back and action.error is None and not action.confirmed
     assert action.statistic < action.threshold == pytest.approx(0.4)  # the unpaired screen fired
@@ -325,12 +333,7 @@ def test_a_drop_the_replaced_version_shows_on_the_same_seeds_is_not_rolled_back(
 
 
 def test_a_drop_confirmed_on_the_same_seeds_is_rolled_back(registry: LocalRegistry) -> None:
-    calls: list = []
-    monitor = DegradationMonitor(registry, config=MON_CFG, replay=replay_with({0: True, 1: False}, calls))
-    registry.add_listener(monitor)
-    v0, v1 = gate_in(registry)
-    window = [live(v1, False, seed=i) for i in range(8)]
-    (action,) = monitor.observe_many(window)
+    _, calls, v0, _, window, action = screened(registry, replaced_succeeds=True)
 
     assert action.rolled_back and action.confirmed and action.to_version == v0
     assert action.replayed is not None and action.replayed["successes"] == 8 and action.replayed["confirmed"]
