@@ -318,11 +318,10 @@ def summary_dict(result: Any) -> dict[str, Any]:
     rows = result.rows
     start = rows[0].live if rows else None
     final = result.final
-    fstats = None
-    if final is not None:
-        from capevo.evolve.metrics import outcome_stats
+    from capevo.evolve.metrics import outcome_stats, split_monitor_actions
 
-        fstats = outcome_stats(list(final.final))
+    fstats = outcome_stats(list(final.final)) if final is not None else None
+    actions = split_monitor_actions([rb for r in rows for rb in r.rollbacks])
     return {
         "task": result.task,
         "report_dir": str(result.report_dir),
@@ -336,11 +335,9 @@ def summary_dict(result: Any) -> dict[str, Any]:
         "final": fstats.to_dict() if fstats else None,
         "final_versions": dict(final.final_versions) if final is not None else None,
         "gate": [{"iteration": r.iteration, **g.to_dict()} for r in rows for g in r.gates],
-        "rollbacks": [rb for r in rows for rb in r.rollbacks if rb.get("rolled_back") or rb.get("error")],
-        # the monitor's screen fired but the replaced version did no better on the same seeds
-        "monitor_not_confirmed": [
-            rb for r in rows for rb in r.rollbacks if not rb.get("rolled_back") and not rb.get("error")
-        ],
+        # not confirmed: the monitor's screen fired but the replaced version did no better on the same seeds
+        "rollbacks": actions[0],
+        "monitor_not_confirmed": actions[1],
         "wall_s": result.wall_s,
         "files": [str(f) for f in result.report_files],
     }

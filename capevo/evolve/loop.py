@@ -68,7 +68,14 @@ from capevo.agent import EpisodeRecord, PersistentAgent
 from capevo.errors import CapevoError, Conflict, IdentityViolation, NotFound, Unavailable
 from capevo.evolve.config import NEURAL_MODALITIES, EvolveConfig
 from capevo.evolve.learners import Proposal, Updater, UpdateRequest, waiting_candidates
-from capevo.evolve.metrics import ChainUpdate, GateSummary, IterationMetrics, MetricsLog, outcome_stats
+from capevo.evolve.metrics import (
+    ChainUpdate,
+    GateSummary,
+    IterationMetrics,
+    MetricsLog,
+    outcome_stats,
+    split_monitor_actions,
+)
 from capevo.evolve.progress import ProgressSink, RecordingProgress
 from capevo.evolve.state import Journal, RunManifest, load_manifest, save_manifest
 from capevo.records import EcmVersion, State
@@ -1024,8 +1031,7 @@ def _summary_line(row: IterationMetrics) -> str:
         parts.append(gate + ")")
     elif row.update_note:
         parts.append(row.update_note)
-    rolled = [r for r in row.rollbacks if r.get("rolled_back")]
-    kept = [r for r in row.rollbacks if not r.get("rolled_back") and not r.get("error")]
+    rolled, kept = split_monitor_actions(row.rollbacks)
     if rolled:
         parts.append("rolled back " + ", ".join(f"{r['name']} v{r['version']}" for r in rolled))
     if kept:

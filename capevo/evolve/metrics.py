@@ -74,6 +74,19 @@ CSV_COLUMNS: tuple[str, ...] = (
 )
 
 
+def is_rollback(action: Mapping[str, Any]) -> bool:
+    """A monitor action (:meth:`~capevo.runtime.monitor.MonitorAction.to_dict`) that rolled back or tried to."""
+    return bool(action.get("rolled_back") or action.get("error"))
+
+
+def split_monitor_actions(
+    actions: Sequence[Mapping[str, Any]],
+) -> tuple[list[Mapping[str, Any]], list[Mapping[str, Any]]]:
+    """``(rollbacks, not_confirmed)``: rollbacks (and failed attempts), and drops that the
+    replaced version's replay on the same seeds did not confirm."""
+    return [a for a in actions if is_rollback(a)], [a for a in actions if not is_rollback(a)]
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class OutcomeStats:
     """Summary of a batch of episodes."""
@@ -456,9 +469,7 @@ class IterationMetrics:
             "gate_p_noninferiority": _num(g.p_noninferiority) if g else "",
             "gate_p_reward": _num(g.p_reward) if g else "",
             "rollbacks": ";".join(
-                f"{r.get('name')}@{r.get('version')}->{r.get('to_version')}"
-                for r in self.rollbacks
-                if r.get("rolled_back") or r.get("error")
+                f"{r.get('name')}@{r.get('version')}->{r.get('to_version')}" for r in self.rollbacks if is_rollback(r)
             ),
             "active_after": _versions(self.active_after),
             "wall_live_s": _num(self.wall_live_s),
@@ -636,9 +647,11 @@ __all__ = [
     "OutcomeStats",
     "append_durably",
     "canonical_line",
+    "is_rollback",
     "outcome_stats",
     "read_jsonl",
     "read_metrics",
     "repair_jsonl",
+    "split_monitor_actions",
     "write_atomically",
 ]

@@ -25,7 +25,14 @@ from pathlib import Path
 from typing import Any
 
 from capevo.errors import CapevoError, NotFound
-from capevo.evolve.metrics import IterationMetrics, OutcomeStats, outcome_stats, read_metrics, write_atomically
+from capevo.evolve.metrics import (
+    IterationMetrics,
+    OutcomeStats,
+    outcome_stats,
+    read_metrics,
+    split_monitor_actions,
+    write_atomically,
+)
 from capevo.evolve.state import RunManifest, load_manifest
 from capevo.records import AuditEvent, EcmVersion, Kind
 from capevo.registry.api import Registry
@@ -372,8 +379,7 @@ def _markdown(
         add("")
         promoted = [g for r in rows for g in r.gates if g.decision == "promote"]
         rejected = [g for r in rows for g in r.gates if g.decision == "reject"]
-        rollbacks = [rb for r in rows for rb in r.rollbacks if rb.get("rolled_back")]
-        unconfirmed = [rb for r in rows for rb in r.rollbacks if not rb.get("rolled_back") and not rb.get("error")]
+        rollbacks, unconfirmed = split_monitor_actions([rb for r in rows for rb in r.rollbacks])
         kept = f" ({len(unconfirmed)} more not confirmed on the same seeds)" if unconfirmed else ""
         add(
             f"Gate: {len(promoted)} promoted, {len(rejected)} rejected; monitor rollbacks: {len(rollbacks)}{kept}. "
