@@ -308,14 +308,22 @@ class MonitorRegistry(Protocol):
     ) -> EcmVersion: ...
 
 
+def _promotion_evidence(record: EcmVersion) -> Mapping[str, Any] | None:
+    """``record``'s gate evidence if it is a promotion the monitor can read, else None."""
+    ev = record.gate_evidence
+    if isinstance(ev, Mapping) and ev.get("schema") == EVIDENCE_SCHEMA and ev.get("decision") == "promote":
+        return ev
+    return None
+
+
 def reference_of(record: EcmVersion, config: MonitorConfig) -> Reference | None:
     """The reference success rate of ``record`` from its gate evidence, or the fallback.
 
     Returns:
         None when the version has no usable gate evidence and no fallback is configured.
     """
-    ev = record.gate_evidence
-    if not (isinstance(ev, Mapping) and ev.get("schema") == EVIDENCE_SCHEMA and ev.get("decision") == "promote"):
+    ev = _promotion_evidence(record)
+    if ev is None:
         if config.fallback_reference is None:
             return None
         return Reference(value=float(config.fallback_reference), source="configured fallback (no gate evidence)")
@@ -342,11 +350,10 @@ def reference_of(record: EcmVersion, config: MonitorConfig) -> Reference | None:
 
 def replaced_version(record: EcmVersion) -> int | None:
     """The version ``record``'s promotion replaced, from its gate evidence (None: a first promotion)."""
-    ev = record.gate_evidence
-    if isinstance(ev, Mapping) and ev.get("schema") == EVIDENCE_SCHEMA and ev.get("active"):
-        replaced = ev.get("active_version")
-        return int(replaced) if replaced is not None else None
-    return None
+    ev = _promotion_evidence(record)
+    if ev is None or not ev.get("active") or ev.get("active_version") is None:
+        return None
+    return int(ev["active_version"])
 
 
 @dataclass(frozen=True, slots=True)
@@ -584,7 +591,8 @@ class DegradationMonitor:
             "confirmed": second.fired,
         }
         if second.fired:
-            return self._roll_back(w, ref, window, verdict, confirmation=(paired, second, replayed))
+            confirmed = f"; confirmed against {paired.source}: {second.detail}"
+            return self._roll_back(w, ref, window, verdict, confirmed=confirmed, replayed=replayed)
         reason = (
             f"monitor: keep {w.name} v{w.version}: live success {k}/{n} = {k / n:.2f} fired the screen "
             f"({verdict.detail}; reference {ref.value:.3f} [{ref.source}] - margin {cfg.margin:.3f}), "
@@ -637,18 +645,16 @@ class DegradationMonitor:
         window: Sequence[_Seen],
         verdict: SignalResult,
         *,
-        confirmation: tuple[Reference, SignalResult, Mapping[str, Any]] | None = None,
+        confirmed: str = "",
+        replayed: Mapping[str, Any] | None = None,
     ) -> MonitorAction:
         cfg = self.config
         n, k = len(window), sum(e.success for e in window)
         reason = (
             f"monitor: roll back {w.name} v{w.version}: live success {k}/{n} = {k / n:.2f} over the last "
             f"{n} episodes; {verdict.detail}; threshold = reference {ref.value:.3f} "
-            f"[{ref.source}] - margin {cfg.margin:.3f} (signal {cfg.signal}, alpha {cfg.alpha:.3g})"
+            f"[{ref.source}] - margin {cfg.margin:.3f} (signal {cfg.signal}, alpha {cfg.alpha:.3g}){confirmed}"
         )
-        if confirmation is not None:
-            paired, second, _ = confirmation
-            reason += f"; confirmed against {paired.source}: {second.detail}"
         to_version: int | None = None
         error: str | None = None
         try:
@@ -668,7 +674,7 @@ class DegradationMonitor:
             reason=reason,
             to_version=to_version,
             error=error,
-            replayed=confirmation[2] if confirmation is not None else None,
+            replayed=replayed,
         )
         with self._lock:
             w.state = "rolled_back" if action.rolled_back else "stopped"

@@ -18,8 +18,8 @@ Per arm and face, with ``d`` the distance of the end effector inside that face (
   are left alone. Zeroing outward motion within the margin does not stop an arm from creeping
   out: motion along the face and OSC's tracking carried a learned T6 policy's hand (AM-bc,
   ``results/cpu-small``, seed 2000042002) through the whole margin with its outward command at 0,
-  then 0.3 mm past the top face in 6 steps, each restored only after the breach. The default
-  w = 1 cm is hand-written: about 25 times that creep per step.
+  then up to 0.6 mm past the top face in 6 steps, each restored only after the breach. The default
+  w = 1 cm is hand-written: about 20 times that creep of 0.5 mm per step.
 * freeze_rotation: while ``d <= margin`` on some face (or outside), the arm's three rotation
   components are set to 0. Turning the hand moves the end-effector site a little every step,
   and OSC's re-anchoring integrates that drift; near a face it is drift out of the box.
