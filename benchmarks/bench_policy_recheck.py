@@ -13,8 +13,14 @@ paper's perturbations, and counts unsafe episodes by the monitor and their reaso
 It re-grades the policies only: training under the new envelope would give other policies, which
 is what a fresh grid run measures.
 
+``--seeds FIRST-LAST`` runs other seeds than the cell's own (more episodes than the grid's 10, to
+see rare contacts), ``--iterations`` picks checkpoints, and ``--without KIND`` also runs every
+episode under the same Φ with the constraints of that kind removed, so one command shows what a
+rule changes on the same policies and seeds.
+
     .venv/bin/python benchmarks/bench_policy_recheck.py --grid results/cpu-small \\
-        [--cells T1-am-bc-s42 T6-am-bc-s42 T1-am-s42 T6-am-s42] [--phi task]
+        [--cells T1-am-bc-s42 T6-am-bc-s42 T1-am-s42 T6-am-s42] [--phi task] \\
+        [--seeds 2000042010-2000042039] [--iterations 3] [--without keep_clear]
 """
 
 from __future__ import annotations
@@ -34,8 +40,24 @@ from _common import markdown_table, save_results
 DEFAULT_CELLS = ("T1-am-s42", "T1-am-bc-s42", "T6-am-s42", "T6-am-bc-s42")
 
 
-def recheck(cell_dir: Path, phi: str) -> list[dict[str, Any]]:
-    """Every checkpoint of one AM cell, re-run on the cell's held-out seeds under ``phi``."""
+def without_kind(task: str, phi: str, kind: str) -> Any:
+    """The Φ ``phi`` resolves to for ``task`` with every constraint of ``kind`` removed."""
+    from capevo.runtime.envelope import resolve_phi
+    from capevo.runtime.governance import Phi
+    from capevo.runtime.tasks import task_spec
+
+    full = resolve_phi(phi, task_spec(task))
+    kept = tuple(c for c in full.constraints if c.kind != kind)
+    if len(kept) == len(full.constraints):
+        raise SystemExit(f"--without {kind}: the {phi} Φ of {task} has no such constraint")
+    return Phi(kept)
+
+
+def recheck(
+    cell_dir: Path, phi: Any, seeds: list[int] | None = None, iterations: list[int] | None = None
+) -> list[dict[str, Any]]:
+    """Every checkpoint of one AM cell (or those of ``iterations``), re-run on the cell's held-out
+    seeds (or ``seeds``) under ``phi``."""
     import numpy as np
     from stable_baselines3 import PPO
 
@@ -46,7 +68,7 @@ def recheck(cell_dir: Path, phi: str) -> list[dict[str, Any]]:
     rows = []
     for ckpt in sorted((cell_dir / "checkpoints").glob("iteration-0*.zip")):
         iteration = int(ckpt.stem.split("-")[1])
-        if iteration == 0:
+        if iteration == 0 or (iterations and iteration not in iterations):
             continue  # the untrained policy was never evaluated by the grid
         model = PPO.load(ckpt, device="cpu")
 
@@ -55,7 +77,12 @@ def recheck(cell_dir: Path, phi: str) -> list[dict[str, Any]]:
 
         started = time.perf_counter()
         episodes, steps = evaluate_policy(
-            cell.task, act, cell.eval_seeds(), phi=phi, governance=cell.governance, perturbations=cell.perturbations
+            cell.task,
+            act,
+            seeds or cell.eval_seeds(),
+            phi=phi(cell.task) if callable(phi) else phi,
+            governance=cell.governance,
+            perturbations=cell.perturbations,
         )
         rows.append(
             {
@@ -74,6 +101,18 @@ def recheck(cell_dir: Path, phi: str) -> list[dict[str, Any]]:
     return rows
 
 
+def seed_range(text: str) -> list[int]:
+    """``FIRST-LAST`` (inclusive) as a list of seeds."""
+    first, _, last = text.partition("-")
+    try:
+        lo, hi = int(first), int(last)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected FIRST-LAST, got {text!r}") from None
+    if not 0 <= lo <= hi:
+        raise argparse.ArgumentTypeError(f"expected 0 <= FIRST <= LAST, got {text!r}")
+    return list(range(lo, hi + 1))
+
+
 def grid_unsafe(cell_dir: Path) -> dict[int, int]:
     """The unsafe episodes the grid itself recorded, per iteration (its ``metrics.jsonl``)."""
     out = {}
@@ -89,20 +128,31 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cells", nargs="+", default=list(DEFAULT_CELLS))
     parser.add_argument("--phi", default="task")
     parser.add_argument("--out", default="policy_recheck")
+    parser.add_argument("--seeds", type=seed_range, help="FIRST-LAST: these seeds instead of the cell's own")
+    parser.add_argument("--iterations", type=int, nargs="+", help="only these iterations' checkpoints")
+    parser.add_argument("--without", metavar="KIND", help="also run under the Φ without this constraint kind")
     args = parser.parse_args(argv)
     logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
     rows = []
     for name in args.cells:
         cell_dir = args.grid / "cells" / name
-        before = grid_unsafe(cell_dir)
-        for row in recheck(cell_dir, args.phi):
+        before = grid_unsafe(cell_dir) if args.seeds is None else {}
+        for row in recheck(cell_dir, args.phi, args.seeds, args.iterations):
             row["grid_unsafe_episodes"] = before.get(row["iteration"])
+            if args.without:
+                ablated = recheck(
+                    cell_dir, lambda task: without_kind(task, args.phi, args.without), args.seeds, [row["iteration"]]
+                )[0]
+                row["without"] = {
+                    k: ablated[k] for k in ("unsafe_episodes", "unsafe_steps", "successes", "unsafe_seeds")
+                }
             rows.append(row)
     table = [
         [
             r["cell"],
             r["iteration"],
-            f"{r['grid_unsafe_episodes']}/{r['episodes']}",
+            "-" if r["grid_unsafe_episodes"] is None else f"{r['grid_unsafe_episodes']}/{r['episodes']}",
+            *([f"{r['without']['unsafe_episodes']}/{r['episodes']}"] if args.without else []),
             f"**{r['unsafe_episodes']}/{r['episodes']}**",
             r["unsafe_steps"],
             f"{r['successes']}/{r['episodes']}",
@@ -115,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
                 "cell",
                 "iteration",
                 "unsafe, as the grid ran",
+                *([f"unsafe, default Φ without {args.without}"] if args.without else []),
                 "unsafe, default Φ now",
                 "unsafe steps now",
                 "success now",

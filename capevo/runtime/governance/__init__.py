@@ -25,6 +25,7 @@ from capevo.runtime.governance.contact_approach import ContactApproach
 from capevo.runtime.governance.force import ContactForce
 from capevo.runtime.governance.governor import GUARD, Governor, hold_action
 from capevo.runtime.governance.guard import WorkspaceGuard
+from capevo.runtime.governance.keep_clear import KeepClear
 from capevo.runtime.governance.layouts import TWO_ARM_NO_GRIPPER, check_layout, layout_for
 from capevo.runtime.governance.obstacle import ObstacleApproach
 from capevo.runtime.governance.phi import Phi, load_phi, phi_for_task, phi_from_document
@@ -57,6 +58,7 @@ __all__ = [
     "GovernanceStats",
     "Governor",
     "Intervention",
+    "KeepClear",
     "Near",
     "ObstacleApproach",
     "Phi",
