@@ -13,10 +13,10 @@ paper's perturbations, and counts unsafe episodes by the monitor and their reaso
 It re-grades the policies only: training under the new envelope would give other policies, which
 is what a fresh grid run measures.
 
-``--seeds FIRST-LAST`` runs other seeds than the cell's own (more episodes than the grid's 10, to
-see rare contacts), ``--iterations`` picks checkpoints, and ``--without KIND`` also runs every
-episode under the same Φ with the constraints of that kind removed, so one command shows what a
-rule changes on the same policies and seeds.
+``--seeds`` (``FIRST-LAST``, as ``capevo runtime evaluate`` takes them) runs other seeds than the
+cell's own (more episodes than the grid's 10, to see rare contacts), ``--iterations`` picks
+checkpoints, and ``--without KIND`` also runs every episode under the same Φ with the constraints
+of that kind removed, so one command shows what a rule changes on the same policies and seeds.
 
     .venv/bin/python benchmarks/bench_policy_recheck.py --grid results/cpu-small \\
         [--cells T1-am-bc-s42 T6-am-bc-s42 T1-am-s42 T6-am-s42] [--phi task] \\
@@ -101,16 +101,15 @@ def recheck(
     return rows
 
 
-def seed_range(text: str) -> list[int]:
-    """``FIRST-LAST`` (inclusive) as a list of seeds."""
-    first, _, last = text.partition("-")
+def seed_list(text: str) -> list[int]:
+    """``--seeds`` as ``capevo runtime evaluate`` reads it (``0-9,20``)."""
+    from capevo.cli.runtime import parse_seeds
+    from capevo.errors import Invalid
+
     try:
-        lo, hi = int(first), int(last)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected FIRST-LAST, got {text!r}") from None
-    if not 0 <= lo <= hi:
-        raise argparse.ArgumentTypeError(f"expected 0 <= FIRST <= LAST, got {text!r}")
-    return list(range(lo, hi + 1))
+        return parse_seeds(text)
+    except Invalid as err:
+        raise argparse.ArgumentTypeError(err.message) from None
 
 
 def grid_unsafe(cell_dir: Path) -> dict[int, int]:
@@ -128,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cells", nargs="+", default=list(DEFAULT_CELLS))
     parser.add_argument("--phi", default="task")
     parser.add_argument("--out", default="policy_recheck")
-    parser.add_argument("--seeds", type=seed_range, help="FIRST-LAST: these seeds instead of the cell's own")
+    parser.add_argument("--seeds", type=seed_list, help="e.g. 2000042010-2000042039: these instead of the cell's own")
     parser.add_argument("--iterations", type=int, nargs="+", help="only these iterations' checkpoints")
     parser.add_argument("--without", metavar="KIND", help="also run under the Φ without this constraint kind")
     args = parser.parse_args(argv)

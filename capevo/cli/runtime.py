@@ -269,7 +269,12 @@ def _parse_versions(values: tuple[str, ...]) -> dict[str, int]:
     return out
 
 
-def _parse_seeds(text: str) -> list[int]:
+def parse_seeds(text: str) -> list[int]:
+    """Seeds written as numbers and ranges, ``0-9,20`` (inclusive).
+
+    Raises:
+        Invalid: naming ``seeds``, on anything else or on no seed at all.
+    """
     seeds: list[int] = []
     for part in text.split(","):
         part = part.strip()
@@ -359,7 +364,7 @@ def evaluate_cmd(
 
     root_path, endpoints = _where_episodes_run(root, connect)
     pinned = _parse_versions(versions)
-    seed_list = _parse_seeds(seeds)
+    seed_list = parse_seeds(seeds)
     if root_path is not None:
         outcomes = _evaluate_locally(root_path, task, pinned, seed_list, phi=phi, horizon=horizon, actor=user)
     else:
