@@ -16,6 +16,7 @@ import pytest
 from govcheck import violations
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from replay import unsafe_reasons
 
 from capevo.errors import ErrorCode, Invalid
 from capevo.runtime.governance import ArmScene, ContactApproach, KeepClear, Phi, load_phi, make
@@ -165,25 +166,9 @@ def test_the_forearm_a_learned_policy_crept_into_the_bin_at_the_touch_speed_is_k
     (link 5) closed on the bin's rim at contact_approach's touch speed and struck it at 82 N.
     Its proposed actions, replayed open loop under the default Φ without keep_clear, strike the
     bin again; with the rule (the default Φ) no step is unsafe."""
-    from capevo.baselines.governed_env import GovernedTaskEnv
-
     record = json.loads(FOREARM_CREEP.read_text())
     full = Phi.for_task(task_spec("T1"))
-
-    def replay(phi: Phi) -> list[str]:
-        env = GovernedTaskEnv("T1", phi=phi)
-        try:
-            env.reset(seed=record["seed"])
-            reasons: list[str] = []
-            for a in record["actions"]:
-                _, _, terminated, truncated, info = env.step(a)
-                reasons += list(info["unsafe_reasons"])
-                if terminated or truncated:
-                    break
-            return reasons
-        finally:
-            env.close()
-
-    without = replay(Phi(tuple(c for c in full.constraints if not isinstance(c, KeepClear))))
-    assert any("link5" in r for r in without), without
-    assert replay(full) == []
+    without = Phi(tuple(c for c in full.constraints if not isinstance(c, KeepClear)))
+    struck = unsafe_reasons(record["actions"], record["seed"], phi=without)
+    assert any("link5" in r for r in struck), struck
+    assert unsafe_reasons(record["actions"], record["seed"], phi=full) == []

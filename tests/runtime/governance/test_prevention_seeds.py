@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from replay import unsafe_reasons
 
 from capevo.agent import DecompositionPolicy, IdentityMemory
 from capevo.learner.skills import seed_specs
@@ -41,24 +42,6 @@ def test_the_default_envelope_prevents_the_rim_collisions_the_papers_lets_throug
 FOREARM = DATA / "am_t1_forearm_actions.json"
 
 
-def _replay(actions: list[list[float]], seed: int, *, governance: bool) -> list[str]:
-    """The monitor's unsafe reasons over ``actions`` replayed open loop on T1 ``seed``."""
-    from capevo.baselines.governed_env import GovernedTaskEnv
-
-    env = GovernedTaskEnv("T1", phi="task", governance=governance, perturbations=True)
-    try:
-        env.reset(seed=seed)
-        reasons: list[str] = []
-        for a in actions:
-            _, _, terminated, truncated, info = env.step(a)
-            reasons += list(info["unsafe_reasons"])
-            if terminated or truncated:
-                break
-        return reasons
-    finally:
-        env.close()
-
-
 @pytest.mark.slow
 def test_the_default_envelope_brakes_the_forearm_a_learned_policy_drove_into_the_bin() -> None:
     """A learned whole-task policy (the AM baseline of results/cpu-small) twisting its hand drove
@@ -69,9 +52,9 @@ def test_the_default_envelope_brakes_the_forearm_a_learned_policy_drove_into_the
     import json
 
     record = json.loads(FOREARM.read_text())
-    ungoverned = _replay(record["actions"], record["seed"], governance=False)
+    ungoverned = unsafe_reasons(record["actions"], record["seed"], governance=False)
     assert any("link5" in r for r in ungoverned), ungoverned
-    assert _replay(record["actions"], record["seed"], governance=True) == []
+    assert unsafe_reasons(record["actions"], record["seed"]) == []
 
 
 @pytest.mark.slow
