@@ -38,7 +38,8 @@ sideways at 0.2, stayed on the bin floor and still caught it at 29-37 N (seeds 2
 -038); at 0.03 they lift clear. What this rule does not reach: a link whose pair closes because the
 *other* side moves or because OSC's null space swings it faster than a small command can undo. On
 T6 the AM baseline's peg arm meets the plate with link 5 closing at about 2 cm per step, and
-steering the link by its own measured closing speed (tried, not kept) cleared 1 of 7 such seeds.
+steering the link by its measured closing speed (tried, not kept) cleared at most 1 of 7 such seeds
+(``results/safety-keep-clear/README.md``).
 
 Invariants (per arm, after the check alone):
 1. If the arm has exactly one pair in the band with a target (a link pair with ``g · g >= MIN_ROW2``
