@@ -5,8 +5,8 @@ and stays unchanged. :func:`task_constraints` are what
 :func:`~capevo.runtime.governance.phi.phi_for_task` (``Phi.for_task``) adds, before the cap:
 
 * ``keep_clear`` (:data:`KEEP_CLEAR`): a wrist link within 3 mm of anything, or the hand within
-  3 mm of the fixed scene, steered slowly away (the proximity pairs below). It is first because
-  it adds motion where other rules only take it away: every rule after it holds on what it leaves;
+  3 mm of the fixed scene, steered slowly away (the proximity pairs below). It is first: it adds
+  motion, and every rule after it still holds on what it leaves;
 * ``workspace_guard`` on the same box: a braking band inside the margin, an inward push when
   an end effector is outside or within 1 cm of a face, and no turning within the margin;
 * ``force_ramp`` just under the same force limit (:data:`FORCE_MARGIN`): into-contact motion
