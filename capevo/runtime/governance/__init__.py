@@ -21,6 +21,7 @@ from __future__ import annotations
 from capevo.runtime.governance.base import CONSTRAINTS, Check, Constraint, constraint_kinds, make, register
 from capevo.runtime.governance.box import WorkspaceBox
 from capevo.runtime.governance.cap import VelocityCap
+from capevo.runtime.governance.closing_grip import ClosingGrip
 from capevo.runtime.governance.contact_approach import ContactApproach
 from capevo.runtime.governance.force import ContactForce
 from capevo.runtime.governance.governor import GUARD, Governor, hold_action
@@ -50,6 +51,7 @@ __all__ = [
     "ArmScene",
     "ArmSeparation",
     "Check",
+    "ClosingGrip",
     "Constraint",
     "ContactApproach",
     "ContactForce",

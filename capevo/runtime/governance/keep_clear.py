@@ -33,9 +33,14 @@ that would leave [−1, 1] stops at the bound and the others take the rest of th
 
 The settings of the per-task Φ (``KEEP_CLEAR`` in :mod:`~capevo.runtime.governance.task_phi`) are
 hand-written: ``within`` 3 mm, well inside ``contact_approach``'s 5 mm clearance, and ``restore``
-0.03 (about 1.5 mm per step at the pair). At 0.01 the AM-bc baseline's T1 fingertips, dragged
+0.1 (about 5 mm per step at contact). At 0.01 the AM-bc baseline's T1 fingertips, dragged
 sideways at 0.2, stayed on the bin floor and still caught it at 29-37 N (seeds 2000042037 and
--038); at 0.03 they lift clear. What this rule does not reach: a link whose pair closes because the
+-038); at 0.03 they lifted clear, but one fingertip (seed 2000042030) still reached the floor at
+39.5 N, and a hand carrying the can at the edge of its reach sagged about 1 mm per step against
+the push and caught bin 2's rim at 26.9 N (the hand-set T2 set, seed 250018, once
+``closing_grip`` had changed that episode's path). At 0.1 both are clear, and the hand-set sets
+of T1-T5 and the evolved T1-T3 sets keep their held-out successes (``results/safety-keep-clear``).
+What this rule does not reach: a link whose pair closes because the
 *other* side moves or because OSC's null space swings it faster than a small command can undo. On
 T6 the AM baseline's peg arm meets the plate with link 5 closing at about 2 cm per step, and
 steering the link by its measured closing speed (tried, not kept) cleared at most 1 of 7 such seeds
@@ -121,7 +126,7 @@ class KeepClear(ConstraintBase):
     reads_proximity: ClassVar[bool] = True
     """The state must carry proximity pairs (:class:`~capevo.runtime.governance.proximity.ArmScene`)."""
     within: float = 0.003
-    restore: float = 0.03
+    restore: float = 0.1
     name: str | None = None
 
     def __post_init__(self) -> None:

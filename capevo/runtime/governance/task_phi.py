@@ -7,6 +7,8 @@ and stays unchanged. :func:`task_constraints` are what
 * ``keep_clear`` (:data:`KEEP_CLEAR`): a wrist link within 3 mm of anything, or the hand within
   3 mm of the fixed scene, steered slowly away (the proximity pairs below). It is first: it adds
   motion, and every rule after it still holds on what it leaves;
+* ``closing_grip`` (:data:`CLOSING_GRIP`): while a gripper closes on a movable object between its
+  fingers, the hand moves slowly (it is not held yet, so nothing else senses what is under it);
 * ``workspace_guard`` on the same box: a braking band inside the margin, an inward push when
   an end effector is outside or within 1 cm of a face, and no turning within the margin;
 * ``force_ramp`` just under the same force limit (:data:`FORCE_MARGIN`): into-contact motion
@@ -56,6 +58,7 @@ from typing import Any
 from capevo.errors import Invalid
 from capevo.runtime.governance.base import Constraint
 from capevo.runtime.governance.box import WorkspaceBox
+from capevo.runtime.governance.closing_grip import ClosingGrip
 from capevo.runtime.governance.contact_approach import ContactApproach
 from capevo.runtime.governance.force import ContactForce
 from capevo.runtime.governance.guard import WorkspaceGuard
@@ -118,11 +121,15 @@ translation touch speed, link 5 or 6 against the other arm or its plate) and tha
 peg in the plate's hole at 0.04 wedges it (45-66 N with every translation held). With both at
 0.01, that policy's unsafe T6 episodes on its held-out seeds went from 3/10 to 0/10 (iteration 3)
 and from 3/10 to 1/10 (iteration 1; the one step left read 21.3 N, link 5 on link 5)."""
-KEEP_CLEAR: Mapping[str, float] = MappingProxyType({"within": 0.003, "restore": 0.03})
+CLOSING_GRIP: Mapping[str, float] = MappingProxyType({"within": 0.01, "speed": 0.05})
+"""``closing_grip`` settings of every per-task Φ (hand-written; the measurement that calls for the
+rule is in :mod:`capevo.runtime.governance.closing_grip`): while a gripper closes on a movable
+object between its fingers, the hand's translation is at most 0.05 (2.5 mm per step)."""
+KEEP_CLEAR: Mapping[str, float] = MappingProxyType({"within": 0.003, "restore": 0.1})
 """``keep_clear`` settings of every per-task Φ (hand-written; the measurements that call for the
-rule are in :mod:`capevo.runtime.governance.keep_clear`): a wrist link, or the hand near the fixed
-scene, is steered away within 3 mm (inside ``contact_approach``'s 5 mm clearance) at up to 0.03,
-about 1.5 mm per step."""
+rule and for these values are in :mod:`capevo.runtime.governance.keep_clear`): a wrist link, or
+the hand near the fixed scene, is steered away within 3 mm (inside ``contact_approach``'s 5 mm
+clearance) at up to 0.1, about 5 mm per step at contact."""
 FORCE_MARGIN = 2.0
 """Newtons below the paper's 20 N at which ``force_ramp`` ends its ramp and starts backing off.
 Governance reads the wrist sensor with the hand's weight removed but not its acceleration
@@ -264,8 +271,9 @@ def task_constraints(geometry: TaskGeometry, base: Sequence[Constraint]) -> list
     box = next((c for c in base if isinstance(c, WorkspaceBox)), WorkspaceBox())
     force = next((c for c in base if isinstance(c, ContactForce)), ContactForce())
     added: list[Constraint] = [
-        # First: it is the one added rule that adds motion, and every rule after it still holds.
+        # First: it adds motion, and every rule after it still holds on what it leaves.
         KeepClear(**KEEP_CLEAR),
+        ClosingGrip(**CLOSING_GRIP),
         WorkspaceGuard(low=box.low, high=box.high, margin=box.margin),
         ForceRamp(
             max_force=force.max_force - FORCE_MARGIN,

@@ -132,8 +132,9 @@ def _invalid(text: str) -> Invalid:
             "constraints: [{kind: workspace_bx}]",
             "constraints[0].kind",
             "constraints[0].kind: unknown constraint kind 'workspace_bx'; valid kinds: "
-            "arm_separation, contact_approach, contact_force, forbidden_zone, force_ramp, keep_clear, "
-            "obstacle_approach, reach_limit, surface_approach, velocity_cap, workspace_box, workspace_guard",
+            "arm_separation, closing_grip, contact_approach, contact_force, forbidden_zone, force_ramp, "
+            "keep_clear, obstacle_approach, reach_limit, surface_approach, velocity_cap, workspace_box, "
+            "workspace_guard",
         ),
         ("constraints: [{max_norm: 1}]", "constraints[0].kind", "constraints[0].kind: unknown constraint kind None"),
         (
