@@ -25,7 +25,7 @@ Invariants (per arm, after the check alone):
    have ``n_i · n_j < 0``, its translation's norm is at most ``speed`` (to rounding) and points the
    way it did; otherwise the arm is untouched.
 2. Only translation components change; an action no arm asks to change is allowed (None).
-3. A non-finite loose-object pair in the band is ⊥ with a reason.
+3. While the gripper command closes, a non-finite loose-object pair in the band is ⊥ with a reason.
 4. No hard limit of its own (:meth:`ClosingGrip.unsafe` is None): what it prevents shows as force.
 """
 
