@@ -39,7 +39,7 @@ sideways at 0.2, stayed on the bin floor and still caught it at 29-37 N (seeds 2
 39.5 N, and a hand carrying the can at the edge of its reach sagged about 1 mm per step against
 the push and caught bin 2's rim at 26.9 N (the hand-set T2 set, seed 250018, once
 ``closing_grip`` had changed that episode's path). At 0.1 both are clear, and the hand-set sets
-of T1-T5 and the evolved T1-T3 sets keep their held-out successes (``results/safety-keep-clear``).
+of T1-T5 and the evolved T1-T3 sets keep their held-out successes (``results/safety-closing-grip``).
 What this rule does not reach: a link whose pair closes because the
 *other* side moves or because OSC's null space swings it faster than a small command can undo. On
 T6 the AM baseline's peg arm meets the plate with link 5 closing at about 2 cm per step, and
