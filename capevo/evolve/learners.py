@@ -376,7 +376,7 @@ class NeuralUpdater:
                 steps=int(train_report.get("steps") or preset.sac.total_steps),
                 notes={"warm_start": candidate.notes.get("warm_start"), "train": train_report},
             )
-        progress.learner_started(total=preset.bc.epochs, unit="BC epochs")
+        progress.learner_started(total=preset.bc.epochs * (1 + preset.bc.dagger_rounds), unit="BC epochs")
         bc = BcLearner(
             config=preset.bc,
             env_config=env,
@@ -387,14 +387,16 @@ class NeuralUpdater:
         )
         candidate = bc.learn(learn_request)
         demos = dict(candidate.notes.get("demos") or {})
+        dagger = dict(candidate.notes.get("dagger") or {})
         return Proposal(
             learner=bc.learner_id,
             candidate=candidate,
             episodes=int(demos.get("episodes_seen") or 0),
             # the demonstration rows gathered: a lower bound of the env steps BC's scripted
-            # rollouts took (the steps of failed scripted episodes are not kept, so not counted)
-            steps=int(demos.get("new_samples") or demos.get("samples") or 0),
-            notes={"demos": demos, "bc": candidate.notes.get("bc")},
+            # rollouts took (the steps of failed scripted episodes are not kept, so not counted),
+            # plus every step of the clone's own DAgger rollouts (all of them are kept)
+            steps=int(demos.get("new_samples") or demos.get("samples") or 0) + int(dagger.get("env_steps") or 0),
+            notes={"demos": demos, "bc": candidate.notes.get("bc"), "dagger": dagger},
         )
 
     def close(self) -> None:

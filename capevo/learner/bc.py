@@ -86,6 +86,13 @@ class BcConfig:
         net_arch: Hidden layers of a fresh policy (a SAC parent keeps its own).
         seed: Seeds the weights of a fresh policy and the minibatch order.
         min_samples: Demonstration steps needed before cloning (fewer: :class:`Invalid`).
+        dagger_rounds: Rounds of DAgger after the first clone (0: plain behaviour cloning).
+            Each round rolls the clone itself out for ``dagger_episodes`` episodes in the ECM's
+            training environment, labels every observation it visited with the task's scripted
+            reference, adds those rows and clones again (Ross, Gordon & Bagnell 2011,
+            Algorithm 3.1 with β = 0 after the first policy): the clone learns what to do in the
+            states its own mistakes lead to, which plain cloning never shows it.
+        dagger_episodes: Episodes per DAgger round.
 
     Raises:
         Invalid: a value out of range or an unknown loss.
@@ -99,12 +106,19 @@ class BcConfig:
     net_arch: tuple[int, ...] = (256, 256)
     seed: int = 0
     min_samples: int = 1
+    dagger_rounds: int = 0
+    dagger_episodes: int = 10
 
     def __post_init__(self) -> None:
-        for name in ("epochs", "batch_size", "min_samples"):
+        for name in ("epochs", "batch_size", "min_samples", "dagger_episodes"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise Invalid(f"{name} must be a positive integer, got {v!r}", details={"field": name})
+        if isinstance(self.dagger_rounds, bool) or not isinstance(self.dagger_rounds, int) or self.dagger_rounds < 0:
+            raise Invalid(
+                f"dagger_rounds must be a non-negative integer, got {self.dagger_rounds!r}",
+                details={"field": "dagger_rounds"},
+            )
         for name, allow_zero in (("learning_rate", False), ("weight_decay", True)):
             v = getattr(self, name)
             ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
@@ -129,6 +143,8 @@ class BcConfig:
             "net_arch": list(self.net_arch),
             "seed": self.seed,
             "min_samples": self.min_samples,
+            "dagger_rounds": self.dagger_rounds,
+            "dagger_episodes": self.dagger_episodes,
         }
 
 
@@ -373,12 +389,15 @@ def collect_demos(
     source: str = "controller",
     seed: int | None = None,
     should_stop: Callable[[], bool] | None = None,
+    driver: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Demos:
     """Roll ``controller`` out in the ECM's environment and record (ECM observation, action).
 
     Each episode runs until the ECM's step is done, its budget ends, or the controller returns
     None. The controller sees the raw observation dict (``env.obs_dict``); the recorded
-    observation is the ECM's.
+    observation is the ECM's. With a ``driver`` (DAgger's data collection), the driver's action
+    on the ECM observation is the one executed, and the controller only labels the states the
+    driver visits.
 
     Args:
         env: The ECM's training environment.
@@ -388,9 +407,10 @@ def collect_demos(
         source: Recorded in the demos.
         seed: Seed of the first episode (see :class:`EcmEnv`); default continue.
         should_stop: Polled every step; True ends the collection (what was kept so far is returned).
+        driver: ECM observation -> the action to execute; None executes the controller's.
 
     Returns:
-        The demonstrations.
+        The demonstrations (``action``: always the controller's).
     """
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 0:
         raise Invalid(f"episodes must be a non-negative integer, got {episodes!r}", details={"field": "episodes"})
@@ -410,7 +430,8 @@ def collect_demos(
             a = np.clip(np.asarray(action, dtype=np.float32), -1.0, 1.0)
             ep_obs.append(obs)
             ep_act.append(a)
-            obs, _, terminated, truncated, info = env.step(a)
+            executed = a if driver is None else np.clip(np.asarray(driver(obs), dtype=np.float32), -1.0, 1.0)
+            obs, _, terminated, truncated, info = env.step(executed)
             if terminated or truncated or (should_stop is not None and should_stop()):
                 break
         if ep_obs and (info.get("is_success") or not only_successful):
@@ -805,7 +826,28 @@ class BcLearner:
                     episodes_seen=demos.episodes_seen,
                     traces=demos.traces,
                 )
-        report = behaviour_clone(model, demos, self.config, progress=self.progress)
+        rounds = self.config.dagger_rounds
+        total_epochs = self.config.epochs * (1 + rounds)
+        report = behaviour_clone(model, demos, self.config, progress=self._progress_from(0, total_epochs))
+        dagger: list[dict[str, Any]] = []
+        expert = scripted_controller(request.task) if rounds else None
+        for r in range(rounds if expert is not None else 0):
+            more = self._dagger_round(request, target, model, expert, r)
+            dagger.append({"round": r + 1, "episodes": more.episodes_seen, "rows": len(more)})
+            if state is not None:
+                obs, action = state.add_demos(more.obs, more.action)
+                demos = Demos(
+                    obs=obs,
+                    action=action,
+                    source=f"{demos.source}+dagger",
+                    episodes=demos.episodes,
+                    episodes_seen=demos.episodes_seen + more.episodes_seen,
+                    traces=demos.traces,
+                )
+            else:
+                demos = demos.merged(more)
+            progress = self._progress_from(self.config.epochs * (r + 1), total_epochs)
+            report = behaviour_clone(model, demos, self.config, progress=progress)
         self.last_report = report
         candidate = neural_candidate(
             model,
@@ -826,8 +868,50 @@ class BcLearner:
                     "episodes_seen": demos.episodes_seen,
                 },
                 "bc": report.to_dict(),
+                "dagger": {
+                    "rounds": dagger,
+                    "expert": "scripted" if expert is not None else None,
+                    # every step the clone took in its own rollouts is a labelled row
+                    "env_steps": sum(d["rows"] for d in dagger),
+                },
             },
         )
         if state is not None:
             state.save_latest(candidate.artifact)
         return candidate
+
+    def _progress_from(self, done: int, total: int) -> Callable[[int, int, float], Any] | None:
+        """The progress callback, counting epochs over the first clone and every DAgger round."""
+        if self.progress is None:
+            return None
+        progress = self.progress
+        return lambda epoch, _epochs, loss: progress(done + epoch, total, loss)
+
+    def _dagger_round(self, request: LearnRequest, target: EcmTarget, model: Any, expert: Controller, r: int) -> Demos:
+        """One DAgger round: ``model`` acts (deterministically) in the ECM's training environment,
+        the scripted reference labels every observation it visits. Seeds follow the scripted
+        demonstrations' (:class:`EcmEnv` invariant 3), so no round repeats another's episodes."""
+        episodes = self.config.dagger_episodes
+        first = self.env_config.seed + self.scripted_episodes + r * episodes
+        env = make_ecm_env(request.task, target, registry=self.registry, config=self.env_config)
+        try:
+            more = collect_demos(
+                env,
+                expert,
+                episodes=episodes,
+                only_successful=False,
+                source="dagger",
+                seed=first,
+                should_stop=self.should_stop,
+                driver=lambda obs: model.predict(obs, deterministic=True)[0],
+            )
+        finally:
+            env.close()
+        log.info(
+            "%s: DAgger round %d: %d labelled steps from %d episodes of the clone",
+            request.ecm,
+            r + 1,
+            len(more),
+            more.episodes_seen,
+        )
+        return more

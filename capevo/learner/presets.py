@@ -14,10 +14,17 @@ predecessor budget             60          150          200
 code-parent distillation eps   1           5            20
 BC scripted demo episodes      2           20           100
 BC epochs / batch              30 / 64     200 / 256    500 / 1,024
+BC DAgger rounds × episodes    1 × 1       3 × 10       5 × 20
 CEM population / iterations    2 / 1       6 / 3        8 / 5
 CEM episodes per candidate     1           2            4
 shaping α / β / γ              5 / 1 / 1 (all presets; β per simulated second)
 =============================  ==========  ===========  ===========
+
+DAgger (:class:`~capevo.learner.bc.BcConfig`) runs in the ``il`` learner only; the ``rl``
+learner's warm start clones its gathered demonstrations once. cpu-small's 3 × 10 was the one
+setting tried: on T1, cloning reach, grasp and lift one after another from the scripted
+reference gave 17/30 without it and 28/30 with it on seeds 600000–600029
+(``results/evolution/T1-il/dagger.md``).
 
 Invariants:
 1. :func:`make_preset` returns the registered preset of that name, or raises :class:`Invalid`
@@ -116,7 +123,7 @@ def _tiny() -> Preset:
     return Preset(
         name="tiny",
         sac=SacConfig(total_steps=200, buffer_size=10_000, batch_size=32, learning_starts=50, net_arch=(64, 64)),
-        bc=BcConfig(epochs=30, batch_size=64, net_arch=(64, 64)),
+        bc=BcConfig(epochs=30, batch_size=64, net_arch=(64, 64), dagger_rounds=1, dagger_episodes=1),
         # 60, not 40: under the default envelope the scripted reach takes 37-49 steps (braking
         # near the can and the rim), so 40-step demonstrations ended before any hand-off.
         env=EcmEnvConfig(max_steps=60, prefix_budget=60, seed_base=TRAIN_SEED_BASE),
@@ -134,7 +141,7 @@ def _cpu_small() -> Preset:
     return Preset(
         name="cpu-small",
         sac=SacConfig(total_steps=5_000, buffer_size=100_000, batch_size=256, learning_starts=500),
-        bc=BcConfig(epochs=200, batch_size=256),
+        bc=BcConfig(epochs=200, batch_size=256, dagger_rounds=3, dagger_episodes=10),
         env=EcmEnvConfig(max_steps=150, prefix_budget=150, seed_base=TRAIN_SEED_BASE),
         shaping=RewardShaping(),
         distill_episodes=5,
@@ -150,7 +157,7 @@ def _paper() -> Preset:
     return Preset(
         name="paper",
         sac=SacConfig(total_steps=1_000_000, buffer_size=1_000_000, batch_size=4096, learning_starts=10_000),
-        bc=BcConfig(epochs=500, batch_size=1024),
+        bc=BcConfig(epochs=500, batch_size=1024, dagger_rounds=5, dagger_episodes=20),
         env=EcmEnvConfig(max_steps=200, prefix_budget=200, seed_base=TRAIN_SEED_BASE),
         shaping=RewardShaping(),
         distill_episodes=20,

@@ -267,7 +267,7 @@ def _il(ctx: LearnerContext) -> Iterator[Any]:
     from capevo.learner.bc import BcLearner
 
     p = ctx.preset
-    with _progress_bar(ctx.progress_bar, f"cloning {ctx.ecm}", p.bc.epochs) as advance:
+    with _progress_bar(ctx.progress_bar, f"cloning {ctx.ecm}", p.bc.epochs * (1 + p.bc.dagger_rounds)) as advance:
         yield BcLearner(
             config=p.bc,
             env_config=p.env,

@@ -98,6 +98,64 @@ def test_failed_episodes_are_dropped_unless_asked_for(reach_env: EcmEnv) -> None
 
 
 @pytest.mark.slow
+def test_a_driver_acts_while_the_controller_only_labels(reach_env: EcmEnv) -> None:
+    """DAgger's data: the states the driver visits, each labelled with the controller's action."""
+    labels: list[np.ndarray] = []
+
+    def expert(obs: Any) -> np.ndarray:
+        labels.append(np.clip(np.asarray(REFERENCES["pick"](obs), dtype=np.float32), -1, 1))
+        return labels[-1]
+
+    def idle(obs: np.ndarray) -> np.ndarray:
+        return np.zeros(7, dtype=np.float32)
+
+    driven = collect_demos(reach_env, expert, episodes=1, seed=0, only_successful=False, driver=idle)
+    # the idle driver never reaches the can: the episode runs the ECM's whole budget, every step kept
+    assert (len(driven), driven.episodes, driven.episodes_seen) == (ENV_CONFIG.max_steps, 1, 1)
+    np.testing.assert_array_equal(driven.action, np.stack(labels))
+    # the expert would have moved the hand towards the can; the driver kept it where it started
+    assert np.linalg.norm(driven.action[-1, :3]) > 0.1
+    np.testing.assert_allclose(driven.obs[-1], driven.obs[0], atol=0.05)
+    alone = collect_demos(reach_env, expert, episodes=1, seed=0, only_successful=False)
+    assert len(alone) < ENV_CONFIG.max_steps  # the expert alone finishes the step
+
+
+@pytest.mark.slow
+def test_dagger_rounds_add_the_clones_own_states_labelled_by_the_expert(tmp_path: Path) -> None:
+    reg = LocalRegistry(tmp_path / "registry", actor="tests")
+    try:
+        seed_registry(reg, "pick")
+        request = request_for(reg, "pick", ECM, train_seeds=[1])
+        config = BcConfig(epochs=20, batch_size=32, net_arch=(64, 64), seed=0, dagger_rounds=2, dagger_episodes=2)
+        epochs: list[tuple[int, int]] = []
+        learner = BcLearner(
+            config=config,
+            env_config=ENV_CONFIG,
+            registry=reg,
+            scripted_episodes=2,
+            progress=lambda epoch, total, _loss: epochs.append((epoch, total)),
+        )
+        cand = learner.learn(request)
+        dagger = cand.notes["dagger"]
+        assert dagger["expert"] == "scripted" and [r["round"] for r in dagger["rounds"]] == [1, 2]
+        assert [r["episodes"] for r in dagger["rounds"]] == [2, 2]
+        assert all(1 <= r["rows"] <= 2 * ENV_CONFIG.max_steps for r in dagger["rounds"])
+        assert dagger["env_steps"] == sum(r["rows"] for r in dagger["rounds"])
+        # the last clone is fitted on the scripted rows and every round's rows
+        assert cand.notes["bc"]["samples"] == cand.notes["demos"]["new_samples"] + dagger["env_steps"]
+        assert epochs == [(e, 60) for e in range(1, 61)]
+        plain = BcLearner(
+            config=BcConfig(epochs=20, batch_size=32, net_arch=(64, 64), seed=0),
+            env_config=ENV_CONFIG,
+            registry=reg,
+            scripted_episodes=2,
+        ).learn(request)
+        assert plain.notes["dagger"] == {"rounds": [], "expert": None, "env_steps": 0}
+    finally:
+        reg.close()
+
+
+@pytest.mark.slow
 def test_cloning_reduces_the_imitation_loss_and_yields_a_loadable_sac_zip(demos: Demos) -> None:
     model = offline_sac(TARGET.interface, 7, net_arch=BC.net_arch, seed=1)
     critics = {k: v for k, v in policy_state(model).items() if not k.startswith("actor.")}
@@ -191,6 +249,8 @@ def test_bc_learner_turns_a_code_parent_into_an_il_neural_candidate(
         ({"epochs": 0}, "epochs", "epochs must be a positive integer, got 0"),
         ({"loss": "l1"}, "loss", "unknown loss 'l1'; valid: mse, nll"),
         ({"learning_rate": 0.0}, "learning_rate", "learning_rate must be a finite number > 0, got 0.0"),
+        ({"dagger_rounds": -1}, "dagger_rounds", "dagger_rounds must be a non-negative integer, got -1"),
+        ({"dagger_episodes": 0}, "dagger_episodes", "dagger_episodes must be a positive integer, got 0"),
     ],
 )
 def test_bad_bc_settings_are_refused(kwargs: dict, field: str, text: str) -> None:
