@@ -105,6 +105,18 @@ def test_sac_throughput_benchmark_measures_each_part_and_estimates_the_paper_bud
     assert json.loads((results_in / "sac_throughput.json").read_text())["steps"] == 20
 
 
+def test_dagger_diagnosis_composes_clones_and_records_the_learners_env_steps(results_in: Path) -> None:
+    import diag_bc_dagger
+
+    assert diag_bc_dagger.main(["--preset", "tiny", "--rounds", "1", "--episodes", "1", "--eval-episodes", "2"]) == 0
+    (row,) = json.loads((results_in / "bc_dagger.json").read_text())
+    assert list(row["ecms"]) == ["pick.reach", "pick.grasp", "pick.lift"]
+    assert all(len(e["dagger"]["rounds"]) == 1 for e in row["ecms"].values())
+    spent = sum(e["demos"]["new_samples"] + e["dagger"]["env_steps"] for e in row["ecms"].values())
+    assert row["learner_env_steps"] == spent > 0
+    assert row["seeds"] == "600000-600001" and len(row["success"]) == len(row["unsafe"]) == 2
+
+
 def test_sac_warm_start_diagnosis_clones_then_trains_and_records_each_stage(results_in: Path) -> None:
     import diag_sac_warm_start
 
