@@ -39,7 +39,7 @@ FIRST_SEED = 600_000
 
 
 def run(
-    rounds: int, episodes: int, work: Path, *, preset_name: str = "cpu-small", eval_episodes: int = 30
+    rounds: int, episodes: int, work: Path, *, preset_name: str = "cpu-small", eval_episodes: int = 30, seed: int = 0
 ) -> dict[str, Any]:
     import torch
 
@@ -54,14 +54,15 @@ def run(
 
     torch.set_num_threads(1)
     seeds = range(FIRST_SEED, FIRST_SEED + eval_episodes)
-    preset = make_preset(preset_name).with_seed(0).with_perturbations(Perturbations())
+    preset = make_preset(preset_name).with_seed(seed).with_perturbations(Perturbations())
     config = dataclasses.replace(preset.bc, dagger_rounds=rounds, dagger_episodes=episodes)
-    env = dataclasses.replace(preset.env, phi="task")
+    # training episodes of seed s start 1,000 episodes after those of seed s - 1: no overlap
+    env = dataclasses.replace(preset.env, phi="task", seed=1000 * seed)
     spec = task_spec("T1")
-    row: dict[str, Any] = {"preset": preset_name, "rounds": rounds, "episodes": episodes, "ecms": {}}
+    row: dict[str, Any] = {"preset": preset_name, "seed": seed, "rounds": rounds, "episodes": episodes, "ecms": {}}
     started = time.perf_counter()
     with LocalRegistry(work / "data", actor="diag") as reg:
-        ensure_v0(reg, "T1", modality="il")
+        ensure_v0(reg, "T1", modality="il", seed=seed)
         for ecm in spec.ecm_names:
             request = LearnRequest(
                 task=spec.name, ecm=ecm, parent=reg.get_version(ecm), source="", train_seeds=(), outcomes=()
@@ -94,10 +95,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=10, help="episodes per DAgger round")
     parser.add_argument("--preset", default="cpu-small", help="learner preset (capevo.learner.presets)")
     parser.add_argument("--eval-episodes", type=int, default=30, help="evaluation episodes, from seed 600000")
+    parser.add_argument(
+        "--seed", type=int, default=0, help="seeds v0's weights and cloning; training episodes start at 1,000 × SEED"
+    )
     parser.add_argument("--out", default="bc_dagger", help="benchmarks/results/<out>.json")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="capevo-dagger-") as tmp:
-        row = run(args.rounds, args.episodes, Path(tmp), preset_name=args.preset, eval_episodes=args.eval_episodes)
+        row = run(
+            args.rounds,
+            args.episodes,
+            Path(tmp),
+            preset_name=args.preset,
+            eval_episodes=args.eval_episodes,
+            seed=args.seed,
+        )
     row["machine"] = _common.machine()
     path = _common.RESULTS_DIR / f"{args.out}.json"
     rows = json.loads(path.read_text()) if path.exists() else []
