@@ -16,6 +16,7 @@ envelope and the paper's perturbations, as ``capevo evolve --modality il`` uses 
 
     .venv/bin/python benchmarks/diag_bc_dagger.py --rounds 0
     .venv/bin/python benchmarks/diag_bc_dagger.py --rounds 3 --episodes 10
+    .venv/bin/python benchmarks/diag_bc_dagger.py --rounds 0 --scripted 50   # as many episodes, no DAgger
 
 Each run appends one row to ``benchmarks/results/bc_dagger.json`` and prints it.
 """
@@ -39,7 +40,14 @@ FIRST_SEED = 600_000
 
 
 def run(
-    rounds: int, episodes: int, work: Path, *, preset_name: str = "cpu-small", eval_episodes: int = 30, seed: int = 0
+    rounds: int,
+    episodes: int,
+    work: Path,
+    *,
+    preset_name: str = "cpu-small",
+    eval_episodes: int = 30,
+    seed: int = 0,
+    scripted: int | None = None,
 ) -> dict[str, Any]:
     import torch
 
@@ -59,7 +67,15 @@ def run(
     # training episodes of seed s start 1,000 episodes after those of seed s - 1: no overlap
     env = dataclasses.replace(preset.env, phi="task", seed=1000 * seed)
     spec = task_spec("T1")
-    row: dict[str, Any] = {"preset": preset_name, "seed": seed, "rounds": rounds, "episodes": episodes, "ecms": {}}
+    scripted = preset.scripted_episodes if scripted is None else scripted
+    row: dict[str, Any] = {
+        "preset": preset_name,
+        "seed": seed,
+        "scripted": scripted,
+        "rounds": rounds,
+        "episodes": episodes,
+        "ecms": {},
+    }
     started = time.perf_counter()
     with LocalRegistry(work / "data", actor="diag") as reg:
         ensure_v0(reg, "T1", modality="il", seed=seed)
@@ -67,7 +83,7 @@ def run(
             request = LearnRequest(
                 task=spec.name, ecm=ecm, parent=reg.get_version(ecm), source="", train_seeds=(), outcomes=()
             )
-            learner = BcLearner(config=config, env_config=env, registry=reg, scripted_episodes=preset.scripted_episodes)
+            learner = BcLearner(config=config, env_config=env, registry=reg, scripted_episodes=scripted)
             candidate = learner.learn(request)
             version = candidate.publish(reg)
             reg.promote(ecm, version.version, reason="diag_bc_dagger: composed clone")
@@ -98,6 +114,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--seed", type=int, default=0, help="seeds v0's weights and cloning; training episodes start at 1,000 × SEED"
     )
+    parser.add_argument(
+        "--scripted", type=int, default=None, help="scripted demonstration episodes per ECM (default: the preset's)"
+    )
     parser.add_argument("--out", default="bc_dagger", help="benchmarks/results/<out>.json")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="capevo-dagger-") as tmp:
@@ -108,6 +127,7 @@ def main(argv: list[str] | None = None) -> int:
             preset_name=args.preset,
             eval_episodes=args.eval_episodes,
             seed=args.seed,
+            scripted=args.scripted,
         )
     row["machine"] = _common.machine()
     path = _common.RESULTS_DIR / f"{args.out}.json"

@@ -344,9 +344,12 @@ class NeuralUpdater:
         if self.modality == "rl":
             if request.max_env_steps is not None and request.max_env_steps != preset.sac.total_steps:
                 # the iteration's step budget (issue 20): SAC trains for what is left of it, no
-                # less (every method of a comparison spends the same budget) and no more
+                # less (every method of a comparison spends the same budget) and no more; so no
+                # DAgger rounds and no check, whose env steps would come on top
                 preset = dataclasses.replace(
-                    preset, sac=dataclasses.replace(preset.sac, total_steps=request.max_env_steps)
+                    preset,
+                    sac=dataclasses.replace(preset.sac, total_steps=request.max_env_steps, check_episodes=0),
+                    bc=dataclasses.replace(preset.bc, dagger_rounds=0),
                 )
             progress.learner_started(total=preset.sac.total_steps, unit="SAC steps")
             # a random-init v0 is first cloned from the scripted reference and the set's successes
@@ -369,12 +372,23 @@ class NeuralUpdater:
             candidate = sac.learn(learn_request)
             progress.learner_advance(preset.sac.total_steps)
             train_report = dict(candidate.notes.get("train") or {})
+            dagger = dict(candidate.notes.get("dagger") or {})
+            check = dict(candidate.notes.get("check") or {})
+            check_steps = sum(int((check.get(k) or {}).get("env_steps") or 0) for k in ("before", "after"))
             return Proposal(
                 learner=sac.learner_id,
                 candidate=candidate,
                 episodes=int(train_report.get("episodes") or 0),
-                steps=int(train_report.get("steps") or preset.sac.total_steps),
-                notes={"warm_start": candidate.notes.get("warm_start"), "train": train_report},
+                # SAC's steps, the clone's DAgger rollouts and the check's episodes
+                steps=int(train_report.get("steps") or preset.sac.total_steps)
+                + int(dagger.get("env_steps") or 0)
+                + check_steps,
+                notes={
+                    "warm_start": candidate.notes.get("warm_start"),
+                    "train": train_report,
+                    "dagger": dagger,
+                    "check": check,
+                },
             )
         progress.learner_started(total=preset.bc.epochs * (1 + preset.bc.dagger_rounds), unit="BC epochs")
         bc = BcLearner(

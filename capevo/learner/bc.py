@@ -16,6 +16,12 @@ Demonstrations (:class:`Demos`: ECM observations and the actions taken) come fro
   runtime's invoker (:func:`ecm_controller`); only episodes where the ECM's step succeeded
   are kept unless asked otherwise.
 
+* the clone's own rollouts (:meth:`BcLearner.clone`, ``BcConfig.dagger_rounds``): DAgger (Ross,
+  Gordon & Bagnell 2011) runs the clone in the ECM's training environment and labels every
+  observation it visits with the scripted reference's action, so the clone also learns how to
+  recover from the states its own errors lead to. What is hand-written here is the expert (the
+  scripted reference) and the round counts; what is learned is the actor.
+
 :func:`behaviour_clone` trains the actor of a stable-baselines3 SAC model on them, so the
 result is an ordinary SAC model zip the neural loader accepts. The loss is the mean squared
 error between the actor's deterministic action (``tanh`` of the Gaussian mean) and the
@@ -826,28 +832,8 @@ class BcLearner:
                     episodes_seen=demos.episodes_seen,
                     traces=demos.traces,
                 )
-        rounds = self.config.dagger_rounds
-        total_epochs = self.config.epochs * (1 + rounds)
-        report = behaviour_clone(model, demos, self.config, progress=self._progress_from(0, total_epochs))
-        dagger: list[dict[str, Any]] = []
-        expert = scripted_controller(request.task) if rounds else None
-        for r in range(rounds if expert is not None else 0):
-            more = self._dagger_round(request, target, model, expert, r)
-            dagger.append({"round": r + 1, "episodes": more.episodes_seen, "rows": len(more)})
-            if state is not None:
-                obs, action = state.add_demos(more.obs, more.action)
-                demos = Demos(
-                    obs=obs,
-                    action=action,
-                    source=f"{demos.source}+dagger",
-                    episodes=demos.episodes,
-                    episodes_seen=demos.episodes_seen + more.episodes_seen,
-                    traces=demos.traces,
-                )
-            else:
-                demos = demos.merged(more)
-            progress = self._progress_from(self.config.epochs * (r + 1), total_epochs)
-            report = behaviour_clone(model, demos, self.config, progress=progress)
+        add_rows = (lambda more: state.add_demos(more.obs, more.action)) if state is not None else None
+        demos, report, dagger = self.clone(model, request, target, demos, add_rows=add_rows)
         self.last_report = report
         candidate = neural_candidate(
             model,
@@ -868,17 +854,68 @@ class BcLearner:
                     "episodes_seen": demos.episodes_seen,
                 },
                 "bc": report.to_dict(),
-                "dagger": {
-                    "rounds": dagger,
-                    "expert": "scripted" if expert is not None else None,
-                    # every step the clone took in its own rollouts is a labelled row
-                    "env_steps": sum(d["rows"] for d in dagger),
-                },
+                "dagger": dagger,
             },
         )
         if state is not None:
             state.save_latest(candidate.artifact)
         return candidate
+
+    def clone(
+        self,
+        model: Any,
+        request: LearnRequest,
+        target: EcmTarget,
+        demos: Demos,
+        *,
+        config: BcConfig | None = None,
+        add_rows: Callable[[Demos], tuple[np.ndarray, np.ndarray]] | None = None,
+    ) -> tuple[Demos, BcReport, dict[str, Any]]:
+        """Fit ``model``'s actor to ``demos``, then run ``config.dagger_rounds`` rounds of DAgger
+        (see :class:`BcConfig`) with the task's scripted reference as the expert (none: no rounds).
+
+        Args:
+            model: The SAC model whose actor is fitted (in place).
+            request: The ECM and task.
+            target: The ECM's training target.
+            demos: The demonstrations to start from.
+            config: Cloning settings (default: this learner's).
+            add_rows: Keeps each round's rows and returns every row so far (the learner's
+                state); None merges them in memory.
+
+        Returns:
+            The demonstrations the last fit used, its report, and the DAgger record (``rounds``,
+            ``expert``, ``env_steps``).
+        """
+        config = config or self.config
+        total_epochs = config.epochs * (1 + config.dagger_rounds)
+        report = behaviour_clone(model, demos, config, progress=self._progress_from(0, total_epochs))
+        rounds: list[dict[str, Any]] = []
+        expert = scripted_controller(request.task) if config.dagger_rounds else None
+        for r in range(config.dagger_rounds if expert is not None else 0):
+            more = self._dagger_round(request, target, model, expert, r, config.dagger_episodes)
+            rounds.append({"round": r + 1, "episodes": more.episodes_seen, "rows": len(more)})
+            if add_rows is not None:
+                obs, action = add_rows(more)
+                demos = Demos(
+                    obs=obs,
+                    action=action,
+                    source=f"{demos.source}+dagger",
+                    episodes=demos.episodes,
+                    episodes_seen=demos.episodes_seen + more.episodes_seen,
+                    traces=demos.traces,
+                )
+            else:
+                demos = demos.merged(more)
+            progress = self._progress_from(config.epochs * (r + 1), total_epochs)
+            report = behaviour_clone(model, demos, config, progress=progress)
+        dagger = {
+            "rounds": rounds,
+            "expert": "scripted" if expert is not None else None,
+            # every step the clone took in its own rollouts is a labelled row
+            "env_steps": sum(d["rows"] for d in rounds),
+        }
+        return demos, report, dagger
 
     def _progress_from(self, done: int, total: int) -> Callable[[int, int, float], Any] | None:
         """The progress callback, counting epochs over the first clone and every DAgger round."""
@@ -887,11 +924,12 @@ class BcLearner:
         progress = self.progress
         return lambda epoch, _epochs, loss: progress(done + epoch, total, loss)
 
-    def _dagger_round(self, request: LearnRequest, target: EcmTarget, model: Any, expert: Controller, r: int) -> Demos:
+    def _dagger_round(
+        self, request: LearnRequest, target: EcmTarget, model: Any, expert: Controller, r: int, episodes: int
+    ) -> Demos:
         """One DAgger round: ``model`` acts (deterministically) in the ECM's training environment,
         the scripted reference labels every observation it visits. Seeds follow the scripted
         demonstrations' (:class:`EcmEnv` invariant 3), so no round repeats another's episodes."""
-        episodes = self.config.dagger_episodes
         first = self.env_config.seed + self.scripted_episodes + r * episodes
         env = make_ecm_env(request.task, target, registry=self.registry, config=self.env_config)
         try:

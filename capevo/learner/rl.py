@@ -37,6 +37,7 @@ Invariants:
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import os
@@ -102,6 +103,14 @@ class SacConfig:
         ent_coef: ``"auto"`` (tuned) or a fixed entropy coefficient.
         net_arch: Hidden layers of a fresh policy (a SAC parent keeps its own).
         seed: Seeds weights, exploration and the first training episode.
+        check_episodes: Episodes of the learner's own check (0: none). When the actor starts
+            from learned weights (a clone, a distilled code parent, a neural parent or the
+            learner's latest candidate), the deterministic actor runs this many episodes of the
+            ECM's step before and after SAC, on training seeds SAC's episodes do not reach
+            (:data:`CHECK_SEED_OFFSET`); if SAC's actor reaches the ECM's termination in fewer of
+            them, the actor falls back to its weights from before SAC (the critics and the
+            replay buffer keep what SAC learned). A learner should not hand the gate a policy
+            that it has itself seen do worse than the one it started from.
 
     Raises:
         Invalid: a value out of range.
@@ -119,9 +128,11 @@ class SacConfig:
     ent_coef: str | float = "auto"
     net_arch: tuple[int, ...] = (256, 256)
     seed: int = 0
+    check_episodes: int = 0
 
     def __post_init__(self) -> None:
         _check_int("total_steps", self.total_steps, 1)
+        _check_int("check_episodes", self.check_episodes, 0)
         _check_int("buffer_size", self.buffer_size, 1)
         _check_int("batch_size", self.batch_size, 1)
         _check_int("learning_starts", self.learning_starts, 0)
@@ -149,6 +160,7 @@ class SacConfig:
             **self.sac_kwargs(),
             "net_arch": list(self.net_arch),
             "seed": self.seed,
+            "check_episodes": self.check_episodes,
         }
 
     def sac_kwargs(self) -> dict[str, Any]:
@@ -278,6 +290,43 @@ class TrainReport:
             "prefilled": self.prefilled,
             "distill": self.distill.to_dict() if self.distill is not None else None,
         }
+
+
+CHECK_SEED_OFFSET = 400
+"""First check episode, counted from the learner's training seed (:class:`EcmEnv` invariant 3):
+SAC's own episodes, the scripted demonstrations and DAgger's rounds of one update stay below it at
+the presets' budgets, and each iteration's training window holds 500 (``training_seed_window``)."""
+
+
+@dataclass(frozen=True, slots=True)
+class ActorCheck:
+    """The deterministic actor on the learner's check episodes: the ECM's own success."""
+
+    successes: int
+    episodes: int
+    env_steps: int
+
+    def to_dict(self) -> dict[str, int]:
+        return {"successes": self.successes, "episodes": self.episodes, "env_steps": self.env_steps}
+
+
+def check_actor(model: Any, env: EcmEnv, *, episodes: int, first_seed: int) -> ActorCheck:
+    """Run ``model``'s deterministic actor for ``episodes`` episodes of ``env`` from ``first_seed``.
+
+    ``env_steps`` counts every simulated step, the predecessors' before the ECM takes over too.
+    """
+    successes = steps = 0
+    for k in range(episodes):
+        obs, info = env.reset(seed=first_seed + k)
+        steps += int(info.get("prefix_steps") or 0)
+        done = False
+        while not done:
+            action, _ = model.predict(obs, deterministic=True)
+            obs, _, terminated, truncated, info = env.step(action)
+            steps += 1
+            done = terminated or truncated
+        successes += bool(info.get("is_success"))
+    return ActorCheck(successes=successes, episodes=episodes, env_steps=steps)
 
 
 PROGRESS_EVERY = 10
@@ -443,6 +492,13 @@ class SacLearner:
         self._make_env = make_env
         self.last_report: TrainReport | None = None
         self.last_model: Any = None
+        self.last_dagger: dict[str, Any] | None = None
+
+    def _check(self, model: Any, env: EcmEnv | None) -> ActorCheck | None:
+        if env is None:
+            return None
+        first = self.env_config.seed + CHECK_SEED_OFFSET
+        return check_actor(model, env, episodes=self.config.check_episodes, first_seed=first)
 
     def _env(self, task: str, target: EcmTarget) -> EcmEnv:
         if self._make_env is not None:
@@ -507,7 +563,8 @@ class SacLearner:
             return self._learn(request, parent_artifact)
 
     def _cloned(self, model: Any, request: LearnRequest, target: EcmTarget) -> BcReport | None:
-        """Clone :attr:`bc`'s demonstrations into a randomly initialised actor."""
+        """Clone :attr:`bc`'s demonstrations into a randomly initialised actor, with the DAgger
+        rounds of :attr:`distill` (:meth:`BcLearner.clone`)."""
         if self.bc is None:
             return None
         try:
@@ -515,7 +572,7 @@ class SacLearner:
         except Invalid as exc:  # no scripted reference and no successful trace yet (T4-T6)
             log.warning("%s: nothing to clone (%s); SAC starts from the random v0", request.ecm, exc.message)
             return None
-        report = behaviour_clone(model, demos, self.distill)
+        demos, report, self.last_dagger = self.bc.clone(model, request, target, demos, config=self.distill)
         log.info(
             "%s: cloned %d demonstration steps (%s) into the random v0: loss %.4f -> %.4f",
             request.ecm,
@@ -543,6 +600,7 @@ class SacLearner:
             start = latest if latest is not None else (artifact if neural_parent else None)
             model = build_sac(shaped, self.config, parent_artifact=start)
             distilled = None
+            self.last_dagger = None
             kept = 0
             if latest is not None and state is not None:
                 kept = state.load_replay(model)
@@ -558,13 +616,37 @@ class SacLearner:
                 if paths
                 else 0
             )
-            report = train_sac(
-                model,
-                self.config.total_steps,
-                progress_bar=self.progress_bar,
-                should_stop=self.should_stop,
-                progress=self.progress,
-            )
+            learned_start = latest is not None or distilled is not None or request.parent.origin is not Origin.MANUAL
+            check_env = self._env(request.task, target) if self.config.check_episodes and learned_start else None
+            try:
+                before = self._check(model, check_env)
+                actor_before = copy.deepcopy(model.actor.state_dict()) if before is not None else None
+                report = train_sac(
+                    model,
+                    self.config.total_steps,
+                    progress_bar=self.progress_bar,
+                    should_stop=self.should_stop,
+                    progress=self.progress,
+                )
+                after = self._check(model, check_env)
+            finally:
+                if check_env is not None:
+                    check_env.close()
+            check = None
+            if before is not None and after is not None:
+                keep_sac = after.successes >= before.successes
+                if not keep_sac:
+                    model.actor.load_state_dict(actor_before)
+                check = {"before": before.to_dict(), "after": after.to_dict(), "actor": "sac" if keep_sac else "start"}
+                log.info(
+                    "%s: check %d/%d before SAC, %d/%d after: the candidate's actor is %s",
+                    request.ecm,
+                    before.successes,
+                    before.episodes,
+                    after.successes,
+                    after.episodes,
+                    "SAC's" if keep_sac else "the one before SAC",
+                )
             report = TrainReport(
                 steps=report.steps,
                 seconds=report.seconds,
@@ -602,6 +684,8 @@ class SacLearner:
                 "warm_start": _warm_start_note(latest is not None, neural_parent, distilled),
                 "replay_kept": kept,
                 "train": report.to_dict(),
+                "dagger": self.last_dagger,
+                "check": check,
             },
         )
         if state is not None:

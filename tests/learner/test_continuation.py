@@ -129,6 +129,42 @@ def test_sac_on_a_random_v0_starts_from_a_cloned_actor(registry: LocalRegistry) 
 
 
 @pytest.mark.slow
+def test_sac_clones_with_dagger_and_its_check_keeps_the_better_actor(registry: LocalRegistry) -> None:
+    """The clone runs DAgger rounds, and the candidate's actor is the one its check (before and
+    after SAC, on the same seeds) did not see do worse: re-running the check on the candidate
+    gives the kept side's figure."""
+    from capevo.learner.ecm_env import make_ecm_env, target_for
+    from capevo.learner.rl import CHECK_SEED_OFFSET, check_actor
+
+    bc_config = BcConfig(epochs=5, batch_size=32, net_arch=(32, 32), seed=0, dagger_rounds=1, dagger_episodes=1)
+    sac_config = SacConfig(
+        total_steps=60, buffer_size=1_000, batch_size=16, learning_starts=20, net_arch=(32, 32), check_episodes=2
+    )
+    bc = BcLearner(config=bc_config, env_config=ENV_CONFIG, registry=registry, scripted_episodes=2)
+    learner = SacLearner(
+        config=sac_config, env_config=ENV_CONFIG, registry=registry, bc=bc, distill=bc_config, torch_threads=1
+    )
+    cand = learner.learn(_request(registry))
+    assert cand.notes["warm_start"] == "cloned"
+    (round_1,) = cand.notes["dagger"]["rounds"]
+    assert round_1["episodes"] == 1 and round_1["rows"] == cand.notes["dagger"]["env_steps"] > 0
+    check = cand.notes["check"]
+    for side in ("before", "after"):
+        assert check[side]["episodes"] == 2 and check[side]["env_steps"] >= 2
+    kept = "sac" if check["after"]["successes"] >= check["before"]["successes"] else "start"
+    assert check["actor"] == kept
+    env = make_ecm_env("T1", target_for("T1", ECM), registry=registry, config=ENV_CONFIG)
+    try:
+        again = check_actor(learner.last_model, env, episodes=2, first_seed=ENV_CONFIG.seed + CHECK_SEED_OFFSET)
+    finally:
+        env.close()
+    assert again.to_dict() == check["after" if kept == "sac" else "before"]
+    # a random-init v0 with nothing cloned has no learned start to check against
+    bare = SacLearner(config=sac_config, env_config=ENV_CONFIG, registry=registry, torch_threads=1)
+    assert bare.learn(_request(registry)).notes["check"] is None
+
+
+@pytest.mark.slow
 def test_bc_keeps_every_demonstration_and_continues_from_its_latest(registry: LocalRegistry, tmp_path: Path) -> None:
     state_dir = tmp_path / "state"
     learner = BcLearner(config=BC, env_config=ENV_CONFIG, registry=registry, scripted_episodes=1, state_dir=state_dir)

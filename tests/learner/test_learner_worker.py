@@ -99,7 +99,9 @@ def test_once_publishes_an_il_candidate_with_provenance(server: Server) -> None:
     assert record.provenance.learner_id == "il-proc-1" == record.created_by
     assert HEX64.match(record.provenance.config_hash or "")
     assert event["provenance"] == record.provenance.to_dict()
-    assert event["notes"]["demos"]["source"] == "scripted"
+    # the tiny preset's one DAgger round adds the clone's own states, labelled by the reference
+    assert event["notes"]["demos"]["source"] == "scripted+dagger"
+    assert [r["round"] for r in event["notes"]["dagger"]["rounds"]] == [1]
 
 
 def test_two_learners_at_once_publish_distinct_versions(server: Server, tmp_path: Path) -> None:
@@ -165,7 +167,7 @@ def test_watch_mode_learns_when_episodes_arrive_and_stops_on_sigterm(server: Ser
         assert (trigger["reason"], trigger["new_episodes"], trigger["active"]) == ("count", 2, 0)
         published = events[-1]
         # the watched traces' successful steps, and the scripted reference's rollouts beside them
-        assert published["notes"]["demos"]["source"] == "traces+scripted"
+        assert published["notes"]["demos"]["source"] == "traces+scripted+dagger"  # tiny: one DAgger round
         assert published["provenance"]["traces"] == [str((traces / "pick-watch.mcap").resolve())]
         learner.proc.send_signal(signal.SIGTERM)
         stopped = read_events(learner, "stopped", timeout=60)[-1]
