@@ -9,6 +9,7 @@ the code skill and SAC distils and fine-tunes it on the next turn.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +19,7 @@ from evolve_support import PLAN, TASK, make_agent, seeded_registry
 from capevo.errors import Invalid
 from capevo.evolve.config import COMBINED_MODALITIES, MODALITIES, NEURAL_MODALITIES, make_config
 from capevo.evolve.learners import Proposal, TurnUpdater, UpdaterContext, UpdateRequest, modality_names
-from capevo.evolve.loop import ensure_v0
+from capevo.evolve.loop import check_note, ensure_v0
 from capevo.evolve.progress import RecordingProgress
 from capevo.evolve.run import EvolveOptions, run_evolution
 from capevo.experiment.methods import knowledge_of
@@ -116,6 +117,8 @@ def test_hybrid_then_rl_evolves_one_ecm_per_turn(tmp_path: Path) -> None:
     first, second = result.rows
     assert first.learner.startswith("hybrid/") and second.learner.startswith("rl/"), (first.learner, second.learner)
     assert first.learner_steps > 0 and second.learner_steps > 0
+    # SAC started from the distilled code skill, so its check ran before and after training
+    assert re.search(r"check \d/1 before SAC, \d/1 after: the candidate's actor is ", second.update_note or "")
     registry = LocalRegistry(tmp_path / "data", actor="reader")
     kinds = {
         v.version: v.kind for v in (registry.get_version(second.ecm_updated, n) for n in (0, second.candidate_version))
@@ -125,3 +128,13 @@ def test_hybrid_then_rl_evolves_one_ecm_per_turn(tmp_path: Path) -> None:
     assert (tmp_path / "report" / "learner-state" / "rl").is_dir()
     manifest = json.loads((tmp_path / "report" / "run.json").read_text())
     assert manifest["modality"] == "hybrid+rl"
+
+
+def test_the_check_note_says_which_actor_the_candidate_kept() -> None:
+    check = {
+        "before": {"successes": 6, "episodes": 10, "env_steps": 900},
+        "after": {"successes": 4, "episodes": 10, "env_steps": 1100},
+        "actor": "start",
+    }
+    assert check_note(check) == "check 6/10 before SAC, 4/10 after: the candidate's actor is the one before SAC"
+    assert check_note({**check, "actor": "sac"}).endswith("the candidate's actor is SAC's")
