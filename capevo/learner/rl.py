@@ -11,8 +11,13 @@ the robot already does, not from a random policy.
 
 Random-init start (issue 19): when the parent is a randomly initialised neural version 0 (origin
 ``manual``) and a ``bc`` learner is given, the actor is first behaviour-cloned on that learner's
-demonstrations (the scripted reference's rollouts and the current set's successful traces), so
-SAC fine-tunes a policy that already roughly does the job instead of exploring from nothing.
+demonstrations (the scripted reference's rollouts and the current set's successful traces), with
+the DAgger rounds of ``distill`` (:meth:`capevo.learner.bc.BcLearner.clone`), so SAC fine-tunes a
+policy that already roughly does the job instead of exploring from nothing.
+
+Check (``SacConfig.check_episodes``): SAC on T1 undid its cloned warm start within 5,000 steps
+(``results/evolution/T1-rl``), so the learner runs its deterministic actor on a few training
+episodes before and after SAC and keeps the actor from before SAC when SAC's does worse there.
 
 Continuation (issue 19): with a ``state_dir`` (:mod:`capevo.learner.continuation`) the learner
 continues from its own latest candidate (all its parameters) and its replay buffer, whether or
