@@ -342,16 +342,18 @@ class NeuralUpdater:
         env = dataclasses.replace(preset.env, seed_base=base, seed=offset, phi=self.context.config.phi)
         learn_request = self._request(request)
         if self.modality == "rl":
-            if request.max_env_steps is not None and request.max_env_steps != preset.sac.total_steps:
-                # the iteration's step budget (issue 20): SAC trains for what is left of it, no
-                # less (every method of a comparison spends the same budget) and no more; so no
-                # DAgger rounds and no check, whose env steps would come on top
+            # under the iteration's step budget (issue 20) the clone's demonstrations come out of
+            # it and SAC trains on the rest: no less (every method of a comparison spends the same
+            # budget) and no more. DAgger and the check stay off there: their episodes cannot be
+            # cut short to fit a small budget.
+            budget = request.max_env_steps
+            if budget is not None:
                 preset = dataclasses.replace(
                     preset,
-                    sac=dataclasses.replace(preset.sac, total_steps=request.max_env_steps, check_episodes=0),
+                    sac=dataclasses.replace(preset.sac, check_episodes=0),
                     bc=dataclasses.replace(preset.bc, dagger_rounds=0),
                 )
-            progress.learner_started(total=preset.sac.total_steps, unit="SAC steps")
+            progress.learner_started(total=budget or preset.sac.total_steps, unit="SAC steps")
             # a random-init v0 is first cloned from the scripted reference and the set's successes
             clone_from = BcLearner(
                 config=preset.bc,
@@ -368,21 +370,20 @@ class NeuralUpdater:
                 distill_episodes=preset.distill_episodes,
                 bc=clone_from,
                 state_dir=self.context.state_dir,
+                env_step_budget=budget,
             )
             candidate = sac.learn(learn_request)
-            progress.learner_advance(preset.sac.total_steps)
+            progress.learner_advance(budget or preset.sac.total_steps)
             train_report = dict(candidate.notes.get("train") or {})
             dagger = dict(candidate.notes.get("dagger") or {})
             check = dict(candidate.notes.get("check") or {})
-            check_steps = sum(int((check.get(k) or {}).get("env_steps") or 0) for k in ("before", "after"))
             return Proposal(
                 learner=sac.learner_id,
                 candidate=candidate,
                 episodes=int(train_report.get("episodes") or 0),
-                # SAC's steps, the clone's DAgger rollouts and the check's episodes
-                steps=int(train_report.get("steps") or preset.sac.total_steps)
-                + int(dagger.get("env_steps") or 0)
-                + check_steps,
+                # every simulated step: the clone's demonstrations, DAgger, the check and SAC's,
+                # the predecessors' prefixes included
+                steps=int(candidate.notes["env_steps"]["total"]),
                 notes={
                     "warm_start": candidate.notes.get("warm_start"),
                     "train": train_report,
@@ -406,10 +407,9 @@ class NeuralUpdater:
             learner=bc.learner_id,
             candidate=candidate,
             episodes=int(demos.get("episodes_seen") or 0),
-            # the demonstration rows gathered: a lower bound of the env steps BC's scripted
-            # rollouts took (the steps of failed scripted episodes are not kept, so not counted),
-            # plus every step of the clone's own DAgger rollouts (all of them are kept)
-            steps=int(demos.get("new_samples") or demos.get("samples") or 0) + int(dagger.get("env_steps") or 0),
+            # every simulated step of the scripted demonstrations (kept or not) and of DAgger's
+            # rollouts, the predecessors' prefixes included
+            steps=int(candidate.notes["env_steps"]["total"]),
             notes={"demos": demos, "bc": candidate.notes.get("bc"), "dagger": dagger},
         )
 

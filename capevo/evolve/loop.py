@@ -100,16 +100,6 @@ this fraction of its own training episodes."""
 # --- version 0 ----------------------------------------------------------------------------
 
 
-def check_note(check: Mapping[str, Any]) -> str:
-    """The report's words for a SAC learner's check (:class:`capevo.learner.rl.SacConfig`)."""
-    before, after = check["before"], check["after"]
-    kept = "SAC's" if check["actor"] == "sac" else "the one before SAC"
-    return (
-        f"check {before['successes']}/{before['episodes']} before SAC, "
-        f"{after['successes']}/{after['episodes']} after: the candidate's actor is {kept}"
-    )
-
-
 def ensure_v0(
     registry: Registry, task: str, *, modality: str, net_arch: Sequence[int] = (256, 256), seed: int = 0
 ) -> list[EcmVersion]:
@@ -593,6 +583,8 @@ class EvolutionLoop:
         if proposal.notes.get("fallback"):
             note = (note + "; " if note else "") + f"fallback: {proposal.notes['fallback']}"
         if proposal.notes.get("check"):
+            from capevo.learner.rl import check_note
+
             note = (note + "; " if note else "") + check_note(proposal.notes["check"])
         chain, chain_note, spent = self._extend_chain(i, ecm, proposal, outcomes)
         if len(chain) > 1:

@@ -50,6 +50,7 @@ Invariants:
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -167,6 +168,9 @@ class Demos:
     episodes_seen: int = 0
     """Episodes looked at (kept or not)."""
     traces: tuple[str, ...] = ()
+    env_steps: int = 0
+    """Env steps simulated to collect these rows, kept or not, the predecessors' included (0 for
+    rows read from traces of episodes that were run anyway)."""
 
     def __post_init__(self) -> None:
         if self.obs.ndim != 2 or self.action.ndim != 2 or len(self.obs) != len(self.action):
@@ -194,6 +198,7 @@ class Demos:
             episodes=self.episodes + other.episodes,
             episodes_seen=self.episodes_seen + other.episodes_seen,
             traces=tuple(dict.fromkeys((*self.traces, *other.traces))),
+            env_steps=self.env_steps + other.env_steps,
         )
 
 
@@ -416,16 +421,19 @@ def collect_demos(
         driver: ECM observation -> the action to execute; None executes the controller's.
 
     Returns:
-        The demonstrations (``action``: always the controller's).
+        The demonstrations (``action``: always the controller's; ``env_steps``: every step the
+        environment simulated meanwhile, the predecessors' and the discarded episodes' too).
     """
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 0:
         raise Invalid(f"episodes must be a non-negative integer, got {episodes!r}", details={"field": "episodes"})
     obs_rows: list[np.ndarray] = []
     act_rows: list[np.ndarray] = []
-    kept = 0
+    kept = run = 0
+    steps_before = env.env_steps
     for i in range(episodes):
         if should_stop is not None and should_stop():
             break
+        run += 1
         obs, info = env.reset(seed=seed + i if seed is not None else None)
         ep_obs: list[np.ndarray] = []
         ep_act: list[np.ndarray] = []
@@ -446,11 +454,12 @@ def collect_demos(
             kept += 1
     obs_dim = int(env.observation_space.shape[0])
     act_dim = int(env.action_space.shape[0])
+    steps = env.env_steps - steps_before
     if not obs_rows:
         d = Demos.empty(obs_dim, act_dim, source)
-        return Demos(obs=d.obs, action=d.action, source=source, episodes=0, episodes_seen=episodes)
+        return Demos(obs=d.obs, action=d.action, source=source, episodes_seen=run, env_steps=steps)
     o, a = _as_demo_arrays(obs_rows, act_rows, obs_dim, act_dim)
-    return Demos(obs=o, action=a, source=source, episodes=kept, episodes_seen=episodes)
+    return Demos(obs=o, action=a, source=source, episodes=kept, episodes_seen=run, env_steps=steps)
 
 
 # --- cloning -------------------------------------------------------------------------------
@@ -821,17 +830,11 @@ class BcLearner:
         if demos is None:
             demos = self.gather(request, target)
         new_rows = len(demos)
+        gathered_steps = demos.env_steps
         if state is not None:
             obs, action = state.add_demos(demos.obs, demos.action)
             if len(obs) > new_rows:
-                demos = Demos(
-                    obs=obs,
-                    action=action,
-                    source=f"{demos.source}+earlier",
-                    episodes=demos.episodes,
-                    episodes_seen=demos.episodes_seen,
-                    traces=demos.traces,
-                )
+                demos = dataclasses.replace(demos, obs=obs, action=action, source=f"{demos.source}+earlier")
         add_rows = (lambda more: state.add_demos(more.obs, more.action)) if state is not None else None
         demos, report, dagger = self.clone(model, request, target, demos, add_rows=add_rows)
         self.last_report = report
@@ -855,6 +858,11 @@ class BcLearner:
                 },
                 "bc": report.to_dict(),
                 "dagger": dagger,
+                "env_steps": {
+                    "demos": gathered_steps,
+                    "dagger": dagger["env_steps"],
+                    "total": gathered_steps + dagger["env_steps"],
+                },
             },
         )
         if state is not None:
@@ -894,16 +902,18 @@ class BcLearner:
         expert = scripted_controller(request.task) if config.dagger_rounds else None
         for r in range(config.dagger_rounds if expert is not None else 0):
             more = self._dagger_round(request, target, model, expert, r, config.dagger_episodes)
-            rounds.append({"round": r + 1, "episodes": more.episodes_seen, "rows": len(more)})
+            rounds.append(
+                {"round": r + 1, "episodes": more.episodes_seen, "rows": len(more), "env_steps": more.env_steps}
+            )
             if add_rows is not None:
                 obs, action = add_rows(more)
-                demos = Demos(
+                demos = dataclasses.replace(
+                    demos,
                     obs=obs,
                     action=action,
                     source=f"{demos.source}+dagger",
-                    episodes=demos.episodes,
                     episodes_seen=demos.episodes_seen + more.episodes_seen,
-                    traces=demos.traces,
+                    env_steps=demos.env_steps + more.env_steps,
                 )
             else:
                 demos = demos.merged(more)
@@ -912,8 +922,8 @@ class BcLearner:
         dagger = {
             "rounds": rounds,
             "expert": "scripted" if expert is not None else None,
-            # every step the clone took in its own rollouts is a labelled row
-            "env_steps": sum(d["rows"] for d in rounds),
+            # the clone's rollouts, its predecessors' steps included
+            "env_steps": sum(d["env_steps"] for d in rounds),
         }
         return demos, report, dagger
 

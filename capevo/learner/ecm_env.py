@@ -25,7 +25,9 @@ state distribution it will meet and credit only for its own job.
 ``info`` after every step: ``is_success`` (the ECM's termination reached; latched),
 ``task_success``, ``retries`` (times the ECM's applicability predicate stopped holding after it
 held: the runtime's policy would have re-planned), ``interventions`` (governance, this
-episode), ``prefix_steps``, ``ecm_steps`` and ``task_seed``.
+episode), ``prefix_steps``, ``ecm_steps`` and ``task_seed``. :attr:`EcmEnv.env_steps` counts every
+simulated step since the environment was made, the predecessors' (retried prefixes too) and the
+ECM's: what a learner that uses it has spent of an env-step budget.
 
 Invariants:
 1. Observations are float32 of shape ``(sum of input sizes,)``; actions outside [-1, 1] are
@@ -324,6 +326,8 @@ class EcmEnv(gym.Env[np.ndarray, np.ndarray]):
         self._last_action: tuple[float, ...] | None = None
         self._steps = 0
         self._prefix_steps = 0
+        self.env_steps = 0
+        """Every simulated step since this environment was made (prefixes included)."""
         self._success = False
         self._task_success = False
         self._applicable = False
@@ -366,6 +370,7 @@ class EcmEnv(gym.Env[np.ndarray, np.ndarray]):
         executed = np.asarray(executed, dtype=np.float64)
         self._last_action = tuple(float(x) for x in executed)
         _, reward, terminated, truncated, info = self.task_env.step(executed)
+        self.env_steps += 1
         return float(reward), bool(terminated), bool(truncated), info, n
 
     def _holds(self, predicate: Predicate) -> bool:

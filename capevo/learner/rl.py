@@ -47,7 +47,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -320,18 +320,27 @@ def check_actor(model: Any, env: EcmEnv, *, episodes: int, first_seed: int) -> A
 
     ``env_steps`` counts every simulated step, the predecessors' before the ECM takes over too.
     """
-    successes = steps = 0
+    successes = 0
+    steps_before = env.env_steps
     for k in range(episodes):
         obs, info = env.reset(seed=first_seed + k)
-        steps += int(info.get("prefix_steps") or 0)
         done = False
         while not done:
             action, _ = model.predict(obs, deterministic=True)
             obs, _, terminated, truncated, info = env.step(action)
-            steps += 1
             done = terminated or truncated
         successes += bool(info.get("is_success"))
-    return ActorCheck(successes=successes, episodes=episodes, env_steps=steps)
+    return ActorCheck(successes=successes, episodes=episodes, env_steps=env.env_steps - steps_before)
+
+
+def check_note(check: Mapping[str, Any]) -> str:
+    """Words for a learner's check record (``notes["check"]`` of an ``rl`` candidate)."""
+    before, after = check["before"], check["after"]
+    kept = "SAC's" if check["actor"] == "sac" else "the one before SAC"
+    return (
+        f"check {before['successes']}/{before['episodes']} before SAC, "
+        f"{after['successes']}/{after['episodes']} after: the candidate's actor is {kept}"
+    )
 
 
 PROGRESS_EVERY = 10
@@ -453,6 +462,13 @@ class SacLearner:
             (None: SAC starts from the random weights).
         state_dir: Where this learner keeps its latest candidate and replay buffer between
             updates, per ECM (None: every update starts from the parent).
+        env_step_budget: Env steps one :meth:`learn` may simulate in all (issue 20's budget),
+            counted as :attr:`EcmEnv.env_steps` counts them: the clone's demonstrations, DAgger's
+            rounds and the check come first, and SAC trains on what is left. It stops while one
+            more reset's predecessors (``prefix_budget`` steps each) still fit, so the budget is
+            never overrun, and up to that many steps may stay unspent. None: SAC takes
+            ``config.total_steps`` agent steps. The candidate's ``notes["env_steps"]`` records
+            what each part spent either way.
 
     Raises:
         Invalid: bad settings.
@@ -478,7 +494,11 @@ class SacLearner:
         progress: Callable[[int, int], Any] | None = None,
         bc: BcLearner | None = None,
         state_dir: str | os.PathLike[str] | None = None,
+        env_step_budget: int | None = None,
     ) -> None:
+        if env_step_budget is not None:
+            _check_int("env_step_budget", env_step_budget, 1)
+        self.env_step_budget = env_step_budget
         self.bc = bc
         self.state_dir = Path(state_dir) if state_dir is not None else None
         self.should_stop = should_stop
@@ -498,6 +518,7 @@ class SacLearner:
         self.last_report: TrainReport | None = None
         self.last_model: Any = None
         self.last_dagger: dict[str, Any] | None = None
+        self.last_clone_steps = 0
 
     def _check(self, model: Any, env: EcmEnv | None) -> ActorCheck | None:
         if env is None:
@@ -577,6 +598,7 @@ class SacLearner:
         except Invalid as exc:  # no scripted reference and no successful trace yet (T4-T6)
             log.warning("%s: nothing to clone (%s); SAC starts from the random v0", request.ecm, exc.message)
             return None
+        self.last_clone_steps = demos.env_steps
         demos, report, self.last_dagger = self.bc.clone(model, request, target, demos, config=self.distill)
         log.info(
             "%s: cloned %d demonstration steps (%s) into the random v0: loss %.4f -> %.4f",
@@ -587,6 +609,33 @@ class SacLearner:
             report.loss_after,
         )
         return report
+
+    def _train(self, model: Any, env: EcmEnv, spent: int) -> TrainReport:
+        """SAC's training: ``config.total_steps`` agent steps, or, under :attr:`env_step_budget`,
+        until ``env`` has simulated what the budget leaves after ``spent``."""
+        if self.env_step_budget is None:
+            return train_sac(
+                model,
+                self.config.total_steps,
+                progress_bar=self.progress_bar,
+                should_stop=self.should_stop,
+                progress=self.progress,
+            )
+        # an episode that ends resets at once, and the reset drives the predecessors
+        reset_reserve = len(env.predecessors) * env.config.prefix_budget
+        left = self.env_step_budget - spent
+        if left - reset_reserve <= 0:
+            log.warning("%s: the clone and the check spent the env-step budget; no SAC steps", self.learner_id)
+            return TrainReport(steps=0, seconds=0.0, episodes=0, successes=0, mean_return=None)
+        start = env.env_steps
+        outer = self.should_stop
+
+        def spent_or_stopped() -> bool:
+            return env.env_steps - start + reset_reserve >= left or (outer is not None and outer())
+
+        return train_sac(
+            model, left, progress_bar=self.progress_bar, should_stop=spent_or_stopped, progress=self.progress
+        )
 
     def _learn(self, request: LearnRequest, parent_artifact: bytes | None) -> Candidate:
         from capevo.learner.continuation import LearnerState
@@ -606,6 +655,7 @@ class SacLearner:
             model = build_sac(shaped, self.config, parent_artifact=start)
             distilled = None
             self.last_dagger = None
+            self.last_clone_steps = 0
             kept = 0
             if latest is not None and state is not None:
                 kept = state.load_replay(model)
@@ -623,17 +673,17 @@ class SacLearner:
             )
             learned_start = latest is not None or distilled is not None or request.parent.origin is not Origin.MANUAL
             check_env = self._env(request.task, target) if self.config.check_episodes and learned_start else None
+            dagger_steps = int((self.last_dagger or {}).get("env_steps") or 0)
             try:
                 before = self._check(model, check_env)
                 actor_before = copy.deepcopy(model.actor.state_dict()) if before is not None else None
-                report = train_sac(
-                    model,
-                    self.config.total_steps,
-                    progress_bar=self.progress_bar,
-                    should_stop=self.should_stop,
-                    progress=self.progress,
-                )
-                after = self._check(model, check_env)
+                # the SAC environment has already run a code parent's distillation rollouts
+                spent = env.env_steps + self.last_clone_steps + dagger_steps + (before.env_steps if before else 0)
+                sac_started = env.env_steps
+                report = self._train(model, env, spent)
+                sac_steps = env.env_steps - sac_started
+                stopped = self.should_stop is not None and self.should_stop()
+                after = None if stopped else self._check(model, check_env)
             finally:
                 if check_env is not None:
                     check_env.close()
@@ -643,15 +693,7 @@ class SacLearner:
                 if not keep_sac:
                     model.actor.load_state_dict(actor_before)
                 check = {"before": before.to_dict(), "after": after.to_dict(), "actor": "sac" if keep_sac else "start"}
-                log.info(
-                    "%s: check %d/%d before SAC, %d/%d after: the candidate's actor is %s",
-                    request.ecm,
-                    before.successes,
-                    before.episodes,
-                    after.successes,
-                    after.episodes,
-                    "SAC's" if keep_sac else "the one before SAC",
-                )
+                log.info("%s: %s", request.ecm, check_note(check))
             report = TrainReport(
                 steps=report.steps,
                 seconds=report.seconds,
@@ -663,6 +705,8 @@ class SacLearner:
             )
             if state is not None:
                 state.save_replay(model)
+            env_total = env.env_steps + self.last_clone_steps + dagger_steps
+            env_total += sum(c.env_steps for c in (before, after) if c is not None)
         finally:
             env.close()
         self.last_report = report
@@ -691,6 +735,14 @@ class SacLearner:
                 "train": report.to_dict(),
                 "dagger": self.last_dagger,
                 "check": check,
+                "env_steps": {
+                    "distill": sac_started,
+                    "clone": self.last_clone_steps,
+                    "dagger": dagger_steps,
+                    "check": sum(c.env_steps for c in (before, after) if c is not None),
+                    "sac": sac_steps,
+                    "total": env_total,
+                },
             },
         )
         if state is not None:

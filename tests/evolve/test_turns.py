@@ -19,12 +19,13 @@ from evolve_support import PLAN, TASK, make_agent, seeded_registry
 from capevo.errors import Invalid
 from capevo.evolve.config import COMBINED_MODALITIES, MODALITIES, NEURAL_MODALITIES, make_config
 from capevo.evolve.learners import Proposal, TurnUpdater, UpdaterContext, UpdateRequest, modality_names
-from capevo.evolve.loop import check_note, ensure_v0
+from capevo.evolve.loop import ensure_v0
 from capevo.evolve.progress import RecordingProgress
 from capevo.evolve.run import EvolveOptions, run_evolution
 from capevo.experiment.methods import knowledge_of
 from capevo.experiment.report import paper_ablation_row
 from capevo.learner.base import Candidate
+from capevo.learner.rl import check_note
 from capevo.records import Kind
 from capevo.registry.local import LocalRegistry
 from capevo.runtime.tasks import Perturbations

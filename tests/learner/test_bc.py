@@ -93,8 +93,10 @@ def test_failed_episodes_are_dropped_unless_asked_for(reach_env: EcmEnv) -> None
 
     kept = collect_demos(reach_env, idle, episodes=1, seed=0)
     assert (len(kept), kept.episodes, kept.episodes_seen) == (0, 0, 1)
+    # the dropped episode's steps were simulated all the same, and a budget counts them
+    assert kept.env_steps == ENV_CONFIG.max_steps
     everything = collect_demos(reach_env, idle, episodes=1, seed=0, only_successful=False)
-    assert (len(everything), everything.episodes) == (ENV_CONFIG.max_steps, 1)
+    assert (len(everything), everything.episodes, everything.env_steps) == (ENV_CONFIG.max_steps, 1, 60)
 
 
 @pytest.mark.slow
@@ -139,10 +141,14 @@ def test_dagger_rounds_add_the_clones_own_states_labelled_by_the_expert(tmp_path
         dagger = cand.notes["dagger"]
         assert dagger["expert"] == "scripted" and [r["round"] for r in dagger["rounds"]] == [1, 2]
         assert [r["episodes"] for r in dagger["rounds"]] == [2, 2]
-        assert all(1 <= r["rows"] <= 2 * ENV_CONFIG.max_steps for r in dagger["rounds"])
-        assert dagger["env_steps"] == sum(r["rows"] for r in dagger["rounds"])
+        assert all(1 <= r["rows"] <= r["env_steps"] <= 2 * ENV_CONFIG.max_steps for r in dagger["rounds"])
+        assert dagger["env_steps"] == sum(r["env_steps"] for r in dagger["rounds"])
         # the last clone is fitted on the scripted rows and every round's rows
-        assert cand.notes["bc"]["samples"] == cand.notes["demos"]["new_samples"] + dagger["env_steps"]
+        rows = sum(r["rows"] for r in dagger["rounds"])
+        assert cand.notes["bc"]["samples"] == cand.notes["demos"]["new_samples"] + rows
+        spent = cand.notes["env_steps"]
+        assert spent["demos"] >= cand.notes["demos"]["new_samples"] and spent["dagger"] == dagger["env_steps"]
+        assert spent["total"] == spent["demos"] + spent["dagger"]
         assert epochs == [(e, 60) for e in range(1, 61)]
         plain = BcLearner(
             config=BcConfig(epochs=20, batch_size=32, net_arch=(64, 64), seed=0),
@@ -151,6 +157,7 @@ def test_dagger_rounds_add_the_clones_own_states_labelled_by_the_expert(tmp_path
             scripted_episodes=2,
         ).learn(request)
         assert plain.notes["dagger"] == {"rounds": [], "expert": None, "env_steps": 0}
+        assert plain.notes["env_steps"]["total"] == plain.notes["env_steps"]["demos"] > 0
     finally:
         reg.close()
 

@@ -147,7 +147,7 @@ def test_sac_clones_with_dagger_and_its_check_keeps_the_better_actor(registry: L
     cand = learner.learn(_request(registry))
     assert cand.notes["warm_start"] == "cloned"
     (round_1,) = cand.notes["dagger"]["rounds"]
-    assert round_1["episodes"] == 1 and round_1["rows"] == cand.notes["dagger"]["env_steps"] > 0
+    assert round_1["episodes"] == 1 and round_1["env_steps"] == cand.notes["dagger"]["env_steps"] >= round_1["rows"] > 0
     check = cand.notes["check"]
     for side in ("before", "after"):
         assert check[side]["episodes"] == 2 and check[side]["env_steps"] >= 2
@@ -159,9 +159,43 @@ def test_sac_clones_with_dagger_and_its_check_keeps_the_better_actor(registry: L
     finally:
         env.close()
     assert again.to_dict() == check["after" if kept == "sac" else "before"]
+    spent = cand.notes["env_steps"]
+    assert spent["dagger"] == round_1["env_steps"] and spent["check"] == sum(
+        check[s]["env_steps"] for s in check if s != "actor"
+    )
+    assert spent["sac"] >= sac_config.total_steps  # SAC's own steps (a reach ECM has no predecessors to drive)
+    assert spent["total"] == spent["clone"] + spent["dagger"] + spent["check"] + spent["sac"] + spent["distill"]
     # a random-init v0 with nothing cloned has no learned start to check against
     bare = SacLearner(config=sac_config, env_config=ENV_CONFIG, registry=registry, torch_threads=1)
     assert bare.learn(_request(registry)).notes["check"] is None
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("ecm", ["pick.reach", "pick.grasp"])
+def test_under_a_budget_the_clone_and_sac_together_spend_no_more_than_it(tmp_path: Path, ecm: str) -> None:
+    """Issue 20's parity: the clone's scripted rollouts come out of the budget and SAC trains on the
+    rest. A reach has no predecessors, so it spends the budget exactly; a grasp's resets drive the
+    reach first, and SAC stops while one more reset still fits."""
+    from capevo.learner.skills import seed_registry
+
+    reg = LocalRegistry(tmp_path / "registry", actor="tests")
+    try:
+        seed_registry(reg, "pick")  # code predecessors drive the grasp's resets
+        artifact, spec = seed_policy("T1", ecm, net_arch=(32, 32), seed=7)
+        reg.promote(ecm, reg.publish(ecm, artifact, spec).version)
+        bc = BcLearner(config=BC, env_config=ENV_CONFIG, registry=reg, scripted_episodes=2)
+        budget = 400
+        learner = SacLearner(
+            config=SAC, env_config=ENV_CONFIG, registry=reg, bc=bc, distill=BC, torch_threads=1, env_step_budget=budget
+        )
+        cand = learner.learn(LearnRequest(task="pick", ecm=ecm, parent=reg.get_version(ecm), source=""))
+    finally:
+        reg.close()
+    spent = cand.notes["env_steps"]
+    assert cand.notes["warm_start"] == "cloned" and spent["clone"] > 0
+    assert spent["total"] == spent["clone"] + spent["sac"]
+    reserve = 0 if ecm == "pick.reach" else ENV_CONFIG.prefix_budget
+    assert budget - reserve <= spent["total"] <= budget
 
 
 @pytest.mark.slow
