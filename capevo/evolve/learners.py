@@ -360,6 +360,7 @@ class NeuralUpdater:
                 env_config=env,
                 registry=self.context.registry,
                 scripted_episodes=preset.scripted_episodes,
+                env_step_budget=budget,
             )
             sac = SacLearner(
                 config=preset.sac,
@@ -399,6 +400,8 @@ class NeuralUpdater:
             scripted_episodes=preset.scripted_episodes,
             progress=lambda epoch, epochs, loss: progress.learner_advance(1),
             state_dir=self.context.state_dir,
+            # the demonstrations and DAgger's rounds stop where the iteration's budget does
+            env_step_budget=request.max_env_steps,
         )
         candidate = bc.learn(learn_request)
         demos = dict(candidate.notes.get("demos") or {})

@@ -401,6 +401,7 @@ def collect_demos(
     seed: int | None = None,
     should_stop: Callable[[], bool] | None = None,
     driver: Callable[[np.ndarray], np.ndarray] | None = None,
+    max_env_steps: int | None = None,
 ) -> Demos:
     """Roll ``controller`` out in the ECM's environment and record (ECM observation, action).
 
@@ -419,6 +420,10 @@ def collect_demos(
         seed: Seed of the first episode (see :class:`EcmEnv`); default continue.
         should_stop: Polled every step; True ends the collection (what was kept so far is returned).
         driver: ECM observation -> the action to execute; None executes the controller's.
+        max_env_steps: Simulate at most this many steps (an env-step budget): no episode starts
+            unless its reset's predecessors (``prefix_budget`` steps each) and one step still
+            fit, and an episode that reaches the cap ends there (kept only when
+            ``only_successful`` is off).
 
     Returns:
         The demonstrations (``action``: always the controller's; ``env_steps``: every step the
@@ -430,14 +435,19 @@ def collect_demos(
     act_rows: list[np.ndarray] = []
     kept = run = 0
     steps_before = env.env_steps
+    reset_steps = len(env.predecessors) * env.config.prefix_budget  # a reset's worst case
+
+    def room(steps: int) -> bool:
+        return max_env_steps is None or env.env_steps - steps_before + steps <= max_env_steps
+
     for i in range(episodes):
-        if should_stop is not None and should_stop():
+        if (should_stop is not None and should_stop()) or not room(reset_steps + 1):
             break
         run += 1
         obs, info = env.reset(seed=seed + i if seed is not None else None)
         ep_obs: list[np.ndarray] = []
         ep_act: list[np.ndarray] = []
-        while True:
+        while room(1):
             action = controller(env.obs_dict)
             if action is None:
                 break
@@ -698,6 +708,9 @@ class BcLearner:
         state_dir: Where this learner keeps its state between updates (its latest candidate and
             every demonstration row so far, per ECM; :class:`~capevo.learner.continuation.LearnerState`);
             None starts every update afresh from the parent.
+        env_step_budget: Env steps one :meth:`learn` (or one :meth:`gather` and :meth:`clone`) may
+            simulate for its scripted demonstrations and DAgger's rounds together (issue 20's
+            budget; see :func:`collect_demos`). None: as many as the settings ask.
 
     Raises:
         Invalid: bad settings.
@@ -719,7 +732,13 @@ class BcLearner:
         torch_threads: int | None = None,
         should_stop: Callable[[], bool] | None = None,
         state_dir: str | os.PathLike[str] | None = None,
+        env_step_budget: int | None = None,
     ) -> None:
+        if env_step_budget is not None and (
+            isinstance(env_step_budget, bool) or not isinstance(env_step_budget, int) or env_step_budget < 1
+        ):
+            raise Invalid(f"env_step_budget must be a positive integer, got {env_step_budget!r}")
+        self.env_step_budget = env_step_budget
         self.state_dir = Path(state_dir) if state_dir is not None else None
         self.config = config or BcConfig()
         self.torch_threads = torch_threads
@@ -763,6 +782,7 @@ class BcLearner:
                         only_successful=self.only_successful,
                         source="scripted",
                         should_stop=self.should_stop,
+                        max_env_steps=self.env_step_budget,
                     )
                 finally:
                     env.close()
@@ -901,7 +921,10 @@ class BcLearner:
         rounds: list[dict[str, Any]] = []
         expert = scripted_controller(request.task) if config.dagger_rounds else None
         for r in range(config.dagger_rounds if expert is not None else 0):
-            more = self._dagger_round(request, target, model, expert, r, config.dagger_episodes)
+            left = None if self.env_step_budget is None else self.env_step_budget - demos.env_steps
+            more = self._dagger_round(request, target, model, expert, r, config.dagger_episodes, left)
+            if more.episodes_seen == 0:  # the budget is spent
+                break
             rounds.append(
                 {"round": r + 1, "episodes": more.episodes_seen, "rows": len(more), "env_steps": more.env_steps}
             )
@@ -935,7 +958,14 @@ class BcLearner:
         return lambda epoch, _epochs, loss: progress(done + epoch, total, loss)
 
     def _dagger_round(
-        self, request: LearnRequest, target: EcmTarget, model: Any, expert: Controller, r: int, episodes: int
+        self,
+        request: LearnRequest,
+        target: EcmTarget,
+        model: Any,
+        expert: Controller,
+        r: int,
+        episodes: int,
+        max_env_steps: int | None,
     ) -> Demos:
         """One DAgger round: ``model`` acts (deterministically) in the ECM's training environment,
         the scripted reference labels every observation it visits. Seeds follow the scripted
@@ -952,6 +982,7 @@ class BcLearner:
                 seed=first,
                 should_stop=self.should_stop,
                 driver=lambda obs: model.predict(obs, deterministic=True)[0],
+                max_env_steps=max_env_steps,
             )
         finally:
             env.close()

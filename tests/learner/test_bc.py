@@ -100,6 +100,40 @@ def test_failed_episodes_are_dropped_unless_asked_for(reach_env: EcmEnv) -> None
 
 
 @pytest.mark.slow
+def test_a_step_cap_ends_the_collection_exactly_there(reach_env: EcmEnv) -> None:
+    def idle(obs: Any) -> np.ndarray:
+        return np.zeros(7)
+
+    # a reach has no predecessors: the first episode runs its 60 steps, the second is cut at 40
+    capped = collect_demos(reach_env, idle, episodes=3, seed=0, only_successful=False, max_env_steps=100)
+    assert (capped.env_steps, len(capped), capped.episodes_seen) == (100, 100, 2)
+    assert collect_demos(reach_env, idle, episodes=3, seed=0, max_env_steps=0).env_steps == 0
+
+
+@pytest.mark.slow
+def test_under_a_budget_demonstrations_and_dagger_together_spend_no_more_than_it(tmp_path: Path) -> None:
+    """Issue 20's parity for ``il``: a grasp's episodes start by driving the reach, so each episode
+    starts only while its reset's predecessors and one step still fit."""
+    reg = LocalRegistry(tmp_path / "registry", actor="tests")
+    try:
+        seed_registry(reg, "pick")
+        request = request_for(reg, "pick", "pick.grasp", train_seeds=[1])
+        config = BcConfig(epochs=5, batch_size=32, net_arch=(32, 32), seed=0, dagger_rounds=3, dagger_episodes=2)
+        budget = 400
+        learner = BcLearner(
+            config=config, env_config=ENV_CONFIG, registry=reg, scripted_episodes=3, env_step_budget=budget
+        )
+        cand = learner.learn(request)
+    finally:
+        reg.close()
+    spent = cand.notes["env_steps"]
+    assert spent["demos"] > 0 and spent["total"] == spent["demos"] + spent["dagger"] <= budget
+    # the cap binds: the weak clone's DAgger episodes run their 60 steps behind a reach prefix, so
+    # not all 6 of them fit after the scripted ones
+    assert sum(r["episodes"] for r in cand.notes["dagger"]["rounds"]) < 6
+
+
+@pytest.mark.slow
 def test_a_driver_acts_while_the_controller_only_labels(reach_env: EcmEnv) -> None:
     """DAgger's data: the states the driver visits, each labelled with the controller's action."""
     labels: list[np.ndarray] = []
