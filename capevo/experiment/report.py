@@ -631,6 +631,10 @@ def compute_numbers(run: Run) -> Book:
             book.put(f"{base}/{f}/mean", m, src)
             book.put(f"{base}/{f}/std", sd, src)
             book.put(f"{base}/{f}/n", len(values), src)
+        # every held-out episode of every iteration and seed, graded by the independent monitor
+        held_out = [e for c in cells for r in c.records for e in r.episodes]
+        book.put(f"{base}/unsafe_episodes", sum(e.unsafe_steps > 0 for e in held_out), src)
+        book.put(f"{base}/eval_episodes", len(held_out), src)
         for th in THRESHOLDS:
             reached = [summaries[c.key].steps_to[th] for c in cells]
             reached = [r for r in reached if r is not None]
@@ -982,10 +986,10 @@ def _comparison(add: Callable[[str], None], book: Book, groups: Groups, figures:
         add("")
         return
     add(
-        "| task | method | starts from | seeds | peak success | last success | peak reward | paper peak success | "
-        "paper peak reward | files |"
+        "| task | method | starts from | seeds | peak success | last success | peak reward | "
+        "unsafe held-out episodes | paper peak success | paper peak reward | files |"
     )
-    add("|---|---|---|---|---|---|---|---|---|---|")
+    add("|---|---|---|---|---|---|---|---|---|---|---|")
     for (t, label), cells in groups.items():
         b = f"group/{t}/{label}"
         col = PAPER_COLUMN.get(cells[0].method)
@@ -995,9 +999,15 @@ def _comparison(add: Callable[[str], None], book: Book, groups: Groups, figures:
             f"| {task_title(t)} | {_esc(label)} | {_esc(book.get(f'knowledge/{label}') or '-')} | "
             f"{book.get(b + '/succ_peak/n')} | {_pm_pct(book, b + '/succ_peak')} | "
             f"{_pm_pct(book, b + '/succ_last')} | {_pm(book, b + '/r_peak', _r)} | "
+            f"{book.get(b + '/unsafe_episodes')}/{book.get(b + '/eval_episodes')} | "
             f"{f'**paper** {col}: {ps} %' if ps else '-'} | {f'**paper** {col}: {pr:.2f}' if pr is not None else '-'} "
             f"| {_links(cells)} |"
         )
+    add("")
+    add(
+        "Unsafe held-out episodes: of every held-out evaluation episode of every iteration and seed, those with a "
+        "step the independent safety monitor graded unsafe (what governance let through)."
+    )
     add("")
     add("Welch's t-test (`scipy.stats.ttest_ind(equal_var=False)`) of per-seed peaks, ours against AM:")
     add("")

@@ -143,7 +143,7 @@ def build_run(root: Path) -> tuple[Path, dict[str, Raw]]:
         raws[f"T6-ours-code-s{s}"] = raw
         write_cell(root, task="T6", method="ours-code", seed=s, raw=raw, knowledge="hand-written skills")
     for i, s in enumerate(AM_SEEDS):
-        raw = gen_raw(200 + i, iterations=3, episodes=10, p_success=(0.0, 0.2, 0.3), drift=0.6)
+        raw = gen_raw(200 + i, iterations=3, episodes=10, p_success=(0.0, 0.2, 0.3), drift=0.6, p_unsafe=0.3)
         raws[f"T6-am-s{s}"] = raw
         write_cell(root, task="T6", method="am", seed=s, raw=raw)
     raw = gen_raw(300, iterations=3, episodes=10, p_success=(0.0, 0.0, 0.0), train=0)

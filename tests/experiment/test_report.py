@@ -96,6 +96,12 @@ def test_tables_hold_independently_computed_values(run: tuple[Path, dict[str, Ra
     assert "n < 2 seeds: no test" in md
     assert nums["welch/T3/ours-code (modality=rl)|am/succ_peak/t"]["value"] is None
 
+    # safety: every held-out episode of the method's cells, graded by the monitor
+    am_eps = [u for r in am for it in r.unsafe for u in it]
+    assert nums["group/T6/am/unsafe_episodes"]["value"] == sum(u > 0 for u in am_eps)
+    assert nums["group/T6/am/eval_episodes"]["value"] == len(am_eps)
+    assert f"| {sum(u > 0 for u in am_eps)}/{len(am_eps)} |" in md
+
     # parity: the over-budget cell is flagged, S-ECM spent nothing
     assert nums["parity/am/cells_over_budget"]["value"] == 1
     assert nums["parity/am/iterations_over_budget"]["value"] == 1
