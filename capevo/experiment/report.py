@@ -16,7 +16,8 @@ writes them) and needs no simulator. Its sections mirror the paper's evaluation:
   from its four seeds), and Welch's t-test (``scipy.stats.ttest_ind(equal_var=False)``) of ours
   (``ours-code``, ``ours-neural``) against AM (``am``, ``am-bc``) wherever both have at least two
   seeds. A per-seed plot for T6. A peak over iterations is the paper's statistic; it is biased
-  upward by the evaluation's noise, so the table also gives the last iteration's success.
+  upward by the evaluation's noise, so the table also gives the last iteration's success, and
+  the held-out episodes (every iteration and seed) the independent safety monitor graded unsafe.
 * **Sample efficiency:** the cumulative training env steps each cell spent before its held-out
   success first reached 50 % and 80 %, and success against env steps.
 * **Identity (§4.4, Figure ``fig:identity-drift``):** Δπ of the last iteration, mean per method.

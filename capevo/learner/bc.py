@@ -737,7 +737,10 @@ class BcLearner:
         if env_step_budget is not None and (
             isinstance(env_step_budget, bool) or not isinstance(env_step_budget, int) or env_step_budget < 1
         ):
-            raise Invalid(f"env_step_budget must be a positive integer, got {env_step_budget!r}")
+            raise Invalid(
+                f"env_step_budget must be a positive integer, got {env_step_budget!r}",
+                details={"field": "env_step_budget"},
+            )
         self.env_step_budget = env_step_budget
         self.state_dir = Path(state_dir) if state_dir is not None else None
         self.config = config or BcConfig()

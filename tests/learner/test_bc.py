@@ -302,6 +302,14 @@ def test_bad_bc_settings_are_refused(kwargs: dict, field: str, text: str) -> Non
     assert info.value.details["field"] == field
 
 
+@pytest.mark.parametrize("budget", [0, -5, 2.5, True, "400"])
+def test_a_bad_env_step_budget_is_refused(budget: object) -> None:
+    with pytest.raises(Invalid) as info:
+        BcLearner(env_step_budget=budget)  # type: ignore[arg-type]
+    assert info.value.details["field"] == "env_step_budget"
+    assert info.value.message == f"env_step_budget must be a positive integer, got {budget!r}"
+
+
 @pytest.mark.slow
 def test_an_ecm_that_finished_the_task_alone_gives_no_demonstrations(tmp_path: Path) -> None:
     """The successful episode's steps all came from pick.reach, which never handed over: cloning
