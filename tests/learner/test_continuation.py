@@ -222,3 +222,11 @@ def test_sac_on_a_random_v0_without_anything_to_clone_starts_from_its_weights(re
         _request(registry)
     )
     assert cand.notes["warm_start"] == "weights" and cand.notes["train"]["steps"] == SAC.total_steps
+
+
+@pytest.mark.parametrize("budget", [0, -1, 1.5, True])
+def test_sac_refuses_a_bad_env_step_budget(budget: object) -> None:
+    with pytest.raises(Invalid) as info:
+        SacLearner(env_step_budget=budget)  # type: ignore[arg-type]
+    assert info.value.details["field"] == "env_step_budget"
+    assert info.value.message == f"env_step_budget must be an integer >= 1, got {budget!r}"
