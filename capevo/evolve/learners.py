@@ -344,13 +344,12 @@ class NeuralUpdater:
         if self.modality == "rl":
             # under the iteration's step budget (issue 20) the clone's demonstrations come out of
             # it and SAC trains on the rest: no less (every method of a comparison spends the same
-            # budget) and no more. DAgger and the check stay off there: their episodes cannot be
-            # cut short to fit a small budget.
+            # budget) and no more. No check runs there (SacLearner), and DAgger stays off so that
+            # SAC gets the budget, as in the grids run so far.
             budget = request.max_env_steps
             if budget is not None:
                 preset = dataclasses.replace(
                     preset,
-                    sac=dataclasses.replace(preset.sac, check_episodes=0),
                     bc=dataclasses.replace(preset.bc, dagger_rounds=0),
                 )
             progress.learner_started(total=budget or preset.sac.total_steps, unit="SAC steps")

@@ -463,12 +463,13 @@ class SacLearner:
         state_dir: Where this learner keeps its latest candidate and replay buffer between
             updates, per ECM (None: every update starts from the parent).
         env_step_budget: Env steps one :meth:`learn` may simulate in all (issue 20's budget),
-            counted as :attr:`EcmEnv.env_steps` counts them: the clone's demonstrations, DAgger's
-            rounds and the check come first, and SAC trains on what is left. It stops while one
-            more reset's predecessors (``prefix_budget`` steps each) still fit, so the budget is
-            never overrun, and up to that many steps may stay unspent. None: SAC takes
-            ``config.total_steps`` agent steps. The candidate's ``notes["env_steps"]`` records
-            what each part spent either way.
+            counted as :attr:`EcmEnv.env_steps` counts them: the clone's demonstrations and
+            DAgger's rounds come first (give :attr:`bc` the same budget to cap them), and SAC
+            trains on what is left. It stops while one more reset's predecessors
+            (``prefix_budget`` steps each) still fit, so the budget is never overrun, and up to
+            that many steps may stay unspent. No check runs under a budget: its episodes after
+            SAC cannot be cut short. None: SAC takes ``config.total_steps`` agent steps. The
+            candidate's ``notes["env_steps"]`` records what each part spent either way.
 
     Raises:
         Invalid: bad settings.
@@ -672,7 +673,8 @@ class SacLearner:
                 else 0
             )
             learned_start = latest is not None or distilled is not None or request.parent.origin is not Origin.MANUAL
-            check_env = self._env(request.task, target) if self.config.check_episodes and learned_start else None
+            checked = self.config.check_episodes and learned_start and self.env_step_budget is None
+            check_env = self._env(request.task, target) if checked else None
             dagger_steps = int((self.last_dagger or {}).get("env_steps") or 0)
             try:
                 before = self._check(model, check_env)

@@ -4,6 +4,7 @@ randomly initialised v0 starts from a behaviour-cloned actor. Real robosuite epi
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 import subprocess
@@ -185,8 +186,15 @@ def test_under_a_budget_the_clone_and_sac_together_spend_no_more_than_it(tmp_pat
         reg.promote(ecm, reg.publish(ecm, artifact, spec).version)
         bc = BcLearner(config=BC, env_config=ENV_CONFIG, registry=reg, scripted_episodes=2)
         budget = 400
+        checked = dataclasses.replace(SAC, check_episodes=2)
         learner = SacLearner(
-            config=SAC, env_config=ENV_CONFIG, registry=reg, bc=bc, distill=BC, torch_threads=1, env_step_budget=budget
+            config=checked,
+            env_config=ENV_CONFIG,
+            registry=reg,
+            bc=bc,
+            distill=BC,
+            torch_threads=1,
+            env_step_budget=budget,
         )
         cand = learner.learn(LearnRequest(task="pick", ecm=ecm, parent=reg.get_version(ecm), source=""))
     finally:
@@ -194,6 +202,8 @@ def test_under_a_budget_the_clone_and_sac_together_spend_no_more_than_it(tmp_pat
     spent = cand.notes["env_steps"]
     assert cand.notes["warm_start"] == "cloned" and spent["clone"] > 0
     assert spent["total"] == spent["clone"] + spent["sac"]
+    # the check's episodes after SAC could not be cut short to fit: none runs under a budget
+    assert cand.notes["check"] is None and spent["check"] == 0
     reserve = 0 if ecm == "pick.reach" else ENV_CONFIG.prefix_budget
     assert budget - reserve <= spent["total"] <= budget
 
