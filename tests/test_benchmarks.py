@@ -198,3 +198,22 @@ def test_a_benchmark_scratch_dir_is_gone_when_its_process_exits(tmp_path: Path) 
     made = Path(out.stdout.strip())
     assert made.parent == tmp_path and made.name.startswith("b-")
     assert not made.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_the_constant_adversaries_benchmark_counts_every_push_under_both_envelopes(results_in: Path) -> None:
+    import bench_constant_adversaries
+
+    assert bench_constant_adversaries.main(["--seeds", "1", "--steps", "3", "--without", "stopping_distance"]) == 0
+    rows = json.loads((results_in / "constant_adversaries.json").read_text())["rows"]
+    assert set(rows) == set(bench_constant_adversaries.PUSHES)
+    for per in rows.values():
+        assert set(per) == {"without stopping_distance", "default Φ"} and all(len(c) == 1 for c in per.values())
+
+
+def test_the_closing_speeds_benchmark_times_both_sides_and_the_rule(results_in: Path) -> None:
+    import bench_closing_speeds
+
+    assert bench_closing_speeds.main(["--steps", "2", "--reps", "2"]) == 0
+    out = json.loads((results_in / "closing_speeds.json").read_text())
+    assert out["near_us_p50_with_closing"] > 0 and out["near_us_p50_without_closing"] > 0
+    assert out["stopping_distance_check_us_p50"] > 0 and out["pairs_per_step"] >= 0

@@ -36,6 +36,7 @@ from capevo.runtime.governance.ramp import ForceRamp
 from capevo.runtime.governance.reach import ReachLimit
 from capevo.runtime.governance.records import GovernanceStats, Intervention, Verdict, verdict_of
 from capevo.runtime.governance.separation import ArmSeparation
+from capevo.runtime.governance.stopping import StoppingDistance
 from capevo.runtime.governance.surface import SurfaceApproach
 from capevo.runtime.governance.task_phi import TASK_GEOMETRY, TaskGeometry
 from capevo.runtime.governance.unsafe import is_unsafe, unsafe_reasons
@@ -66,6 +67,7 @@ __all__ = [
     "Phi",
     "ProximitySensor",
     "ReachLimit",
+    "StoppingDistance",
     "SurfaceApproach",
     "TaskGeometry",
     "VelocityCap",

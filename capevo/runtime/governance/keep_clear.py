@@ -44,7 +44,8 @@ What this rule does not reach: a link whose pair closes because the
 *other* side moves or because OSC's null space swings it faster than a small command can undo. On
 T6 the AM baseline's peg arm meets the plate with link 5 closing at about 2 cm per step, and
 steering the link by its measured closing speed (tried, not kept) cleared at most 1 of 7 such seeds
-(``results/safety-keep-clear/README.md``).
+(``results/safety-keep-clear/README.md``). Against the fixed scene, the measured speed is what
+:mod:`~capevo.runtime.governance.stopping` reads, next after this rule.
 
 Invariants (per arm, after the check alone):
 1. If the arm has exactly one pair in the band with a target (a link pair with ``g · g >= MIN_ROW2``
@@ -61,7 +62,7 @@ Invariants (per arm, after the check alone):
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -92,7 +93,10 @@ def _project(arm: list[float], g: tuple[float, ...], p: float) -> bool:
         s = sum(g[j] * arm[j] for j in range(6))
         if s <= -p * (1.0 - 1e-12):
             break
-        lam = (s + p) / sum(g[j] * g[j] for j in free)
+        norm2 = sum(g[j] * g[j] for j in free)
+        if norm2 == 0.0:
+            break  # what is left free moves the point by less than a float can hold (g_j² underflows)
+        lam = (s + p) / norm2
         clipped = []
         for j in free:
             v = arm[j] - lam * g[j]
@@ -106,6 +110,53 @@ def _project(arm: list[float], g: tuple[float, ...], p: float) -> bool:
             break
         free = [j for j in free if j not in clipped]
     return changed
+
+
+def steer_away(arm: list[float], goals: Sequence[tuple[tuple[float, ...], float]]) -> bool:
+    """Project ``arm`` (six pose components, in place) onto ``g · arm <= −p`` for each ``(g, p)``
+    of ``goals``, in order, visiting them again (at most :data:`PASSES` times in all) while one
+    still moves it: projecting onto one pair can undo part of another's. True if it changed."""
+    before = list(arm)
+    for _ in range(PASSES):
+        moved = False
+        for g, p in goals:
+            moved = _project(arm, g, p) or moved
+        if not moved:
+            break
+    return arm != before
+
+
+Goals = list[tuple[tuple[float, ...], float]]
+"""Per arm, ``(g, p)`` pairs: the six pose components' row ``g`` and the target ``g · a <= −p``."""
+
+
+def steering_check(layout: ActionLayout, reason: str, goals_of: Callable[[int, ArmState], Goals | str]) -> Check:
+    """A check that steers each arm's pose components onto ``goals_of(i, arm)`` (:func:`steer_away`).
+
+    ``goals_of`` returns the arm's goals, or a reason for ⊥ (a non-finite input). Each arm that
+    moved is noted with ``reason``; an action no arm's goals change is allowed (None).
+    """
+    offsets = tuple(arm.offset for arm in layout.arms)
+    reasons = tuple(f"arm {i}: {reason}" for i in range(len(offsets)))
+
+    def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
+        b: list[float] | None = None
+        notes: list[str] = []
+        for i, o in enumerate(offsets):
+            goals = goals_of(i, arms[i])
+            if isinstance(goals, str):
+                return None, goals
+            if not goals:
+                continue
+            arm = [(a if b is None else b)[o + j] for j in range(6)]
+            if steer_away(arm, goals):
+                if b is None:
+                    b = list(a)
+                b[o : o + 6] = arm
+                notes.append(reasons[i])
+        return edited(b, notes)
+
+    return check
 
 
 @register("keep_clear")
@@ -144,52 +195,30 @@ class KeepClear(ConstraintBase):
 
     def compile(self, layout: ActionLayout) -> Check:
         within, target = self.within, self.target
-        offsets = tuple(arm.offset for arm in layout.arms)
-        reasons = tuple(
-            f"arm {i}: a link or the hand within {within} m of the scene: steered away" for i in range(len(offsets))
-        )
         isfinite = math.isfinite
 
-        def steer(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
-            b: list[float] | None = None
-            notes: list[str] = []
-            for i, o in enumerate(offsets):
-                near = getattr(arms[i], "near", ())
-                # (direction over the pose components, target) per pair in the band
-                goals: list[tuple[tuple[float, ...], float]] = []
-                rows = None
-                for k_pair, pair in enumerate(near):
-                    dist = pair[0]
-                    if dist >= within:
-                        continue
-                    if not all(isfinite(v) for v in pair[:4]):
-                        return None, f"arm {i}: proximity pair {pair} is not finite"
-                    if rows is None:
-                        rows = dict(getattr(arms[i], "link_rows", ()))
-                    g = rows.get(k_pair)
-                    if g is not None:
-                        if not all(isfinite(v) for v in g):
-                            return None, f"arm {i}: link row {g} of proximity pair {pair} is not finite"
-                        if sum(v * v for v in g) >= MIN_ROW2:
-                            goals.append((tuple(g), target(dist)))
-                    elif pair[7] == FIXED:
-                        goals.append(((pair[1], pair[2], pair[3], 0.0, 0.0, 0.0), target(dist)))
-                if not goals:
+        def goals_of(i: int, arm: ArmState) -> Goals | str:
+            goals: Goals = []
+            rows = None
+            for k_pair, pair in enumerate(getattr(arm, "near", ())):
+                dist = pair[0]
+                if dist >= within:
                     continue
-                arm = [(a if b is None else b)[o + j] for j in range(6)]
-                before = list(arm)
-                for _ in range(PASSES):
-                    moved = False
-                    for g, p in goals:
-                        moved = _project(arm, g, p) or moved
-                    if not moved:
-                        break
-                if arm != before:
-                    if b is None:
-                        b = list(a)
-                    b[o : o + 6] = arm
-                    notes.append(reasons[i])
-            return edited(b, notes)
+                if not all(isfinite(v) for v in pair[:4]):
+                    return f"arm {i}: proximity pair {pair} is not finite"
+                if rows is None:
+                    rows = dict(getattr(arm, "link_rows", ()))
+                g = rows.get(k_pair)
+                if g is not None:
+                    if not all(isfinite(v) for v in g):
+                        return f"arm {i}: link row {g} of proximity pair {pair} is not finite"
+                    if sum(v * v for v in g) >= MIN_ROW2:
+                        goals.append((tuple(g), target(dist)))
+                elif pair[7] == FIXED:
+                    goals.append(((pair[1], pair[2], pair[3], 0.0, 0.0, 0.0), target(dist)))
+            return goals
+
+        steer = steering_check(layout, f"a link or the hand within {within} m of the scene: steered away", goals_of)
 
         def check(arms: Sequence[ArmState], a: Sequence[float]) -> Result:
             for arm in arms:

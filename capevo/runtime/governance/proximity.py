@@ -54,6 +54,10 @@ Invariants:
    kinematic chain are never reported.
 3. ``near(i)`` reads the simulator's current ``MjData`` only (positions, contacts); it does not
    step or modify the simulator.
+4. :meth:`ProximitySensor.sense` gives one closing speed per pair, in the pairs' order: ``nᵀ J_p q̇``
+   for the pair's hand-side point ``p`` on its body (m/s, positive towards the other geom; MuJoCo's
+   ``mj_jac`` and the current joint velocities). For two boxes, whose ``dist`` is a lower bound,
+   it is still the point's speed, not the bound's rate of change.
 """
 
 from __future__ import annotations
@@ -98,7 +102,11 @@ class ArmScene(ArmPose):
     """Hand-to-scene pairs closer than the sensor's reach; see :mod:`capevo.runtime.governance.proximity`."""
     link_rows: tuple[tuple[int, LinkRow], ...] = ()
     """For the pairs in ``near`` whose hand side is a wrist link, not the hand: ``(index, row)``,
-    how the action moves that link point along the pair (:mod:`capevo.runtime.governance.link_motion`)."""
+    how the action moves that link point along the pair (:mod:`~capevo.runtime.governance.link_motion`)."""
+    closing: tuple[float, ...] = ()
+    """For each pair in ``near``, in order: how fast its hand-side point moves along the pair's
+    direction now, m/s (positive: towards the other geom), measured from the joint velocities.
+    The other side's own motion is not counted. Empty when not measured."""
 
 
 def near_of(arm: ArmState) -> tuple[Near, ...]:
@@ -260,6 +268,8 @@ class ProximitySensor:
                     {g: int(model.geom_bodyid[g]) for g in hand if int(model.geom_bodyid[g]) not in eef}
                 )
         self._link_motion = link_motion
+        self._body_of = [int(b) for b in model.geom_bodyid]
+        self._jacp: np.ndarray | None = None
 
     @classmethod
     def for_robots(
@@ -536,20 +546,31 @@ class ProximitySensor:
         """Pairs of ``arm``'s hand (and what it holds) with the rest of the scene closer than ``reach``."""
         return self._near(arm, None)
 
-    def sense(self, arm: int) -> tuple[tuple[Near, ...], tuple[tuple[int, LinkRow], ...]]:
-        """:meth:`near`, and for its pairs whose hand side is a link above the end effector
+    def sense(self, arm: int) -> tuple[tuple[Near, ...], tuple[tuple[int, LinkRow], ...], tuple[float, ...]]:
+        """:meth:`near`; for its pairs whose hand side is a link above the end effector
         ``(index into the pairs, row)``, the row from
-        :meth:`~capevo.runtime.governance.link_motion.LinkMotion.row` (none without link sensing)."""
+        :meth:`~capevo.runtime.governance.link_motion.LinkMotion.row` (none without link sensing);
+        and each pair's closing speed (:attr:`ArmScene.closing`)."""
         motion = self._link_motion
+        closing: list[float] = []
         if motion is None:
-            return self._near(arm, None), ()
+            return self._near(arm, None, closing), (), tuple(closing)
         links: list[_LinkPair] = []
-        pairs = self._near(arm, links)
-        return pairs, tuple((k, motion.row(arm, body, p, n)) for k, body, p, n in links)
+        pairs = self._near(arm, links, closing)
+        return pairs, tuple((k, motion.row(arm, body, p, n)) for k, body, p, n in links), tuple(closing)
 
-    def _near(self, arm: int, links: list[_LinkPair] | None) -> tuple[Near, ...]:
+    def _closing(self, body: int, point: tuple[float, float, float], n: tuple[float, float, float]) -> float:
+        """How fast ``point`` on ``body`` moves along ``n`` now, m/s: ``nᵀ J_p(point) q̇``."""
+        m, d = self.model, self.data
+        if self._jacp is None:
+            self._jacp = np.zeros((3, m.nv))
+        self._mj.mj_jac(m, d, self._jacp, None, np.asarray(point, dtype=np.float64), body)
+        v = self._jacp @ d.qvel
+        return float(n[0] * v[0] + n[1] * v[1] + n[2] * v[2])
+
+    def _near(self, arm: int, links: list[_LinkPair] | None, closing: list[float] | None = None) -> tuple[Near, ...]:
         """:meth:`near`; with ``links``, each link pair's index, body, nearest point and direction
-        is appended to it."""
+        is appended to it; with ``closing``, each pair's closing speed."""
         m, d, reach = self.model, self.data, self.reach
         link_body = self._link_body[arm]
         held = self.held(arm)
@@ -595,6 +616,7 @@ class ProximitySensor:
         xpos = d.geom_xpos
         owner = self._owner
         boxes = self._is_box
+        body_of = self._body_of
         hs, os_ = cand.hand[hi_idx].tolist(), cand.others[oi_idx].tolist()
         # A box pair's geoms are read once per call, however many pairs they are in.
         frames = self._frames([g for h, o in zip(hs, os_, strict=True) if boxes[h] and boxes[o] for g in (h, o)])
@@ -634,5 +656,7 @@ class ProximitySensor:
                 vx, vy, vz = -vx, -vy, -vz
             if links is not None and h in link_body:
                 links.append((len(out), link_body[h], (p1x, p1y, p1z), (vx / norm, vy / norm, vz / norm)))
+            if closing is not None:
+                closing.append(self._closing(body_of[h], (p1x, p1y, p1z), (vx / norm, vy / norm, vz / norm)))
             out.append((dist, vx / norm, vy / norm, vz / norm, p1x - site[0], p1y - site[1], p1z - site[2], owner[o]))
         return tuple(out)

@@ -7,6 +7,12 @@ and stays unchanged. :func:`task_constraints` are what
 * ``keep_clear`` (:data:`KEEP_CLEAR`): a wrist link within 3 mm of anything, or the hand within
   3 mm of the fixed scene, steered slowly away (the proximity pairs below). It is first: it adds
   motion, and every rule after it still holds on what it leaves;
+* ``stopping_distance`` (:data:`STOPPING`), second, for the same reason, on single-arm tasks: a
+  hand or wrist link that the joints' measured motion carries towards the fixed scene faster than
+  it could stop is pushed back, whatever the action asked (a zero OSC action damps the arm, it does
+  not hold it). Not on T6: there its push let an oscillating adversary's two wrists meet at 118 N
+  (``bench_governance_rates.py``, seed 49), which without it they do not, and T6's learned-policy
+  strikes are arm against arm, which the rule does not read;
 * ``closing_grip`` (:data:`CLOSING_GRIP`): while a gripper closes on a movable object between its
   fingers, the hand moves slowly (it is not held yet, so nothing else senses what is under it);
 * ``workspace_guard`` on the same box: a braking band inside the margin, an inward push when
@@ -67,6 +73,7 @@ from capevo.runtime.governance.obstacle import ObstacleApproach
 from capevo.runtime.governance.ramp import ForceRamp
 from capevo.runtime.governance.reach import ReachLimit
 from capevo.runtime.governance.separation import ArmSeparation
+from capevo.runtime.governance.stopping import StoppingDistance
 from capevo.runtime.governance.surface import SurfaceApproach
 from capevo.runtime.governance.zone import Aabb
 
@@ -130,6 +137,12 @@ KEEP_CLEAR: Mapping[str, float] = MappingProxyType({"within": 0.003, "restore": 
 rule and for these values are in :mod:`capevo.runtime.governance.keep_clear`): a wrist link, or
 the hand near the fixed scene, is steered away within 3 mm (inside ``contact_approach``'s 5 mm
 clearance) at up to 0.1, about 5 mm per step at contact."""
+STOPPING: Mapping[str, float] = MappingProxyType({"decel": 0.2, "clearance": 0.003, "gain": 3.0, "touch": 0.04})
+"""``stopping_distance`` settings of the single-arm tasks' Φ (hand-written; the measurements that call for
+the rule and for these values are in :mod:`capevo.runtime.governance.stopping`): a hand or wrist
+link closing on the fixed scene faster than it could stop at 0.2 m/s² before 3 mm (and faster than
+``contact_approach``'s touch speed, 0.04 action units a step = 0.04 m/s) is pushed back at 3 action
+units per m/s of the excess."""
 FORCE_MARGIN = 2.0
 """Newtons below the paper's 20 N at which ``force_ramp`` ends its ramp and starts backing off.
 Governance reads the wrist sensor with the hand's weight removed but not its acceleration
@@ -273,6 +286,8 @@ def task_constraints(geometry: TaskGeometry, base: Sequence[Constraint]) -> list
     added: list[Constraint] = [
         # First: it adds motion, and every rule after it still holds on what it leaves.
         KeepClear(**KEEP_CLEAR),
+        # One arm only: its push can carry one arm towards another, which it does not read.
+        *([StoppingDistance(**STOPPING)] if len(geometry.arm_bases) == 1 else []),
         ClosingGrip(**CLOSING_GRIP),
         WorkspaceGuard(low=box.low, high=box.high, margin=box.margin),
         ForceRamp(

@@ -420,15 +420,16 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
         inertial terms while accelerating and the weight of a held object. Arms are
         :class:`~capevo.runtime.governance.proximity.ArmScene`: an ``ArmState`` plus the end-effector
         site's rotation, which governance uses for the hand's extent, and the hand's nearest
-        points to the rest of the scene (``ProximitySensor``), which ``contact_approach`` reads
-        (empty while :attr:`sense_proximity` is off).
+        points to the rest of the scene (``ProximitySensor``), with how fast each closes, which
+        ``contact_approach``, ``keep_clear`` and ``stopping_distance`` read (empty while
+        :attr:`sense_proximity` is off).
         """
         d = self._data
         arms = []
         sense = self.sense_proximity
         for i, site in enumerate(self._eef_sites):
             x, y, z = d.site_xpos[site].tolist()
-            near, link_rows = self._proximity.sense(i) if sense else ((), ())
+            near, link_rows, closing = self._proximity.sense(i) if sense else ((), (), ())
             arms.append(
                 ArmScene(
                     eef_pos=(x, y, z),
@@ -436,6 +437,7 @@ class TaskEnv(gym.Env[np.ndarray, np.ndarray]):
                     eef_rot=tuple(d.site_xmat[site].tolist()),
                     near=near,
                     link_rows=link_rows,
+                    closing=closing,
                 )
             )
         return RobotState(arms=tuple(arms))

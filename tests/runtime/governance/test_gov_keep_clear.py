@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from replay import unsafe_reasons
 
 from capevo.errors import ErrorCode, Invalid
-from capevo.runtime.governance import ArmScene, ContactApproach, KeepClear, Phi, load_phi, make
+from capevo.runtime.governance import ArmScene, ContactApproach, KeepClear, Phi, StoppingDistance, load_phi, make
 from capevo.runtime.governance.keep_clear import MIN_ROW2
 from capevo.runtime.governance.pose import DOWN
 from capevo.runtime.governance.proximity import FIXED, LOOSE
@@ -165,10 +165,11 @@ def test_the_forearm_a_learned_policy_crept_into_the_bin_at_the_touch_speed_is_k
     """The AM baseline's T1 policy (a cpu-small cell, iteration 3, seed 2000042049): its forearm
     (link 5) closed on the bin's rim at contact_approach's touch speed and struck it at 82 N.
     Its proposed actions, replayed open loop under the default Φ without keep_clear, strike the
-    bin again; with the rule (the default Φ) no step is unsafe."""
+    bin again; with the rule (the default Φ) no step is unsafe. ``stopping_distance`` prevents this
+    strike too, so it is left out of the Φ without the rule as well."""
     record = json.loads(FOREARM_CREEP.read_text())
     full = Phi.for_task(task_spec("T1"))
-    without = Phi(tuple(c for c in full.constraints if not isinstance(c, KeepClear)))
+    without = Phi(tuple(c for c in full.constraints if not isinstance(c, (KeepClear, StoppingDistance))))
     struck = unsafe_reasons(record["actions"], record["seed"], phi=without)
     assert any("link5" in r for r in struck), struck
     assert unsafe_reasons(record["actions"], record["seed"], phi=full) == []

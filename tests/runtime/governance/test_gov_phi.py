@@ -133,8 +133,8 @@ def _invalid(text: str) -> Invalid:
             "constraints[0].kind",
             "constraints[0].kind: unknown constraint kind 'workspace_bx'; valid kinds: "
             "arm_separation, closing_grip, contact_approach, contact_force, forbidden_zone, force_ramp, "
-            "keep_clear, obstacle_approach, reach_limit, surface_approach, velocity_cap, workspace_box, "
-            "workspace_guard",
+            "keep_clear, obstacle_approach, reach_limit, stopping_distance, surface_approach, velocity_cap, "
+            "workspace_box, workspace_guard",
         ),
         ("constraints: [{max_norm: 1}]", "constraints[0].kind", "constraints[0].kind: unknown constraint kind None"),
         (

@@ -57,9 +57,9 @@ def test_a_custom_base_is_extended_before_its_cap() -> None:
     base = load_phi("constraints: [{kind: workspace_box, margin: 0.05}, {kind: velocity_cap, max_norm: 1.0}]")
     phi = for_task("T3", base)
     assert phi.constraints[0] == base.constraints[0] and phi.constraints[-1] == base.constraints[-1]
-    assert phi.constraints[1].kind == "keep_clear"  # it adds motion: the rest hold after it
-    assert phi.constraints[2].kind == "closing_grip"
-    guard = phi.constraints[3]
+    # The two that add motion come first: the rest hold after them.
+    assert [c.kind for c in phi.constraints[1:4]] == ["keep_clear", "stopping_distance", "closing_grip"]
+    guard = phi.constraints[4]
     assert guard.kind == "workspace_guard" and guard.margin == 0.05
 
 
