@@ -44,7 +44,7 @@ other arm it may carry this one towards. Placed last (after every shrinking rule
 more, but its push then broke the other rules' bounds (on T6's −x and −z constant adversaries and
 both random ones of ``tests/runtime/governance/test_gov_robosuite.py``).
 
-The settings of the per-task Φ (``STOPPING`` in :mod:`~capevo.runtime.governance.task_phi`) are
+The settings of the single-arm tasks' Φ (``STOPPING`` in :mod:`~capevo.runtime.governance.task_phi`) are
 hand-written. ``decel`` 0.2 m/s² (0.01 action units per step per step), ``clearance`` 3 mm (as
 ``keep_clear``'s band) and ``gain`` 3 action units per m/s were chosen on a prototype over the 120
 held-out episodes of the six AM and AM-bc T1 cells of ``results/h2-t1`` (iterations 2 and 3; 23
