@@ -10,7 +10,7 @@ Modalities (registered with :func:`register_modality`, built with :func:`make_up
 * ``hybrid``: an LLM edit (``CAPEVO_LLM_BASE_URL``) then CEM (:class:`~capevo.learner.hybrid.HybridLearner`);
   without an endpoint it is CEM alone (the note says so).
 * ``rl``: SAC (:class:`~capevo.learner.rl.SacLearner`), continuing from its own latest candidate
-  and replay buffer (a random-init v0 is first behaviour-cloned); origin ``rl``.
+  and replay buffer (a random-init v0 and every later update of its lineage are first behaviour-cloned); origin ``rl``.
 * ``il``: behaviour cloning (:class:`~capevo.learner.bc.BcLearner`) from the set's successful
   traces and the task's scripted reference, on every demonstration gathered so far, continuing
   from its own latest candidate; origin ``il``.
@@ -353,7 +353,8 @@ class NeuralUpdater:
                     bc=dataclasses.replace(preset.bc, dagger_rounds=0),
                 )
             progress.learner_started(total=budget or preset.sac.total_steps, unit="SAC steps")
-            # a random-init v0 is first cloned from the scripted reference and the set's successes
+            # a random-init v0, and every later update of its lineage, is first cloned from the
+            # scripted reference and the set's successes (all the rows gathered so far)
             clone_from = BcLearner(
                 config=preset.bc,
                 env_config=env,

@@ -214,7 +214,7 @@ def plot_seed_bars(
         )
         ax.scatter([i] * len(vs), vs, color="white", edgecolors="black", s=22, zorder=5)
     ax.set_xticks(range(len(groups)))
-    ax.set_xticklabels([g[0] for g in groups], rotation=30, ha="right", fontsize=8)
+    ax.set_xticklabels([_wrapped(g[0]) for g in groups], rotation=30, ha="right", fontsize=8)
     ax.set_ylabel(ylabel)
     ax.set_title(title + ("\nhatched: the paper's published figures" if paper else ""), fontsize=9)
     ax.grid(alpha=0.3, axis="y")
@@ -222,6 +222,13 @@ def plot_seed_bars(
         ax.text(0.5, 0.5, "no values", ha="center", va="center", transform=ax.transAxes)
     fig.tight_layout()
     return _save(fig, plt, path)
+
+
+def _wrapped(label: str, width: int = 28) -> str:
+    """A tick label on several lines: a group's option list would otherwise push the axes aside."""
+    import textwrap
+
+    return "\n".join(textwrap.wrap(label, width=width, break_long_words=False, break_on_hyphens=False)) or label
 
 
 def plot_governance(rows: Sequence[Mapping[str, Any]], path: str | os.PathLike[str]) -> Path:

@@ -65,6 +65,7 @@ import numpy as np
 
 from capevo.errors import Invalid
 from capevo.learner.base import Candidate, LearnRequest, config_hash
+from capevo.learner.continuation import LearnerState
 from capevo.learner.ecm_env import EcmEnv, EcmEnvConfig, EcmTarget, make_ecm_env, target_for
 from capevo.learner.neural_seed import NEURAL_MEDIA_TYPE, model_bytes, offline_sac, sac_policy_kwargs, warm_start
 from capevo.records import IOSpec, Kind, Origin, Predicate, Provenance, PublishSpec
@@ -836,8 +837,6 @@ class BcLearner:
             return self._learn(request, parent_artifact=parent_artifact, demos=demos)
 
     def _learn(self, request: LearnRequest, *, parent_artifact: bytes | None, demos: Demos | None) -> Candidate:
-        from capevo.learner.continuation import LearnerState
-
         target = target_for(request.task, request.ecm, request.parent)
         act_dim = task_spec(request.task).action_layout.dim
         state = LearnerState(self.state_dir, request.ecm) if self.state_dir is not None else None
@@ -854,12 +853,7 @@ class BcLearner:
             demos = self.gather(request, target)
         new_rows = len(demos)
         gathered_steps = demos.env_steps
-        if state is not None:
-            obs, action = state.add_demos(demos.obs, demos.action)
-            if len(obs) > new_rows:
-                demos = dataclasses.replace(demos, obs=obs, action=action, source=f"{demos.source}+earlier")
-        add_rows = (lambda more: state.add_demos(more.obs, more.action)) if state is not None else None
-        demos, report, dagger = self.clone(model, request, target, demos, add_rows=add_rows)
+        demos, report, dagger = self.clone_keeping(model, request, target, demos, state)
         self.last_report = report
         candidate = neural_candidate(
             model,
@@ -891,6 +885,28 @@ class BcLearner:
         if state is not None:
             state.save_latest(candidate.artifact)
         return candidate
+
+    def clone_keeping(
+        self,
+        model: Any,
+        request: LearnRequest,
+        target: EcmTarget,
+        demos: Demos,
+        state: LearnerState | None,
+        *,
+        config: BcConfig | None = None,
+    ) -> tuple[Demos, BcReport, dict[str, Any]]:
+        """:meth:`clone` on every row ``state`` keeps for the ECM with ``demos`` appended, each
+        DAgger round's rows kept there too, so clones of later updates fit everything gathered
+        so far (None: ``demos`` alone). Returns what :meth:`clone` returns."""
+        if state is None:
+            return self.clone(model, request, target, demos, config=config)
+        obs, action = state.add_demos(demos.obs, demos.action)
+        if len(obs) > len(demos):
+            demos = dataclasses.replace(demos, obs=obs, action=action, source=f"{demos.source}+earlier")
+        return self.clone(
+            model, request, target, demos, config=config, add_rows=lambda more: state.add_demos(more.obs, more.action)
+        )
 
     def clone(
         self,

@@ -13,7 +13,12 @@ Random-init start (issue 19): when the parent is a randomly initialised neural v
 ``manual``) and a ``bc`` learner is given, the actor is first behaviour-cloned on that learner's
 demonstrations (the scripted reference's rollouts and the current set's successful traces), with
 the DAgger rounds of ``distill`` (:meth:`capevo.learner.bc.BcLearner.clone`), so SAC fine-tunes a
-policy that already roughly does the job instead of exploring from nothing.
+policy that already roughly does the job instead of exploring from nothing. Every later update of
+that lineage (continuing from the latest candidate) clones again before SAC, on every
+demonstration row gathered so far (kept in the learner's state, as the ``il`` learner keeps them).
+Without that, a lineage whose SAC lost every check handed the gate its first clone again and
+again: a 12-iteration T1 run re-submitted the same ``pick.reach`` actor in iterations 1-5 while
+the ``il`` learner's clones kept improving (``results/evolution/T1-rl``).
 
 Check (``SacConfig.check_episodes``): SAC on T1 undid its cloned warm start within 5,000 steps
 (``results/evolution/T1-rl``), so the learner runs its deterministic actor on a few training
@@ -70,6 +75,7 @@ from capevo.learner.bc import (
     task_trace_files,
     torch_threads,
 )
+from capevo.learner.continuation import LearnerState
 from capevo.learner.ecm_env import EcmEnv, EcmEnvConfig, EcmTarget, make_ecm_env, target_for
 from capevo.learner.neural_seed import new_sac, sac_policy_kwargs, silent_logger, warm_start
 from capevo.learner.reward import RewardShaping, ShapedReward
@@ -431,7 +437,7 @@ def train_sac(
 def _warm_start_note(continued: bool, neural_parent: bool, distilled: BcReport | None) -> str:
     """Where the candidate's training started, for its notes."""
     if continued:
-        return "latest candidate"
+        return "latest candidate, cloned again" if distilled is not None else "latest candidate"
     if distilled is not None:
         return "cloned" if neural_parent else "distilled"
     return "weights" if neural_parent else "random"
@@ -589,20 +595,24 @@ class SacLearner:
         with torch_threads(self.torch_threads):
             return self._learn(request, parent_artifact)
 
-    def _cloned(self, model: Any, request: LearnRequest, target: EcmTarget) -> BcReport | None:
-        """Clone :attr:`bc`'s demonstrations into a randomly initialised actor, with the DAgger
-        rounds of :attr:`distill` (:meth:`BcLearner.clone`)."""
+    def _cloned(
+        self, model: Any, request: LearnRequest, target: EcmTarget, state: LearnerState | None
+    ) -> BcReport | None:
+        """Clone :attr:`bc`'s demonstrations into the actor, with the DAgger rounds of
+        :attr:`distill`, on every row ``state`` keeps (:meth:`BcLearner.clone_keeping`)."""
         if self.bc is None:
             return None
         try:
             demos = self.bc.gather(request, target)
         except Invalid as exc:  # no scripted reference and no successful trace yet (T4-T6)
-            log.warning("%s: nothing to clone (%s); SAC starts from the random v0", request.ecm, exc.message)
+            log.warning("%s: nothing to clone (%s); SAC starts from the actor as it is", request.ecm, exc.message)
             return None
         self.last_clone_steps = demos.env_steps
-        demos, report, self.last_dagger = self.bc.clone(model, request, target, demos, config=self.distill)
+        demos, report, self.last_dagger = self.bc.clone_keeping(
+            model, request, target, demos, state, config=self.distill
+        )
         log.info(
-            "%s: cloned %d demonstration steps (%s) into the random v0: loss %.4f -> %.4f",
+            "%s: cloned %d demonstration steps (%s) into the actor: loss %.4f -> %.4f",
             request.ecm,
             report.samples,
             demos.source,
@@ -639,7 +649,6 @@ class SacLearner:
         )
 
     def _learn(self, request: LearnRequest, parent_artifact: bytes | None) -> Candidate:
-        from capevo.learner.continuation import LearnerState
         from capevo.learner.experience import trace_paths
 
         target = target_for(request.task, request.ecm, request.parent)
@@ -662,10 +671,12 @@ class SacLearner:
                 kept = state.load_replay(model)
                 if kept:
                     model.learning_starts = 0
-            elif not neural_parent and artifact is not None:
+            if latest is None and not neural_parent and artifact is not None:
                 distilled = self._distil(env, model, request, artifact)
-            elif request.parent.origin is Origin.MANUAL:
-                distilled = self._cloned(model, request, target)
+            elif neural_parent and (latest is not None or request.parent.origin is Origin.MANUAL):
+                # every update of a lineage that began at a random v0 clones again, on all the
+                # rows gathered so far: its check then starts SAC from the best clone yet
+                distilled = self._cloned(model, request, target, state)
             paths = [*self.traces, *trace_paths(request.outcomes)]
             prefilled = (
                 prefill_replay(model, paths, task=request.task, target=target, shaping=self.shaping, dt=env.control_dt)

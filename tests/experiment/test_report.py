@@ -271,6 +271,17 @@ def test_every_plot_accepts_empty_input(tmp_path: Path) -> None:
         assert mpimg.imread(p).shape[0] > 100
 
 
+def test_a_long_group_label_is_wrapped_at_spaces_without_losing_a_character() -> None:
+    from capevo.experiment.plots import _wrapped
+
+    label = "ours-code (gate_episodes=6, live_episodes=4, preset=cpu-small)"
+    lines = _wrapped(label).split("\n")
+    assert len(lines) > 1
+    assert all(len(line) <= 28 for line in lines)
+    assert " ".join(lines) == label
+    assert _wrapped("am") == "am"
+
+
 def test_fairness_names_knowledge_and_the_hand_off_oracle(run: tuple[Path, dict[str, Raw]]) -> None:
     from capevo.runtime.tasks import task_spec
 

@@ -12,6 +12,7 @@ import sys
 import textwrap
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -221,6 +222,41 @@ def test_bc_keeps_every_demonstration_and_continues_from_its_latest(registry: Lo
     assert LearnerState(state_dir, ECM).latest() == b.artifact
     # b started from a's weights: its loss before cloning is a's loss after, on a's rows
     assert b.notes["bc"]["loss_before"] < a.notes["bc"]["loss_before"]
+
+
+@pytest.mark.slow
+def test_sac_from_a_random_v0_clones_again_on_every_row_before_each_later_update(
+    registry: LocalRegistry, tmp_path: Path
+) -> None:
+    """A lineage that began at a random v0 re-clones before SAC on every update, on the rows of
+    all its updates so far: a SAC that loses every check must not hand the gate its first clone
+    again and again (a 12-iteration T1 run did, results/evolution/T1-rl)."""
+    state_dir = tmp_path / "state"
+    bc = BcLearner(config=BC, env_config=ENV_CONFIG, registry=registry, scripted_episodes=1)
+
+    def update() -> Any:
+        learner = SacLearner(
+            config=SAC,
+            env_config=ENV_CONFIG,
+            registry=registry,
+            bc=bc,
+            distill=BC,
+            state_dir=state_dir,
+            torch_threads=1,
+        )
+        return learner.learn(_request(registry))
+
+    a = update()
+    rows_a = a.notes["train"]["distill"]["samples"]
+    assert a.notes["warm_start"] == "cloned" and rows_a > 0
+    b = update()
+    assert b.notes["warm_start"] == "latest candidate, cloned again"
+    assert b.notes["replay_kept"] == SAC.total_steps
+    stored = LearnerState(state_dir, ECM).demos()
+    assert stored is not None
+    rows_b = b.notes["train"]["distill"]["samples"]
+    assert rows_b == len(stored[0]) > rows_a  # the second clone fitted the first update's rows too
+    assert b.notes["env_steps"]["clone"] > 0
 
 
 @pytest.mark.slow
