@@ -21,9 +21,10 @@ persistent agent A = (π_A, M_id, M_ep) stays fixed. Iteration i:
    candidates in place (companions); an ECM that still hands over in fewer than half of its
    episodes sends the chain to its predecessor (the fault may be in the state it is handed).
    The chain stops when the last candidate's episodes all succeed, at the limit, or when a
-   learner finds nothing better. Its candidates are published, then gated one by one in plan
-   order, each exactly like a single candidate except that the chain's later candidates still
-   waiting run on *both* sides of the pair (recorded in the evidence's capability sets).
+   learner finds nothing better. Its candidates are published, then gated as one change: the
+   current set against the set with every member, one decision for all (the members were
+   learned behind each other; judged one at a time, those that only work together were taken
+   apart, see :mod:`capevo.runtime.gate`, "Chains").
    A candidate already waiting in the registry (published by a learner worker, or left by an
    interrupted run) is gated instead of learning another.
 4. **Gate**: :class:`~capevo.runtime.gate.Gate` runs the active and the candidate version on
@@ -192,15 +193,11 @@ class PhaseEvaluator:
         self.progress = progress
         self.wait_for_worker_s = wait_for_worker_s
         self.phase = "live"
-        self.overlay: dict[str, int] = {}
-        """Versions run in place of the active ones unless ``versions`` names the ECM: while a
-        chain is gated, the candidates after the gated one (both sides of the pair run them)."""
         self._local = hasattr(inner, "trace_dir") and hasattr(inner, "progress")
         self.env_steps: dict[str, int] = {}
         """Env steps of the episodes run, by phase (the loop resets it every iteration)."""
 
     def evaluate(self, task: str, versions: Mapping[str, int], seeds: Sequence[int]) -> list[EpisodeOutcome]:
-        versions = {**self.overlay, **versions}
         # a remote evaluator given a trace_dir copies the workers' traces there: route them too
         if self.trace_root is not None and (self._local or getattr(self.inner, "trace_dir", None) is not None):
             directory = self.trace_root / self.phase
@@ -684,8 +681,7 @@ class EvolutionLoop:
             start = members.get(nxt)
             source = start.candidate.source if start is not None and start.candidate is not None else None
             spent = self._learned[1]
-            updates = len(members) + (0 if nxt in members else 1)
-            cap = self._learner_cap(learner_spent=spent, updates=updates)
+            cap = self._learner_cap(learner_spent=spent)
             if cap is not None and cap < self._smallest_update():
                 why = "chain stopped: the iteration's env-step budget is spent"
                 break
@@ -698,7 +694,6 @@ class EvolutionLoop:
                 companions=companions,
                 source=source,
                 learner_spent=spent,
-                updates=updates,
             )
             try:
                 proposal = self._propose(request)
@@ -750,10 +745,9 @@ class EvolutionLoop:
         companions: Mapping[str, bytes] | None = None,
         source: str | None = None,
         learner_spent: int = 0,
-        updates: int = 1,
     ) -> UpdateRequest:
         return UpdateRequest(
-            max_env_steps=self._learner_cap(learner_spent=learner_spent, updates=updates),
+            max_env_steps=self._learner_cap(learner_spent=learner_spent),
             task=self.task,
             ecm=ecm,
             iteration=i,
@@ -768,17 +762,17 @@ class EvolutionLoop:
     def _smallest_update(self) -> int:
         return self.config.smallest_update(self.task, modality=self.modality)
 
-    def _learner_cap(self, *, learner_spent: int, updates: int) -> int | None:
+    def _learner_cap(self, *, learner_spent: int) -> int | None:
         """Env steps the next learner may spend: the iteration's budget less the live steps
         taken (and the monitor's confirmation episodes, which come out of the learner's share),
-        the learner steps the chain took already, and a gate at the horizon for each of the
-        ``updates`` candidates the iteration would then gate (None: no budget)."""
+        the learner steps the chain took already, and one gate at the horizon (a chain is gated
+        as one change) (None: no budget)."""
         budget = self.config.env_steps_per_iteration
         if budget is None:
             return None
         h = self.config.episode_steps_max(self.task)
         taken = self.evaluator.env_steps.get("live", 0) + self.evaluator.env_steps.get("monitor", 0)
-        return budget - taken - learner_spent - updates * 2 * self.config.gate_seeds_max * h
+        return budget - taken - learner_spent - 2 * self.config.gate_seeds_max * h
 
     def _publish_chain(
         self, i: int, chain: Sequence[tuple[str, Proposal]], *, note: str, spent: tuple[int, int] = (0, 0)
@@ -804,40 +798,50 @@ class EvolutionLoop:
     def _decide_chain(
         self, i: int, records: Sequence[EcmVersion], members: Sequence[Mapping[str, Any]], *, note: str
     ) -> _Update:
-        """Gate a chain's candidates in decomposition order.
-
-        Each is gated like a single candidate (active vs candidate, same held-out seeds), with
-        the chain's *later* candidates that are still candidates run on both sides of the
-        pair: a step's new version is judged behind the earlier steps as they now are (promoted
-        or not) and in front of the later steps' new versions, which it was learned with.
+        """Gate a chain's candidates as one change: the current set against the set with every
+        member, on the same held-out seeds, one decision for all (see :mod:`capevo.runtime.gate`,
+        "Chains": the members were learned behind each other, and judged one at a time those
+        that only work together were rejected). A decision an interrupted attempt recorded is
+        finished from its evidence, not gated again.
         """
-        updates: list[_Update] = []
-        for k, record in enumerate(records):
-            later: dict[str, int] = {}
-            for r in records[k + 1 :]:
-                if self.registry.get_version(r.name, r.version).state is State.CANDIDATE:
-                    later[r.name] = r.version
-            current = self.registry.get_version(record.name, record.version)
-            self.evaluator.overlay = later
-            try:
-                update = self._gate_one(
-                    i,
-                    current,
+        first, rest = records[0], records[1:]
+        chain = {r.name: r.version for r in records}
+        recorded = self._recorded_chain_evidence(chain)
+        if recorded is not None:
+            self.gate.settle(recorded)
+        update = self._gate_one(
+            i,
+            self.registry.get_version(first.name, first.version),
+            learner=members[0].get("learner"),
+            episodes=int(members[0].get("episodes") or 0),
+            steps=int(members[0].get("steps") or 0),
+            note=note,
+            companions={r.name: r.version for r in rest},
+        )
+        for k, record in enumerate(rest, start=1):
+            evidence = self.registry.get_version(record.name, record.version).gate_evidence
+            update.further.append(
+                _Update(
+                    ecm=record.name,
+                    version=record.version,
                     learner=members[k].get("learner"),
                     episodes=int(members[k].get("episodes") or 0),
                     steps=int(members[k].get("steps") or 0),
-                    note=(f"gated behind chain candidates {_versions_text(later)}" if later else ""),
+                    gate=GateSummary.from_evidence(evidence, reason="decided with the chain") if evidence else None,
+                    note=f"decided with {first.name} v{first.version}",
                 )
-            finally:
-                self.evaluator.overlay = {}
-            updates.append(update)
-        first = updates[0]
-        first.note = "; ".join(n for n in (note, first.note) if n)
-        first.further = updates[1:]
-        first.episodes = sum(u.episodes for u in updates)
-        first.steps = sum(u.steps for u in updates)
-        first.gate_s = sum(u.gate_s for u in updates)
-        return first
+            )
+        update.episodes += sum(u.episodes for u in update.further)
+        update.steps += sum(u.steps for u in update.further)
+        return update
+
+    def _recorded_chain_evidence(self, chain: Mapping[str, int]) -> Mapping[str, Any] | None:
+        """The gate evidence of exactly this chain that some member carries already, if any."""
+        for name, version in chain.items():
+            evidence = self.registry.get_version(name, version).gate_evidence
+            if evidence and evidence.get("chain") == dict(chain):
+                return evidence
+        return None
 
     def _same_as_parent(self, proposal: Proposal) -> bool:
         cand = proposal.candidate
@@ -868,7 +872,10 @@ class EvolutionLoop:
         episodes: int = 0,
         steps: int = 0,
         note: str = "",
+        companions: Mapping[str, int] | None = None,
     ) -> _Update:
+        """Gate ``record`` (with ``companions``, the rest of its chain, decided together), or read
+        the decision back when it was made already."""
         update = _Update(
             ecm=record.name,
             version=record.version,
@@ -901,7 +908,12 @@ class EvolutionLoop:
         t = time.perf_counter()
         try:
             decision = self.gate.run(
-                record.name, record.version, task=self.task, seeds=seeds, extension_seeds=extension
+                record.name,
+                record.version,
+                task=self.task,
+                seeds=seeds,
+                extension_seeds=extension,
+                with_candidates=companions,
             )
         except Conflict as exc:
             update.gate_s = time.perf_counter() - t

@@ -66,6 +66,14 @@ slower policy that holds the object longer collects more shaped reward before th
 step ends the episode), so a reward gain counts only with non-inferior success and no
 slowdown.
 
+Chains: candidates of several ECMs learned together (an evolve iteration's chain, each learned
+behind the earlier ones) are gated as one change, ``run(..., with_candidates=...)``: the active
+side runs the current set, the candidate side every member, and every member is promoted or
+rejected with the one decision. Gating them one at a time misjudges members that only work
+together: on T6 at 6 pairs (``results/h2-t6-4x``) a chain that succeeded on 6 of 6 gate seeds
+against 0 of 6 was taken apart into an ``orient_hole`` judged 6 vs 2 and an ``approach_peg`` judged
+2 vs 0, both rejected (McNemar p 0.0625, 0.25), and the set kept none of it.
+
 Held-out seeds: :class:`SeedPlan` derives disjoint training, gate and live seed ranges from
 one base seed; a :class:`Gate` given a plan refuses seeds outside its gate range.
 
@@ -79,7 +87,7 @@ Invariants:
    replacing a version nobody gated against. In absolute mode the registry has no way to
    say "expect none active"; the gate re-reads the pointer just before promoting (a
    narrower race, not none).
-4. If the versions the two evaluations actually ran differ in anything but the gated ECM,
+4. If the versions the two evaluations actually ran differ in anything but the gated ECMs,
    nothing is recorded and :class:`Conflict` is raised (the pairing would be broken).
 5. A candidate whose outcomes equal the active version's, seed for seed, is never promoted
    when ``require_improvement`` is set.
@@ -97,7 +105,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
@@ -517,6 +525,8 @@ class GateDecision:
     evidence: Mapping[str, Any]
     record: EcmVersion
     """The candidate's record after the promotion or rejection."""
+    members: tuple[EcmVersion, ...] = ()
+    """The records, after the decision, of the candidates decided with it (``with_candidates``)."""
 
     @property
     def failed(self) -> tuple[str, ...]:
@@ -536,6 +546,7 @@ class GateDecision:
             "checks": [c.to_dict() for c in self.checks],
             "evidence": dict(self.evidence),
             "record": self.record.to_dict(),
+            "members": [m.to_dict() for m in self.members],
         }
 
 
@@ -736,50 +747,59 @@ class Gate:
         if self.progress is not None:
             self.progress(stage, message)
 
-    def _evaluate(self, task: str, name: str, version: int, seeds: list[int]) -> list[EpisodeOutcome]:
+    def _evaluate(self, task: str, pinned: Mapping[str, int], seeds: list[int]) -> list[EpisodeOutcome]:
+        """Run ``pinned`` (the rest at their active versions) on ``seeds``.
+
+        Raises:
+            Invalid: outcomes for other seeds. Conflict: a pinned ECM ran at another version.
+        """
         key = (task, tuple(sorted(seeds)))
         if self.reuse_evaluations:
-            wanted = {**self.registry.capability_set().active, name: version}
+            wanted = {**self.registry.capability_set().active, **pinned}
             for ran, outcomes in self._memo.get(key, []):
-                if ran.get(name) == version and all(wanted.get(k) == v for k, v in ran.items()):
+                if all(ran.get(k) == v for k, v in pinned.items()) and all(wanted.get(k) == v for k, v in ran.items()):
                     return outcomes
-        outcomes = list(self.evaluator.evaluate(task, {name: version}, seeds))
+        outcomes = list(self.evaluator.evaluate(task, dict(pinned), seeds))
         got = [o.seed for o in outcomes]
         if sorted(got) != sorted(seeds):
             raise Invalid(
                 f"the evaluator returned outcomes for seeds {got[:5]}..., asked for {seeds[:5]}...",
                 details={"field": "outcomes"},
             )
-        ran = _ran_versions(outcomes, f"{name} v{version}")
-        if ran.get(name, version) != version:
-            raise Conflict(f"asked to evaluate {name} v{version}, the evaluator ran v{ran[name]}")
+        ran = _ran_versions(outcomes, _versions_text(pinned))
+        for name, version in pinned.items():
+            if ran.get(name, version) != version:
+                raise Conflict(f"asked to evaluate {name} v{version}, the evaluator ran v{ran[name]}")
         if self.reuse_evaluations:
-            self._memo.setdefault(key, []).append(({**ran, name: version}, outcomes))
+            self._memo.setdefault(key, []).append(({**ran, **pinned}, outcomes))
         return outcomes
 
     @staticmethod
-    def _check_pairing(name: str, act_out: Sequence[EpisodeOutcome], cand_out: Sequence[EpisodeOutcome]) -> None:
-        """Invariant 4: the two sides ran the same versions of every other ECM, under one Φ.
+    def _check_pairing(
+        gated: Collection[str], act_out: Sequence[EpisodeOutcome], cand_out: Sequence[EpisodeOutcome]
+    ) -> None:
+        """Invariant 4: the two sides ran the same versions of every ECM not ``gated``, under one Φ.
 
         Raises:
             Conflict: they did not (nothing is recorded).
         """
+        label = ", ".join(gated)
         ran_active, ran_cand = _ran_versions(act_out, "active"), _ran_versions(cand_out, "candidate")
         others = sorted(
-            k for k in set(ran_active) | set(ran_cand) if k != name and ran_active.get(k) != ran_cand.get(k)
+            k for k in set(ran_active) | set(ran_cand) if k not in gated and ran_active.get(k) != ran_cand.get(k)
         )
         if others:
             raise Conflict(
                 f"the active and candidate evaluations ran different versions of {', '.join(others)} "
                 f"({ran_active} vs {ran_cand}); the pairing is broken, nothing was recorded",
-                details={"name": name, "differ": others},
+                details={"name": label, "differ": others},
             )
         envelopes = {o.phi_hash for o in (*act_out, *cand_out)}
         if len(envelopes) > 1:
             raise Conflict(
-                f"the active and candidate evaluations of {name} ran under different envelopes Φ "
+                f"the active and candidate evaluations of {label} ran under different envelopes Φ "
                 f"({sorted(str(h)[:12] for h in envelopes)}); the pairing is broken, nothing was recorded",
-                details={"name": name},
+                details={"name": label},
             )
 
     def _check_still_none_active(self, name: str) -> None:
@@ -802,6 +822,7 @@ class Gate:
         task: str,
         seeds: Sequence[int],
         extension_seeds: Sequence[int] = (),
+        with_candidates: Mapping[str, int] | None = None,
     ) -> GateDecision:
         """Gate ``candidate_version`` of ``name`` on ``task`` with the held-out ``seeds``.
 
@@ -809,17 +830,24 @@ class Gate:
         ``seeds``), used only after a promising first look that rejected; ignored when
         ``extend_n`` is 0.
 
+        ``with_candidates`` are candidates of other ECMs learned together with this one (an
+        evolve chain): the candidate side runs all of them, the active side none, and the one
+        decision applies to every member. Each member's evidence is recorded (its own name and
+        versions, the whole chain under ``chain``) before any of them is promoted or rejected,
+        so :meth:`settle` can finish a decision a crash interrupted.
+
         Returns:
-            The decision, with the candidate's record after promotion or rejection.
+            The decision, with the candidate's record after promotion or rejection (and the
+            other members' in ``members``).
 
         Raises:
-            Invalid: bad seeds (see :func:`check_gate_seeds`), or evaluator outcomes that do not
-                match the seeds.
+            Invalid: bad seeds (see :func:`check_gate_seeds`), ``with_candidates`` naming
+                ``name``, or evaluator outcomes that do not match the seeds.
             NotFound: no such ECM or version.
-            IllegalTransition: the version is not a candidate.
-            Conflict: the active version changed while gating (the evidence stays recorded,
-                the candidate stays a candidate), or the two evaluations ran different
-                versions of the other ECMs (nothing recorded).
+            IllegalTransition: a version is not a candidate.
+            Conflict: an active version changed while gating (the evidence stays recorded,
+                the candidates not yet promoted stay candidates), or the two evaluations ran
+                different versions of the ECMs not gated (nothing recorded).
             CapevoError: whatever the evaluator raised (nothing recorded).
         """
         cfg = self.config
@@ -833,28 +861,43 @@ class Gate:
                     f"got {len(more)}, {len(set(more) & set(seed_list))} shared",
                     details={"field": "extension_seeds"},
                 )
-        record = self.registry.get_version(name, candidate_version)
-        if record.state is not State.CANDIDATE:
-            raise IllegalTransition(
-                f"{name} v{candidate_version} is {record.state.value}; only a candidate can be gated",
-                details={"name": name, "version": candidate_version, "state": record.state.value},
-            )
-        try:
-            active_version: int | None = self.registry.get_version(name).version
-        except NotFound:
-            active_version = None
+        companions = dict(with_candidates or {})
+        if name in companions:
+            raise Invalid(f"with_candidates names the gated ECM {name} itself", details={"field": "with_candidates"})
+        members = {name: int(candidate_version), **{str(k): int(v) for k, v in companions.items()}}
+        actives: dict[str, int | None] = {}
+        for member, version in members.items():
+            record = self.registry.get_version(member, version)
+            if record.state is not State.CANDIDATE:
+                raise IllegalTransition(
+                    f"{member} v{version} is {record.state.value}; only a candidate can be gated",
+                    details={"name": member, "version": version, "state": record.state.value},
+                )
+            try:
+                actives[member] = self.registry.get_version(member).version
+            except NotFound:
+                if member != name:
+                    # the active side would have no version of it to run
+                    raise Invalid(
+                        f"{member} has no active version to compare with; gate it on its own first",
+                        details={"field": "with_candidates", "name": member},
+                    ) from None
+                actives[member] = None
+        active_version = actives[name]
+        active_pins = {name: active_version} if active_version is not None else {}
+        label = _versions_text(members)
 
         act_out: list[EpisodeOutcome] | None = None
         ran_active: dict[str, int] = {}
         if active_version is not None:
             self._say("evaluate-active", f"{name} v{active_version} on {len(seed_list)} seeds")
-            act_out = self._evaluate(task, name, active_version, seed_list)
+            act_out = self._evaluate(task, active_pins, seed_list)
             ran_active = _ran_versions(act_out, "active")
-        self._say("evaluate-candidate", f"{name} v{candidate_version} on {len(seed_list)} seeds")
-        cand_out = self._evaluate(task, name, candidate_version, seed_list)
+        self._say("evaluate-candidate", f"{label} on {len(seed_list)} seeds")
+        cand_out = self._evaluate(task, members, seed_list)
         ran_cand = _ran_versions(cand_out, "candidate")
         if act_out is not None:
-            self._check_pairing(name, act_out, cand_out)
+            self._check_pairing(members, act_out, cand_out)
 
         paired: PairedStats | None = None
         looks: list[dict[str, Any]] = []
@@ -866,11 +909,10 @@ class Gate:
             if more and not promote and promising(paired, checks):
                 looks.append(_look(paired, promote, checks))
                 self._say("extend", f"first look inconclusive on N={paired.n}: {len(more)} more paired seeds")
-                assert active_version is not None  # paired mode
                 # new lists: a reused evaluation's list is the memo's own
-                act_out = act_out + self._evaluate(task, name, active_version, more)
-                cand_out = cand_out + self._evaluate(task, name, candidate_version, more)
-                self._check_pairing(name, act_out, cand_out)
+                act_out = act_out + self._evaluate(task, active_pins, more)
+                cand_out = cand_out + self._evaluate(task, members, more)
+                self._check_pairing(members, act_out, cand_out)
                 seed_list = seed_list + more
                 paired = paired_stats(
                     act_out, cand_out, alpha=cfg.look_alpha, margin=cfg.delta, speed_metric=cfg.speed_metric
@@ -883,6 +925,8 @@ class Gate:
             promote, checks = decide_absolute(cand_stats, cfg)
         ordered = sorted(seed_list)
         reason = _summary(name, candidate_version, active_version, promote, checks, cand_stats, paired)
+        if companions:
+            reason += f"; decided together with {_versions_text(companions)} (learned as one chain)"
         if len(looks) == 2:
             reason += f"; second look: N {looks[0]['n']} -> {looks[1]['n']}, each look at alpha {cfg.look_alpha:.3g}"
         self._say("decided", reason)
@@ -913,18 +957,15 @@ class Gate:
             "traces": _traces([*cand_out, *(act_out or [])]),
             "decided_at": time.time(),
         }
-        self.registry.record_gate(name, candidate_version, evidence, reason=reason, actor=self.actor)
-        self._say("recorded", f"gate evidence on {name} v{candidate_version}")
-        if promote:
-            if active_version is None:
-                self._check_still_none_active(name)
-            after = self.registry.promote(
-                name, candidate_version, expected_active=active_version, reason=reason, actor=self.actor
+        if companions:
+            evidence["chain"] = members
+            evidence["chain_active"] = actives
+        for member, version in members.items():
+            self.registry.record_gate(
+                member, version, _member_evidence(evidence, member), reason=reason, actor=self.actor
             )
-            self._say("promoted", f"{name} v{candidate_version}")
-        else:
-            after = self.registry.reject(name, candidate_version, reason=reason, actor=self.actor)
-            self._say("rejected", f"{name} v{candidate_version}")
+            self._say("recorded", f"gate evidence on {member} v{version}")
+        after = self._apply(members, actives, promote=promote, reason=reason)
         return GateDecision(
             name=name,
             task=task,
@@ -938,8 +979,80 @@ class Gate:
             candidate=cand_stats,
             paired=paired,
             evidence=evidence,
-            record=after,
+            record=after[0],
+            members=tuple(after[1:]),
         )
+
+    def settle(self, evidence: Mapping[str, Any]) -> list[EcmVersion]:
+        """Finish a chain decision whose evidence was recorded but not all applied (a crash
+        between :meth:`run`'s first record and its last promotion): record the evidence on the
+        members still without it, then promote or reject every member still a candidate, as the
+        evidence decided. Nothing is evaluated again.
+
+        Returns:
+            Every member's record, in the chain's order.
+
+        Raises:
+            Invalid: ``evidence`` is not a chain's gate evidence.
+            Conflict: an active version changed since the decision.
+        """
+        chain = evidence.get("chain")
+        decision = evidence.get("decision")
+        if not isinstance(chain, Mapping) or not chain or decision not in ("promote", "reject"):
+            raise Invalid(
+                "settle needs a chain's gate evidence (with chain and decision)", details={"field": "evidence"}
+            )
+        members = {str(k): int(v) for k, v in chain.items()}
+        actives = {str(k): (None if v is None else int(v)) for k, v in (evidence.get("chain_active") or {}).items()}
+        reason = f"gate: {decision} {_versions_text(members)} together, as recorded before an interruption"
+        for member, version in members.items():
+            record = self.registry.get_version(member, version)
+            if record.state is State.CANDIDATE and record.gate_evidence != _member_evidence(evidence, member):
+                self.registry.record_gate(
+                    member, version, _member_evidence(evidence, member), reason=reason, actor=self.actor
+                )
+        return self._apply(members, actives, promote=decision == "promote", reason=reason)
+
+    def _apply(
+        self, members: Mapping[str, int], actives: Mapping[str, int | None], *, promote: bool, reason: str
+    ) -> list[EcmVersion]:
+        """Promote (guarded by each member's compared active version) or reject every member
+        still a candidate; the records after, in ``members``' order."""
+        out = []
+        for member, version in members.items():
+            record = self.registry.get_version(member, version)
+            if record.state is not State.CANDIDATE:
+                out.append(record)
+                continue
+            if promote:
+                expected = actives.get(member)
+                if expected is None:
+                    self._check_still_none_active(member)
+                record = self.registry.promote(
+                    member, version, expected_active=expected, reason=reason, actor=self.actor
+                )
+                self._say("promoted", f"{member} v{version}")
+            else:
+                record = self.registry.reject(member, version, reason=reason, actor=self.actor)
+                self._say("rejected", f"{member} v{version}")
+            out.append(record)
+        return out
+
+
+def _member_evidence(evidence: Mapping[str, Any], member: str) -> dict[str, Any]:
+    """``evidence`` as recorded on one member of a chain: its own name and versions."""
+    if member == evidence["name"]:
+        return dict(evidence)
+    return {
+        **evidence,
+        "name": member,
+        "candidate_version": int(evidence["chain"][member]),
+        "active_version": (evidence.get("chain_active") or {}).get(member),
+    }
+
+
+def _versions_text(versions: Mapping[str, int]) -> str:
+    return ", ".join(f"{k} v{v}" for k, v in versions.items())
 
 
 def _look(stats: PairedStats, promote: bool, checks: Sequence[Check]) -> dict[str, Any]:

@@ -1,5 +1,5 @@
 """Chains: one iteration learning several ECMs in sequence, each behind the previous candidates,
-then gating them in plan order with the later candidates in place on both sides of each pair.
+then gating them as one change (the current set against the set with every member).
 
 Fakes of the evaluator and learner (no simulator); the registry, gate, journal, metrics and the
 experience traces (MCAP files) are real.
@@ -13,8 +13,11 @@ from typing import Any
 import pytest
 from evolve_support import (
     NAMES,
+    PLAN,
+    TASK,
     ChainUpdater,
     Crash,
+    ParamUpdater,
     ScriptedEvaluator,
     fake_config,
     make_loop,
@@ -22,10 +25,13 @@ from evolve_support import (
 )
 
 from capevo.evolve.config import EvolveConfig, make_config
-from capevo.evolve.loop import UPSTREAM_BELOW
+from capevo.evolve.learners import UpdateRequest
+from capevo.evolve.loop import UPSTREAM_BELOW, ensure_v0
 from capevo.evolve.metrics import read_metrics
+from capevo.evolve.progress import RecordingProgress
 from capevo.evolve.state import Journal
 from capevo.records import State
+from capevo.registry.local import LocalRegistry
 from capevo.runtime.ecm.code import read_params, with_params
 
 REACH, GRASP, LIFT = NAMES
@@ -67,19 +73,55 @@ def test_a_chain_learns_the_next_stalled_step_behind_the_first_and_gates_both(tm
     assert updater.requests[0].seed_slot != updater.requests[1].seed_slot
     assert row.ecm_updated == REACH and [u.ecm for u in row.further] == [GRASP]
     assert [g.decision for g in row.gates] == ["promote", "promote"]
-    # reach was gated with grasp's candidate on both sides of the pair; grasp behind reach v1
+    # one gate for the chain: the current set against the set with both candidates
     reach_ev = registry.get_version(REACH, 1).gate_evidence
-    assert reach_ev["capability_set"]["candidate"][GRASP] == 1
-    assert reach_ev["capability_set"]["active"] == {REACH: 0, GRASP: 1, LIFT: 0}
+    assert reach_ev["capability_set"] == {
+        "candidate": {REACH: 1, GRASP: 1, LIFT: 0},
+        "active": {REACH: 0, GRASP: 0, LIFT: 0},
+    }
+    assert reach_ev["chain"] == {REACH: 1, GRASP: 1} and reach_ev["chain_active"] == {REACH: 0, GRASP: 0}
     assert reach_ev["candidate"]["successes"] == 8 and reach_ev["active"]["successes"] == 0
     grasp_ev = registry.get_version(GRASP, 1).gate_evidence
-    assert grasp_ev["capability_set"]["active"] == {REACH: 1, GRASP: 0, LIFT: 0}
+    assert (grasp_ev["name"], grasp_ev["candidate_version"], grasp_ev["active_version"]) == (GRASP, 1, 0)
+    assert grasp_ev["outcomes"] == reach_ev["outcomes"]
+    gate_calls = [ran for ran, seeds in evaluator.calls if set(seeds) <= set(PLAN.gate(8, round=0))]
+    assert gate_calls == [{REACH: 0, GRASP: 0, LIFT: 0}, {REACH: 1, GRASP: 1, LIFT: 0}]
     assert row.active_after == {REACH: 1, GRASP: 1, LIFT: 0}
     assert "succeeded on all its training episodes" in row.update_note
     assert result.final is not None and all(o.success for o in result.final.final)
     # the metrics row keeps the chain across a round trip
     assert [u.ecm for u in read_metrics(tmp_path / "report")[0].further] == [GRASP]
     assert Journal(tmp_path / "report").last(0, "chain")["members"][1]["ecm"] == GRASP
+
+
+def test_members_that_only_work_together_are_promoted_together(tmp_path: Path) -> None:
+    # grasp's candidate alone succeeds on half the gate seeds, reach's alone on none, both
+    # together on all (T6 at 6 pairs, results/h2-t6-4x). Judged one at a time (reach with grasp's
+    # candidate on both sides: 8 vs 4; then grasp behind reach v0: 4 vs 0), each gain is too small
+    # for 8 pairs (McNemar p 0.0625) and both were rejected; as one change it is 8 vs 0.
+    half = set(PLAN.gate(8, round=0)[:4])
+    registry = seeded_registry(tmp_path)
+    evaluator = ScriptedEvaluator(registry, lambda v, seed: v[GRASP] >= 1 and (v[REACH] >= 1 or seed in half))
+    updater = ChainUpdater(registry, tmp_path, {REACH: [REACH, GRASP], GRASP: None})
+    row = one_iteration(tmp_path, registry, evaluator, updater, updates=0)
+    assert [r.ecm for r in updater.requests] == [REACH, GRASP]
+    assert [(g.ecm, g.decision, g.candidate_successes, g.active_successes) for g in row.gates] == [
+        (REACH, "promote", 8, 0),
+        (GRASP, "promote", 8, 0),
+    ]
+    assert row.active_after == {REACH: 1, GRASP: 1, LIFT: 0}
+    assert registry.get_version(GRASP, 1).state is State.ACTIVE
+
+
+def test_a_chain_that_is_no_better_is_rejected_whole(tmp_path: Path) -> None:
+    registry = seeded_registry(tmp_path)
+    evaluator = ScriptedEvaluator(registry, lambda v, seed: False)
+    updater = ChainUpdater(registry, tmp_path, {REACH: [REACH, GRASP], GRASP: None})
+    row = one_iteration(tmp_path, registry, evaluator, updater, updates=0)
+    assert [(g.ecm, g.decision) for g in row.gates] == [(REACH, "reject"), (GRASP, "reject")]
+    assert registry.get_version(REACH, 1).state is State.REJECTED
+    assert registry.get_version(GRASP, 1).state is State.REJECTED
+    assert row.active_after == {REACH: 0, GRASP: 0, LIFT: 0}
 
 
 def test_a_step_that_still_fails_to_hand_over_sends_the_chain_upstream(tmp_path: Path) -> None:
@@ -161,11 +203,11 @@ def test_an_ecm_learned_again_in_a_chain_counts_every_update_and_gates_its_lates
     assert "found nothing better for " + REACH in row.update_note
 
 
-def test_resume_gates_the_rest_of_a_chain_an_interrupted_attempt_published(tmp_path: Path) -> None:
+def test_resume_gates_a_chain_an_interrupted_attempt_published(tmp_path: Path) -> None:
     registry = seeded_registry(tmp_path)
     stalls = {REACH: [REACH, GRASP], GRASP: None}
-    # calls: 1 live, 2-3 reach's gate, 4 grasp's gate (active) -> the process "dies"
-    crashing = ScriptedEvaluator(registry, _needs(REACH, GRASP), crash_on_call=4)
+    # calls: 1 live, 2 the chain gate's active side, 3 its candidate side -> the process "dies"
+    crashing = ScriptedEvaluator(registry, _needs(REACH, GRASP), crash_on_call=3)
     config = fake_config(iterations=1, updates_per_iteration=0)
     loop = make_loop(
         tmp_path, registry=registry, evaluator=crashing, updater=ChainUpdater(registry, tmp_path, stalls), config=config
@@ -173,7 +215,7 @@ def test_resume_gates_the_rest_of_a_chain_an_interrupted_attempt_published(tmp_p
     with pytest.raises(Crash):
         loop.run()
     loop.agent.episodic_memory.close()
-    assert registry.get_version(REACH, 1).state is State.ACTIVE
+    assert registry.get_version(REACH, 1).state is State.CANDIDATE
     assert registry.get_version(GRASP, 1).state is State.CANDIDATE
 
     updater = ChainUpdater(registry, tmp_path, stalls)
@@ -194,6 +236,66 @@ def test_resume_gates_the_rest_of_a_chain_an_interrupted_attempt_published(tmp_p
     assert [v.version for v in registry.get_ecm(GRASP).versions] == [0, 1]
 
 
+class _DiesOnPromote(LocalRegistry):
+    """A registry whose process "dies" at the ``die_at``-th promotion after it is armed."""
+
+    die_at: int | None = None
+    promotions = 0
+
+    def promote(self, name: str, version: int, **kwargs: Any) -> Any:
+        if self.die_at is not None:
+            self.promotions += 1
+            if self.promotions == self.die_at:
+                raise Crash(f"died promoting {name} v{version}")
+        return super().promote(name, version, **kwargs)
+
+
+def test_resume_finishes_a_chain_decision_from_its_recorded_evidence(tmp_path: Path) -> None:
+    registry = _DiesOnPromote(tmp_path / "registry", actor="tester")
+    ensure_v0(registry, TASK, modality="code")
+    registry.die_at = 2  # the decision is recorded on both, reach promoted, then the crash
+    stalls = {REACH: [REACH, GRASP], GRASP: None}
+    config = fake_config(iterations=1, updates_per_iteration=0)
+    evaluator = ScriptedEvaluator(registry, _needs(REACH, GRASP))
+    loop = make_loop(
+        tmp_path,
+        registry=registry,
+        evaluator=evaluator,
+        updater=ChainUpdater(registry, tmp_path, stalls),
+        config=config,
+    )
+    with pytest.raises(Crash):
+        loop.run()
+    loop.agent.episodic_memory.close()
+    assert registry.get_version(REACH, 1).state is State.ACTIVE
+    assert registry.get_version(GRASP, 1).state is State.CANDIDATE
+    assert registry.get_version(GRASP, 1).gate_evidence["decision"] == "promote"
+    calls = len(evaluator.calls)
+
+    registry.die_at = None
+    evaluator2 = ScriptedEvaluator(registry, _needs(REACH, GRASP))
+    row = (
+        make_loop(
+            tmp_path,
+            registry=registry,
+            evaluator=evaluator2,
+            updater=ChainUpdater(registry, tmp_path, stalls),
+            config=config,
+        )
+        .run()
+        .rows[0]
+    )
+    # finished from the evidence: grasp promoted without gating again (only the redone live
+    # episodes and the final evaluation ran)
+    assert registry.get_version(GRASP, 1).state is State.ACTIVE
+    assert [(g.ecm, g.decision) for g in row.gates] == [(REACH, "promote"), (GRASP, "promote")]
+    gate_seeds = set(PLAN.gate(8, round=0))
+    assert not [c for c in evaluator2.calls if set(c[1]) <= gate_seeds]
+    assert calls == 3
+    history = [e.action.value for e in registry.history(GRASP) if e.version == 1]
+    assert history == ["publish", "gate", "promote"]
+
+
 def test_presets_chain_code_updates_and_round_trip() -> None:
     assert make_config("cpu-small").updates_per_iteration == 0
     assert make_config("tiny").updates_per_iteration == 2
@@ -203,3 +305,30 @@ def test_presets_chain_code_updates_and_round_trip() -> None:
     # an old config without the field resumes as one update per iteration
     old = {k: v for k, v in c.to_dict().items() if k != "updates_per_iteration"}
     assert EvolveConfig.from_dict(old).updates_per_iteration == 1
+
+
+def test_the_gate_refuses_a_chain_it_cannot_judge(tmp_path: Path) -> None:
+    from capevo.errors import IllegalTransition, Invalid
+    from capevo.runtime.gate import Gate
+
+    registry = seeded_registry(tmp_path)
+    updater = ParamUpdater(registry)
+    for ecm in (REACH, GRASP):
+        request = UpdateRequest(task=TASK, ecm=ecm, iteration=0, outcomes=(), plan=PLAN, seed=0)
+        proposal = updater.propose(request, RecordingProgress())
+        assert proposal is not None and proposal.candidate is not None
+        registry.publish(ecm, proposal.candidate.artifact, proposal.candidate.spec)
+    gate = Gate(registry, ScriptedEvaluator(registry, _needs(REACH, GRASP)), fake_config().gate, seed_plan=PLAN)
+    seeds = PLAN.gate(8, round=0)
+    with pytest.raises(Invalid, match="names the gated ECM"):
+        gate.run(REACH, 1, task=TASK, seeds=seeds, with_candidates={REACH: 1})
+    with pytest.raises(IllegalTransition):  # v0 is active, not a candidate
+        gate.run(REACH, 1, task=TASK, seeds=seeds, with_candidates={GRASP: 0})
+    with pytest.raises(Invalid, match="chain"):
+        gate.settle({"decision": "promote"})
+    # nothing was recorded or moved by the refusals
+    assert registry.get_version(REACH, 1).state is State.CANDIDATE
+    assert registry.get_version(REACH, 1).gate_evidence is None
+    decision = gate.run(REACH, 1, task=TASK, seeds=seeds, with_candidates={GRASP: 1})
+    assert decision.promoted and [m.name for m in decision.members] == [GRASP]
+    assert decision.to_dict()["members"][0]["state"] == "active"
