@@ -259,12 +259,12 @@ def _render_workers(console: Console, workers: list[Any]) -> None:
     console.print(table)
 
 
-def _parse_versions(values: tuple[str, ...]) -> dict[str, int]:
+def _parse_versions(values: tuple[str, ...], option: str = "version") -> dict[str, int]:
     out: dict[str, int] = {}
     for value in values:
         name, sep, version = value.partition("=")
         if not sep or not version.isdigit():
-            raise Invalid(f"--version takes NAME=VERSION, got {value!r}", details={"field": "version"})
+            raise Invalid(f"--{option} takes NAME=VERSION, got {value!r}", details={"field": option})
         out[name] = int(version)
     return out
 
@@ -434,6 +434,13 @@ def evaluate_cmd(
     help="Which disjoint batch of the plan's gate seeds to use. capevo evolve uses batch i in iteration i: "
     "pick one no earlier decision has used, or the gate sees seeds it was already judged on.",
 )
+@click.option(
+    "--with",
+    "with_",
+    multiple=True,
+    metavar="NAME=VERSION",
+    help="Another candidate decided together with this one (a set learned together); repeatable.",
+)
 @click.option("--worker-id", default=None, help="With --connect: ask this worker. [default: any worker of the task]")
 @click.option("--timeout", type=click.FloatRange(min=0.01), default=600.0, show_default=True, help="Seconds to wait.")
 @phi_option
@@ -451,6 +458,7 @@ def gate_cmd(
     extension: int | None,
     seed_plan: int,
     round_: int,
+    with_: tuple[str, ...],
     worker_id: str | None,
     timeout: float,
     phi: str,
@@ -466,6 +474,8 @@ def gate_cmd(
     \b
     --connect EP: episodes on the task's runtime workers (their Φ, horizon and perturbations).
     --root DIR: in this process, on the local registry, under --phi, perturbations on.
+    --with NAME=VERSION: the active set against the set with every candidate named, one
+    decision for all (as capevo evolve gates a chain).
     """
     import dataclasses
 
@@ -475,6 +485,9 @@ def gate_cmd(
     from capevo.runtime.tasks import task_of
 
     validate_name(name)
+    companions = _parse_versions(with_, "with")
+    for other in companions:
+        validate_name(other)
     root_path, endpoints = _where_episodes_run(root, connect)
     config = make_config(preset)
     gate_config = config.gate if extension is None else dataclasses.replace(config.gate, extend_n=extension)
@@ -482,6 +495,11 @@ def gate_cmd(
     seeds = plan.gate(config.gate_episodes, round=round_)
     more = plan.gate_extension(gate_config.extend_n, round=round_) if gate_config.extend_n else []
     task_name = task or task_of(name)
+    strangers = sorted(o for o in companions if task_of(o) != task_of(name))
+    if strangers:
+        raise Invalid(
+            f"--with names ECMs of another task than {name}'s: {', '.join(strangers)}", details={"field": "with"}
+        )
     with contextlib.ExitStack() as stack:
         if root_path is not None:
             registry, evaluator = _local_registry_and_evaluator(stack, root_path, phi=phi, actor=user or "gate")
@@ -503,7 +521,9 @@ def gate_cmd(
                 )
             )
         gate = Gate(registry, evaluator, gate_config, actor=user or "gate", seed_plan=plan)  # type: ignore[arg-type]
-        decision = gate.run(name, version, task=task_name, seeds=seeds, extension_seeds=more)
+        decision = gate.run(
+            name, version, task=task_name, seeds=seeds, extension_seeds=more, with_candidates=companions
+        )
 
     def render(console: Console) -> None:
         console.print(decision.reason)

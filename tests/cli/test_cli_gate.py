@@ -63,9 +63,40 @@ def test_the_gate_promotes_a_better_candidate_and_rejects_an_equal_one(root: Pat
     assert code == EXIT_CODES[ErrorCode.ILLEGAL_TRANSITION] and "only a candidate can be gated" in err
 
 
+def test_candidates_named_with_are_decided_together(root: Path) -> None:
+    # the hand-set reach and an unchanged copy of lift, as one set: the set with both reaches
+    # the can where the active set does not, so both are promoted on that one decision
+    code, out, err = gate(root, "pick.reach", 1, "--round", "3", "--with", "pick.lift=1")
+    assert code == 0, err[-2000:]
+    decision = json.loads(out)
+    assert decision["promoted"] is True, decision["reason"]
+    assert "decided together with pick.lift v1" in decision["reason"]
+    assert [m["name"] for m in decision["members"]] == ["pick.lift"]
+    with LocalRegistry(root, actor="reader") as registry:
+        assert registry.get_version("pick.reach").version == 1
+        assert registry.get_version("pick.lift").version == 1
+        lift = registry.get_version("pick.lift", 1).gate_evidence
+        reach = registry.get_version("pick.reach", 1).gate_evidence
+    assert lift["chain"] == {"pick.reach": 1, "pick.lift": 1} and lift["name"] == "pick.lift"
+    assert lift["outcomes"] == reach["outcomes"]
+    assert reach["capability_set"]["candidate"]["pick.lift"] == 1
+    assert reach["capability_set"]["active"]["pick.lift"] == 0
+
+
 @pytest.mark.parametrize(
     ("args", "code", "message"),
     [
+        (("pick.reach", 1, "--round", "0", "--root", "{root}", "--with", "pick.lift"), ErrorCode.INVALID, "--with"),
+        (
+            ("pick.reach", 1, "--round", "0", "--root", "{root}", "--with", "stack.reach=1"),
+            ErrorCode.INVALID,
+            "another task",
+        ),
+        (
+            ("pick.reach", 1, "--round", "0", "--root", "{root}", "--with", "pick.reach=1"),
+            ErrorCode.INVALID,
+            "names the gated ECM",
+        ),
         (("pick.reach", 1, "--round", "0"), ErrorCode.INVALID, "give --root DIR or --connect ENDPOINT"),
         (("pick.nothing", 1, "--round", "0", "--root", "{root}"), ErrorCode.INVALID, "has no ECM 'pick.nothing'"),
         (("pick.reach", 9, "--round", "0", "--root", "{root}"), ErrorCode.NOT_FOUND, "9"),
