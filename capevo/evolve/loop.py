@@ -1022,10 +1022,6 @@ class _Update:
         return ChainUpdate(ecm=self.ecm, version=self.version, learner=self.learner, gate=self.gate, note=self.note)
 
 
-def _versions_text(versions: Mapping[str, int]) -> str:
-    return ", ".join(f"{k} v{v}" for k, v in versions.items())
-
-
 def _fields(result: EvolveResult) -> dict[str, Any]:
     return {name: getattr(result, name) for name in EvolveResult.__dataclass_fields__}
 
