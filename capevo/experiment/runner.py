@@ -13,6 +13,13 @@ By default ``ray.init(num_cpus=workers)`` starts a local Ray instance in this pr
 dashboard, quiet logs); ``address`` (``ray://HOST:10001`` or ``auto``) joins a running cluster
 instead, whose nodes must have the same capevo installed. One Ray task asks for one CPU.
 
+The code that runs: Ray puts the driver's working directory first on its workers' ``sys.path``, so
+the workers import the capevo found there, whatever the driver imported. Every worker compares the
+commit of the code it imported (:data:`CODE_COMMIT`, read at import) with the driver's and refuses
+to run a cell with another (:func:`check_same_code`; the driver looks once before submitting any
+cell), and each ``done.json`` names the commit that ran it. So run a grid from the directory of
+the code it is meant to run (a worktree: ``cd`` into it), not with that code on ``PYTHONPATH``.
+
 Failures: Ray re-runs a task whose worker process died (``max_retries``); a cell whose method
 raised is submitted again by the driver, up to ``retries`` more attempts; a cell that failed
 every attempt gets ``failed.json`` (error, traceback, attempts) and the other cells go on.
@@ -31,6 +38,7 @@ Invariants:
    fewer or out of order fails the attempt.
 3. ``done.json``'s ``env_steps_train`` and ``env_steps_eval`` are the sums over the records.
 4. One cell's failure never stops or loses another cell's files.
+5. No cell runs with code of another commit than the driver's, when both commits are known.
 """
 
 from __future__ import annotations
@@ -54,7 +62,7 @@ from pathlib import Path
 from typing import Any
 
 from capevo.baselines.base import CellSpec, IterationRecord
-from capevo.errors import Invalid, Unavailable
+from capevo.errors import Conflict, Invalid, Unavailable
 from capevo.evolve.metrics import append_durably, write_atomically
 from capevo.experiment.config import ExperimentConfig
 from capevo.experiment.progress import GridProgress, RecordingGridProgress
@@ -81,8 +89,11 @@ def _dumps(obj: Any) -> bytes:
 # --- one cell (runs in a Ray worker) -----------------------------------------------------------
 
 
-def run_cell(cell_dict: Mapping[str, Any], name: str) -> dict[str, Any]:
+def run_cell(cell_dict: Mapping[str, Any], name: str, driver_commit: str | None = None) -> dict[str, Any]:
     """Run one cell in a fresh temporary directory and return its files (the Ray task's body).
+
+    ``driver_commit`` is the commit of the driver's code: a worker that imported other code
+    refuses the cell (:func:`check_same_code`).
 
     Returns:
         ``{"tar": bytes of the cell directory, "wall_s", "env_steps_train", "env_steps_eval",
@@ -92,8 +103,10 @@ def run_cell(cell_dict: Mapping[str, Any], name: str) -> dict[str, Any]:
 
     Raises:
         Invalid: the method's records are not iterations 0..n-1.
+        Conflict: the worker runs other code than the driver.
         Exception: whatever the method raised (the driver retries, then records it).
     """
+    check_same_code(driver_commit)
     # robosuite sets its logger's level on import: import it first, then quiet it
     import robosuite  # noqa: F401
 
@@ -135,7 +148,7 @@ def run_cell(cell_dict: Mapping[str, Any], name: str) -> dict[str, Any]:
             "env_steps_train": sum(r.env_steps_train for r in records),
             "env_steps_eval": sum(r.env_steps_eval for r in records),
             "iterations": len(records),
-            "capevo_commit": _git_commit(),
+            "capevo_commit": CODE_COMMIT,
             # the traces do not travel with the cell (they are large): check them here, on their host
             "learner_steps_traced": [c.to_dict() for c in learner_step_checks(d / "evolve")],
         }
@@ -197,6 +210,42 @@ def _git_commit() -> str | None:
         ["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True
     )
     return out.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+
+
+CODE_DIR = str(Path(__file__).resolve().parents[2])
+"""Where this process imported capevo from."""
+CODE_COMMIT = _git_commit()
+"""The commit of that code when this process imported it (``-dirty`` with uncommitted changes;
+None outside a git checkout). Read once: a checkout that changes later does not change the
+modules already imported, so reading it again at the end of a cell could name code that never ran."""
+
+
+def check_same_code(driver_commit: str | None) -> None:
+    """Refuse to run a cell (in a Ray worker) with other code than the driver's.
+
+    Why: Ray puts the driver's working directory first on its workers' ``sys.path``, so a driver
+    started from one checkout with its code on ``PYTHONPATH`` (a worktree) has its cells import
+    the checkout in the working directory, silently (measured with Ray 2.60).
+
+    Raises:
+        Conflict: both commits are known and differ.
+    """
+    _refuse_other_code(worker=(CODE_COMMIT, CODE_DIR), driver=driver_commit)
+
+
+def _refuse_other_code(*, worker: tuple[str | None, str], driver: str | None) -> None:
+    commit, where = worker
+    if driver is not None and commit is not None and driver != commit:
+        raise Conflict(
+            f"a Ray worker imported capevo {commit[:12]} from {where}, but the driver runs {driver[:12]}: "
+            "Ray puts the driver's working directory first on its workers' path, so start capevo "
+            "experiment run from the directory of the code you mean to run",
+            details={"worker": commit, "driver": driver, "worker_dir": where},
+        )
+
+
+def _code_of_worker() -> tuple[str | None, str]:
+    return CODE_COMMIT, CODE_DIR
 
 
 def _earlier_runs(run_dir: Path) -> list[dict[str, Any]]:
@@ -393,7 +442,7 @@ def run_experiment(
         if leftover.name.endswith(PARTIAL) or leftover.name.startswith(".unpack-"):
             shutil.rmtree(leftover, ignore_errors=True)
     provenance: dict[str, Any] = {
-        "capevo_commit": _git_commit(),
+        "capevo_commit": CODE_COMMIT,
         "packages": _versions(),
         "machine": {
             "cores": os.cpu_count(),
@@ -419,12 +468,14 @@ def run_experiment(
     try:
         if todo:
             owns_ray = start_ray(workers=workers, address=address)
+            # one cheap look before any cell: the common case (a local instance) fails here, at once
+            _refuse_other_code(worker=ray.get(ray.remote(num_cpus=0)(_code_of_worker).remote()), driver=CODE_COMMIT)
             task = ray.remote(num_cpus=1, max_retries=max_retries)(run_cell)
             for name, _ in todo:
                 shutil.rmtree(cells_dir / name, ignore_errors=True)  # an unfinished cell starts over
             slots = workers if not address else max(1, int(ray.cluster_resources().get("CPU", 1)))
             attempts = dict.fromkeys((n for n, _ in todo), 1)
-            by_ref = {task.remote(c.to_dict(), n): (n, c) for n, c in todo}
+            by_ref = {task.remote(c.to_dict(), n, CODE_COMMIT): (n, c) for n, c in todo}
             while by_ref:
                 sink.update(running=min(slots, len(by_ref)))
                 ready, _ = ray.wait(list(by_ref), num_returns=1, timeout=1.0)
@@ -436,7 +487,7 @@ def run_experiment(
                         if attempts[name] <= retries:
                             attempts[name] += 1
                             sink.message(f"retrying {name} (attempt {attempts[name]}): {_short(exc)}")
-                            by_ref[task.remote(cell.to_dict(), name)] = (name, cell)
+                            by_ref[task.remote(cell.to_dict(), name, CODE_COMMIT)] = (name, cell)
                             continue
                         _record_failure(run_dir, name, cell, exc, attempts[name])
                         failed.append(name)

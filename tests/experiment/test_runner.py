@@ -149,3 +149,68 @@ def test_a_run_whose_driver_was_sigkilled_resumes_without_redoing_finished_cells
     for k in summary.done:
         assert [r.iteration for r in _records(run_dir / "cells" / k)] == [1, 2]
     assert not list((run_dir / "cells").glob("*.partial"))
+
+
+DRIVER = """
+import sys
+from pathlib import Path
+
+import capevo
+from capevo.errors import Conflict
+from capevo.experiment.config import parse_yaml
+from capevo.experiment.runner import CODE_COMMIT, run_experiment
+
+print("driver code", Path(capevo.__file__).resolve().parents[1], CODE_COMMIT, flush=True)
+try:
+    run_experiment(parse_yaml(sys.argv[1]), Path(sys.argv[2]), workers=1)
+except Conflict as exc:
+    print("refused:", exc.message, flush=True)
+    sys.exit(3)
+"""
+
+
+def test_a_grid_refuses_ray_workers_that_import_other_code_than_the_driver(tmp_path: Path) -> None:
+    # The driver's code is a copy of capevo committed in a git repository of its own (another
+    # commit than this checkout's), reached through PYTHONPATH; the driver starts in this checkout,
+    # as a run started from the repository with a worktree on PYTHONPATH does. Ray puts the
+    # driver's working directory first on its workers' path, so their capevo is this checkout's.
+    other = tmp_path / "other"
+    other.mkdir()
+    subprocess.run(["cp", "-r", str(REPO / "capevo"), str(other / "capevo")], check=True)
+    git = ["git", "-C", str(other), "-c", "user.name=t", "-c", "user.email=t@t", "-c", "commit.gpgsign=false"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    subprocess.run([*git, "add", "-A"], check=True)
+    subprocess.run([*git, "commit", "-q", "-m", "a copy"], check=True)
+    script = tmp_path / "drive.py"
+    script.write_text(DRIVER, encoding="utf-8")
+    env = {**os.environ, "PYTHONPATH": str(other)}
+    proc = subprocess.run(
+        [sys.executable, str(script), GRID, str(tmp_path / "run")],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert f"driver code {other}" in proc.stdout, proc.stdout + proc.stderr[-2000:]
+    assert proc.returncode == 3, proc.stdout + proc.stderr[-3000:]
+    assert f"from {REPO}" in proc.stdout and "start capevo experiment run from the directory" in proc.stdout
+    # refused before any cell ran: no cell directory, and the provenance names the driver's code
+    assert not list((tmp_path / "run" / "cells").iterdir())
+    provenance = json.loads((tmp_path / "run" / "provenance.json").read_text())
+    other_head = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, check=True)
+    assert provenance["capevo_commit"] == other_head.stdout.strip()
+
+
+def test_a_cell_refuses_to_run_with_another_commit_than_the_drivers(monkeypatch: pytest.MonkeyPatch) -> None:
+    # a worker on another host of a cluster, whose checkout is at another commit
+    from capevo.errors import Conflict
+    from capevo.experiment import runner
+
+    monkeypatch.setattr(runner, "CODE_COMMIT", "a" * 40)
+    with pytest.raises(Conflict, match="driver runs bbbbbbbbbbbb"):
+        runner.run_cell({"not": "read"}, "T1-s-ecm-s1", "b" * 40)
+    # an unknown commit on either side (capevo installed, not a checkout) cannot be compared
+    runner.check_same_code(None)
+    monkeypatch.setattr(runner, "CODE_COMMIT", None)
+    runner.check_same_code("b" * 40)
