@@ -14,11 +14,12 @@ dashboard, quiet logs); ``address`` (``ray://HOST:10001`` or ``auto``) joins a r
 instead, whose nodes must have the same capevo installed. One Ray task asks for one CPU.
 
 The code that runs: Ray puts the driver's working directory first on its workers' ``sys.path``, so
-the workers import the capevo found there, whatever the driver imported. Every worker compares the
-commit of the code it imported (:data:`CODE_COMMIT`, read at import) with the driver's and refuses
-to run a cell with another (:func:`check_same_code`; the driver looks once before submitting any
-cell), and each ``done.json`` names the commit that ran it. So run a grid from the directory of
-the code it is meant to run (a worktree: ``cd`` into it), not with that code on ``PYTHONPATH``.
+the workers import the capevo found there, whatever the driver imported. Every worker compares a
+digest of the package it imported (:data:`CODE_SHA256`, read at import) with the driver's and
+refuses to run a cell with other code (:func:`check_same_code`; the driver looks once before
+submitting any cell), and each ``done.json`` names the commit and the digest that ran it. So run a
+grid from the directory of the code it is meant to run (a worktree: ``cd`` into it), not with that
+code on ``PYTHONPATH``.
 
 Failures: Ray re-runs a task whose worker process died (``max_retries``); a cell whose method
 raised is submitted again by the driver, up to ``retries`` more attempts; a cell that failed
@@ -38,12 +39,13 @@ Invariants:
    fewer or out of order fails the attempt.
 3. ``done.json``'s ``env_steps_train`` and ``env_steps_eval`` are the sums over the records.
 4. One cell's failure never stops or loses another cell's files.
-5. No cell runs with code of another commit than the driver's, when both commits are known.
+5. No cell runs with other capevo code than the driver's (the package's files differ).
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import io
 import json
 import logging
@@ -89,10 +91,10 @@ def _dumps(obj: Any) -> bytes:
 # --- one cell (runs in a Ray worker) -----------------------------------------------------------
 
 
-def run_cell(cell_dict: Mapping[str, Any], name: str, driver_commit: str | None = None) -> dict[str, Any]:
+def run_cell(cell_dict: Mapping[str, Any], name: str, driver_code: str | None = None) -> dict[str, Any]:
     """Run one cell in a fresh temporary directory and return its files (the Ray task's body).
 
-    ``driver_commit`` is the commit of the driver's code: a worker that imported other code
+    ``driver_code`` is the driver's :data:`CODE_SHA256`: a worker that imported other code
     refuses the cell (:func:`check_same_code`).
 
     Returns:
@@ -106,7 +108,7 @@ def run_cell(cell_dict: Mapping[str, Any], name: str, driver_commit: str | None 
         Conflict: the worker runs other code than the driver.
         Exception: whatever the method raised (the driver retries, then records it).
     """
-    check_same_code(driver_commit)
+    check_same_code(driver_code)
     # robosuite sets its logger's level on import: import it first, then quiet it
     import robosuite  # noqa: F401
 
@@ -149,6 +151,7 @@ def run_cell(cell_dict: Mapping[str, Any], name: str, driver_commit: str | None 
             "env_steps_eval": sum(r.env_steps_eval for r in records),
             "iterations": len(records),
             "capevo_commit": CODE_COMMIT,
+            "capevo_sha256": CODE_SHA256,
             # the traces do not travel with the cell (they are large): check them here, on their host
             "learner_steps_traced": [c.to_dict() for c in learner_step_checks(d / "evolve")],
         }
@@ -215,12 +218,27 @@ def _git_commit() -> str | None:
 CODE_DIR = str(Path(__file__).resolve().parents[2])
 """Where this process imported capevo from."""
 CODE_COMMIT = _git_commit()
-"""The commit of that code when this process imported it (``-dirty`` with uncommitted changes;
-None outside a git checkout). Read once: a checkout that changes later does not change the
-modules already imported, so reading it again at the end of a cell could name code that never ran."""
+"""The commit of that checkout when this process imported it (``-dirty`` with uncommitted changes;
+None outside a git checkout): provenance. Read once, at import: the modules imported do not change
+when the checkout does, so reading it at the end of a cell could name code that never ran."""
 
 
-def check_same_code(driver_commit: str | None) -> None:
+def _package_sha256() -> str:
+    """SHA-256 over the capevo package's files (relative paths and bytes; caches left out)."""
+    package = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for path in sorted(package.rglob("*")):
+        if path.is_file() and "__pycache__" not in path.parts and path.suffix != ".pyc":
+            digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()
+
+
+CODE_SHA256 = _package_sha256()
+"""What this process runs, read at import: equal digests are the same code whatever the commits
+(a commit of results only changes the commit, not the code)."""
+
+
+def check_same_code(driver_code: str | None) -> None:
     """Refuse to run a cell (in a Ray worker) with other code than the driver's.
 
     Why: Ray puts the driver's working directory first on its workers' ``sys.path``, so a driver
@@ -228,24 +246,24 @@ def check_same_code(driver_commit: str | None) -> None:
     the checkout in the working directory, silently (measured with Ray 2.60).
 
     Raises:
-        Conflict: both commits are known and differ.
+        Conflict: ``driver_code`` is given and is not :data:`CODE_SHA256`.
     """
-    _refuse_other_code(worker=(CODE_COMMIT, CODE_DIR), driver=driver_commit)
+    _refuse_other_code(worker=_code_of_worker(), driver=driver_code)
 
 
-def _refuse_other_code(*, worker: tuple[str | None, str], driver: str | None) -> None:
-    commit, where = worker
-    if driver is not None and commit is not None and driver != commit:
+def _refuse_other_code(*, worker: tuple[str, str | None, str], driver: str | None) -> None:
+    code, commit, where = worker
+    if driver is not None and driver != code:
         raise Conflict(
-            f"a Ray worker imported capevo {commit[:12]} from {where}, but the driver runs {driver[:12]}: "
+            f"a Ray worker imported other capevo code than the driver's, from {where} (commit {commit}): "
             "Ray puts the driver's working directory first on its workers' path, so start capevo "
             "experiment run from the directory of the code you mean to run",
-            details={"worker": commit, "driver": driver, "worker_dir": where},
+            details={"worker_sha256": code, "driver_sha256": driver, "worker_commit": commit, "worker_dir": where},
         )
 
 
-def _code_of_worker() -> tuple[str | None, str]:
-    return CODE_COMMIT, CODE_DIR
+def _code_of_worker() -> tuple[str, str | None, str]:
+    return CODE_SHA256, CODE_COMMIT, CODE_DIR
 
 
 def _earlier_runs(run_dir: Path) -> list[dict[str, Any]]:
@@ -295,6 +313,7 @@ def _extract(run_dir: Path, name: str, result: Mapping[str, Any], attempts: int)
         "attempts": attempts,
         # a resumed run mixes cells of several runs: each says which code ran it
         "capevo_commit": result.get("capevo_commit"),
+        "capevo_sha256": result.get("capevo_sha256"),
     }
     if result.get("learner_steps_traced"):
         done["learner_steps_traced"] = result["learner_steps_traced"]
@@ -443,6 +462,7 @@ def run_experiment(
             shutil.rmtree(leftover, ignore_errors=True)
     provenance: dict[str, Any] = {
         "capevo_commit": CODE_COMMIT,
+        "capevo_sha256": CODE_SHA256,
         "packages": _versions(),
         "machine": {
             "cores": os.cpu_count(),
@@ -469,13 +489,13 @@ def run_experiment(
         if todo:
             owns_ray = start_ray(workers=workers, address=address)
             # one cheap look before any cell: the common case (a local instance) fails here, at once
-            _refuse_other_code(worker=ray.get(ray.remote(num_cpus=0)(_code_of_worker).remote()), driver=CODE_COMMIT)
+            _refuse_other_code(worker=ray.get(ray.remote(num_cpus=0)(_code_of_worker).remote()), driver=CODE_SHA256)
             task = ray.remote(num_cpus=1, max_retries=max_retries)(run_cell)
             for name, _ in todo:
                 shutil.rmtree(cells_dir / name, ignore_errors=True)  # an unfinished cell starts over
             slots = workers if not address else max(1, int(ray.cluster_resources().get("CPU", 1)))
             attempts = dict.fromkeys((n for n, _ in todo), 1)
-            by_ref = {task.remote(c.to_dict(), n, CODE_COMMIT): (n, c) for n, c in todo}
+            by_ref = {task.remote(c.to_dict(), n, CODE_SHA256): (n, c) for n, c in todo}
             while by_ref:
                 sink.update(running=min(slots, len(by_ref)))
                 ready, _ = ray.wait(list(by_ref), num_returns=1, timeout=1.0)
@@ -487,7 +507,7 @@ def run_experiment(
                         if attempts[name] <= retries:
                             attempts[name] += 1
                             sink.message(f"retrying {name} (attempt {attempts[name]}): {_short(exc)}")
-                            by_ref[task.remote(cell.to_dict(), name, CODE_COMMIT)] = (name, cell)
+                            by_ref[task.remote(cell.to_dict(), name, CODE_SHA256)] = (name, cell)
                             continue
                         _record_failure(run_dir, name, cell, exc, attempts[name])
                         failed.append(name)

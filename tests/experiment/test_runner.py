@@ -90,6 +90,7 @@ def test_cells_finish_a_failing_cell_is_retried_and_reported_and_nothing_is_redo
     for seed in (1, 2):
         done = json.loads((run_dir / "cells" / f"T1-s-ecm-s{seed}" / "done.json").read_text())
         assert "capevo_commit" in done and done["capevo_commit"] == provenance["capevo_commit"]
+        assert done["capevo_sha256"] == provenance["capevo_sha256"] and len(done["capevo_sha256"]) == 64
 
     # again: the finished cells are skipped and untouched, the failed one is tried again
     before = {k: _snapshot(run_dir / "cells" / k) for k in summary.done}
@@ -170,13 +171,15 @@ except Conflict as exc:
 
 
 def test_a_grid_refuses_ray_workers_that_import_other_code_than_the_driver(tmp_path: Path) -> None:
-    # The driver's code is a copy of capevo committed in a git repository of its own (another
-    # commit than this checkout's), reached through PYTHONPATH; the driver starts in this checkout,
-    # as a run started from the repository with a worktree on PYTHONPATH does. Ray puts the
-    # driver's working directory first on its workers' path, so their capevo is this checkout's.
+    # The driver's code is a changed copy of capevo (one line more), committed in a git repository
+    # of its own, reached through PYTHONPATH; the driver starts in this checkout, as a run started
+    # from the repository with a worktree on PYTHONPATH does. Ray puts the driver's working
+    # directory first on its workers' path, so their capevo is this checkout's.
     other = tmp_path / "other"
     other.mkdir()
     subprocess.run(["cp", "-r", str(REPO / "capevo"), str(other / "capevo")], check=True)
+    with open(other / "capevo" / "__init__.py", "a", encoding="utf-8") as f:
+        f.write("# a change only the driver's copy has\n")
     git = ["git", "-C", str(other), "-c", "user.name=t", "-c", "user.email=t@t", "-c", "commit.gpgsign=false"]
     subprocess.run([*git, "init", "-q"], check=True)
     subprocess.run([*git, "add", "-A"], check=True)
@@ -194,7 +197,7 @@ def test_a_grid_refuses_ray_workers_that_import_other_code_than_the_driver(tmp_p
     )
     assert f"driver code {other}" in proc.stdout, proc.stdout + proc.stderr[-2000:]
     assert proc.returncode == 3, proc.stdout + proc.stderr[-3000:]
-    assert f"from {REPO}" in proc.stdout and "start capevo experiment run from the directory" in proc.stdout
+    assert f"from {REPO} (commit" in proc.stdout and "start capevo experiment run from the directory" in proc.stdout
     # refused before any cell ran: no cell directory, and the provenance names the driver's code
     assert not list((tmp_path / "run" / "cells").iterdir())
     provenance = json.loads((tmp_path / "run" / "provenance.json").read_text())
@@ -202,15 +205,16 @@ def test_a_grid_refuses_ray_workers_that_import_other_code_than_the_driver(tmp_p
     assert provenance["capevo_commit"] == other_head.stdout.strip()
 
 
-def test_a_cell_refuses_to_run_with_another_commit_than_the_drivers(monkeypatch: pytest.MonkeyPatch) -> None:
-    # a worker on another host of a cluster, whose checkout is at another commit
+def test_a_cell_refuses_to_run_with_other_code_than_the_drivers(monkeypatch: pytest.MonkeyPatch) -> None:
+    # a worker on another host of a cluster, whose checkout holds other code
     from capevo.errors import Conflict
     from capevo.experiment import runner
 
-    monkeypatch.setattr(runner, "CODE_COMMIT", "a" * 40)
-    with pytest.raises(Conflict, match="driver runs bbbbbbbbbbbb"):
-        runner.run_cell({"not": "read"}, "T1-s-ecm-s1", "b" * 40)
-    # an unknown commit on either side (capevo installed, not a checkout) cannot be compared
+    assert len(runner.CODE_SHA256) == 64
+    monkeypatch.setattr(runner, "CODE_SHA256", "a" * 64)
+    with pytest.raises(Conflict, match="imported other capevo code than the driver's") as caught:
+        runner.run_cell({"not": "read"}, "T1-s-ecm-s1", "b" * 64)
+    assert caught.value.details["driver_sha256"] == "b" * 64
+    # the same code, or a driver that sends none (an older one), runs
+    runner.check_same_code("a" * 64)
     runner.check_same_code(None)
-    monkeypatch.setattr(runner, "CODE_COMMIT", None)
-    runner.check_same_code("b" * 40)
