@@ -39,7 +39,8 @@ One iteration:
    one stale observation). SAC stores every step and, after SB3's 100 random warm-up steps
    (``learning_starts``), takes one gradient step per env step: with fewer than 100 steps in
    all it does not train, and Δπ stays 0.
-2. Save a checkpoint, ``checkpoints/iteration-NNN.zip`` (``iteration-000``: the initial weights).
+2. Save a checkpoint, ``checkpoints/iteration-NNN.zip`` (``iteration-000``: the initial weights);
+   an interrupted PPO cell resumes from the last one (:meth:`AgentModification.run`).
 3. The held-out evaluation: one episode per seed of :meth:`CellSpec.eval_seeds` with the
    deterministic policy (:func:`~capevo.baselines.governed_env.evaluate_policy`); its steps are
    ``env_steps_eval``, outside the budget. Its trace is ``traces/eval-NNN.mcap`` (the
@@ -86,6 +87,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -322,6 +324,25 @@ def _make_model(opts: AmOptions, env: GovernedTaskEnv, *, seed: int, budget: int
     return model, f"sac, replay {buffer}"
 
 
+def _resume(
+    model: Any, opts: AmOptions, env: GovernedTaskEnv, checkpoints: Path, after: int, *, seed: int
+) -> tuple[Any, list[float]]:
+    """The model of ``checkpoints/iteration-<after>.zip`` on ``env`` and θ_0 (``iteration-000``)."""
+    if opts.algo != "ppo":
+        raise Invalid("am resumes only with PPO (SAC's replay buffer is not saved)", details={"field": "options.algo"})
+    path = checkpoints / f"iteration-{after:03d}.zip"
+    if not path.is_file() or not (checkpoints / "iteration-000.zip").is_file():
+        raise Invalid(f"am cannot resume after iteration {after}: {path} is missing", details={"field": "after"})
+    cls = type(model)
+    theta0 = decision_vector(cls.load(checkpoints / "iteration-000.zip", device="cpu"), opts.algo)
+    resumed = cls.load(path, env=env, device="cpu")
+    resumed.set_random_seed(seed)
+    stale = checkpoints.parent / "traces" / f"eval-{after + 1:03d}.mcap"
+    if stale.exists():  # the interrupted iteration's evaluation, cut short: kept, out of the way
+        os.replace(stale, stale.with_name(f"eval-{after + 1:03d}.interrupted-{time.time_ns()}.mcap"))
+    return resumed, theta0
+
+
 def _stop_at(env: GovernedTaskEnv, limit: int) -> Any:
     """A PPO callback ending ``learn`` once ``env`` has taken ``limit`` steps in total.
 
@@ -370,11 +391,27 @@ class AgentModification:
         """
         return AmOptions.from_options({**self.default_options, **cell.options})
 
-    def run(self, cell: CellSpec, workdir: Path, *, emit: Emit) -> None:
-        """Run ``cell`` for ``cell.iterations`` iterations, emitting a record after each.
+    def resumes(self, cell: CellSpec) -> bool:
+        """With PPO: its whole state is in a checkpoint (weights, optimiser, step count; a rollout
+        never spans iterations). Not with SAC: its replay buffer is not saved."""
+        try:
+            return self.options(cell).algo == "ppo"
+        except Invalid:
+            return False
+
+    def run(self, cell: CellSpec, workdir: Path, *, emit: Emit, after: int = 0) -> None:
+        """Run ``cell``'s iterations ``after + 1 ..``, emitting a record after each.
+
+        ``after`` > 0 continues an interrupted cell (PPO only, :meth:`resumes`) from
+        ``checkpoints/iteration-<after>.zip``; θ_0 is read from ``iteration-000.zip``. The
+        continuation starts a fresh episode and reseeds the random streams with the train seed
+        plus ``after`` (an uninterrupted run would have continued its episode and streams), and
+        the interrupted iteration's partial evaluation trace is kept beside, renamed
+        ``eval-NNN.interrupted-<ns>.mcap``.
 
         Raises:
-            Invalid: a bad option, or a budget too small for the chosen algorithm or warm start.
+            Invalid: a bad option, a budget too small for the chosen algorithm or warm start, or
+                ``after`` > 0 for SAC or without its checkpoint.
         """
         from capevo.agent import policy_drift
         from capevo.learner.bc import torch_threads
@@ -409,16 +446,21 @@ class AgentModification:
             stack.enter_context(torch_threads(opts.torch_threads))
             train_seed = TRAIN_SEED_BASE + TRAIN_SEEDS_PER_CELL * cell.seed
             model, setup = _make_model(opts, env, seed=train_seed, budget=budget, iterations=cell.iterations)
-            model.save(checkpoints / "iteration-000.zip")
-            theta0 = decision_vector(model, opts.algo)
+            if after:
+                model, theta0 = _resume(model, opts, env, checkpoints, after, seed=train_seed + after)
+            else:
+                model.save(checkpoints / "iteration-000.zip")
+                theta0 = decision_vector(model, opts.algo)
             setup += f"; Δπ over {', '.join(p + '*' for p in DECISION_TENSORS[opts.algo])} ({len(theta0)} values)"
 
             def act(obs: np.ndarray) -> np.ndarray:
                 return model.predict(obs, deterministic=True)[0]
 
-            for iteration in range(1, cell.iterations + 1):
+            for iteration in range(after + 1, cell.iterations + 1):
                 started = time.perf_counter()
                 notes = [setup] if iteration == 1 else []
+                if iteration == after + 1 and after:
+                    notes.append(f"resumed from checkpoints/iteration-{after:03d}.zip after an interruption")
                 demo_steps = 0
                 if iteration == 1 and demo_episodes:
                     demo_steps, note = self._warm_start(model, opts, cell, workdir, demo_episodes, horizon, theta0)

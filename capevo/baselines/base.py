@@ -294,9 +294,14 @@ class Method(Protocol):
     def run(self, cell: CellSpec, workdir: Path, *, emit: Emit) -> None:
         """Run ``cell`` for ``cell.iterations`` iterations, calling ``emit`` after each.
 
-        ``workdir`` is the cell's own, empty directory (traces, registry, checkpoints). The
-        harness starts an unfinished cell over in an empty directory, so a method need not
-        resume mid-cell.
+        ``workdir`` is the cell's own, empty directory (traces, registry, checkpoints).
+
+        Resuming is optional. A method that can continue an interrupted cell from its own files
+        defines ``resumes(cell) -> bool``; where it returns True, the harness calls
+        ``run(cell, workdir, emit=emit, after=k)`` on the interrupted attempt's directory, whose
+        first ``k`` records (``0 < k < cell.iterations``) are kept, and the method must emit
+        iterations ``k + 1 ..`` only. Every other method, and every attempt after an exception,
+        starts over in an empty directory.
 
         Raises:
             Invalid: an option the method does not know.

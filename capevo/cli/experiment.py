@@ -52,22 +52,42 @@ def experiment() -> None:
 @click.option(
     "--retries", type=click.IntRange(min=0), default=1, show_default=True, help="Further attempts of a failing cell."
 )
+@click.option(
+    "--work-dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="Where cells work on their host, kept so an interrupted cell resumes. [default: <tmp>/capevo-work/<key>]",
+)
 @click.option("--no-report", is_flag=True, help="Do not write the report at the end.")
 @click.option("--json", "as_json", is_flag=True, help="Print the run's summary as JSON on stdout.")
 def run(
-    config: str, run_dir: Path | None, workers: int, address: str | None, retries: int, no_report: bool, as_json: bool
+    config: str,
+    run_dir: Path | None,
+    workers: int,
+    address: str | None,
+    retries: int,
+    work_dir: Path | None,
+    no_report: bool,
+    as_json: bool,
 ) -> None:
     """Run (or resume) the grid CONFIG: a YAML file, a packaged config or a preset."""
     previous = signal.signal(signal.SIGTERM, _raise_interrupt)
     try:
-        code = _run(config, run_dir, workers, address, retries, no_report, as_json)
+        code = _run(config, run_dir, workers, address, retries, work_dir, no_report, as_json)
     finally:
         signal.signal(signal.SIGTERM, previous)
     sys.exit(code)
 
 
 def _run(
-    source: str, run_dir: Path | None, workers: int, address: str | None, retries: int, no_report: bool, as_json: bool
+    source: str,
+    run_dir: Path | None,
+    workers: int,
+    address: str | None,
+    retries: int,
+    work_dir: Path | None,
+    no_report: bool,
+    as_json: bool,
 ) -> int:
     from capevo.experiment.config import load_config
     from capevo.experiment.progress import RichGridProgress
@@ -83,6 +103,7 @@ def _run(
             workers=workers,
             address=address,
             retries=retries,
+            work_dir=work_dir,
             progress=RichGridProgress(),
             command=["capevo", "experiment", "run", *sys.argv[sys.argv.index("run") + 1 :]]
             if "run" in sys.argv
@@ -97,7 +118,8 @@ def _run(
         return report_error(err)
     except KeyboardInterrupt:
         click.echo(
-            "error [interrupted]: interrupted; finished cells are saved, run the same command to resume", err=True
+            "error [interrupted]: interrupted; finished cells and iterations are kept, run the same command to resume",
+            err=True,
         )
         return EXIT_INTERRUPTED
     data = {

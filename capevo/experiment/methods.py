@@ -220,7 +220,15 @@ class Ours:
     def modality_of(self, cell: CellSpec) -> str:
         return self.modality or str(cell.options.get("modality") or "code")
 
-    def run(self, cell: CellSpec, workdir: Path, *, emit: Emit) -> None:
+    @staticmethod
+    def resumes(cell: CellSpec) -> bool:
+        """Always: the evolve run in ``workdir/evolve`` resumes itself (crash-safe per step), and an
+        iteration's held-out evaluation is run again whole."""
+        return True
+
+    def run(self, cell: CellSpec, workdir: Path, *, emit: Emit, after: int = 0) -> None:
+        """Run ``cell``'s iterations ``after + 1 ..`` (``after`` > 0: an interrupted cell's
+        directory, continued through evolve's resume), emitting a record after each."""
         from capevo.evolve.metrics import read_metrics
         from capevo.evolve.progress import RecordingProgress
         from capevo.evolve.run import EvolveOptions, run_evolution
@@ -229,7 +237,7 @@ class Ours:
         config = self.evolve_config(cell)
         root, report = workdir / "registry", workdir / "evolve"
         seeds = cell.eval_seeds()
-        for i in range(cell.iterations):
+        for i in range(after, cell.iterations):
             t0 = time.perf_counter()
             options = EvolveOptions(
                 task=cell.task,

@@ -400,6 +400,10 @@ def load_cell(root: Path, key: str) -> Cell:
         )
     if len(records) < spec.iterations:
         notes.insert(0, f"finished with {len(records)} of {spec.iterations} iteration(s)")
+    resumed = done.get("resumed_after")
+    if isinstance(resumed, list) and resumed:
+        # a continuation, not a replay (capevo.experiment.runner, "Inside a cell")
+        notes.append(f"resumed after an interruption, after iteration {', '.join(str(k) for k in resumed)}")
     return Cell(
         key=key,
         spec=spec,

@@ -26,9 +26,24 @@ raised is submitted again by the driver, up to ``retries`` more attempts; a cell
 every attempt gets ``failed.json`` (error, traceback, attempts) and the other cells go on.
 
 Resuming: the same command on the same ``RUN_DIR`` skips every cell with ``done.json`` and runs
-every other one from scratch in an empty directory (a ``.partial`` directory and a
-``failed.json`` from an earlier run are removed first: a failed cell is tried again).
-``experiment.json`` must describe the same cells (the iterations, budget and settings of each).
+every other one (a ``.partial`` directory and a ``failed.json`` from an earlier run are removed
+first: a failed cell is tried again). ``experiment.json`` must describe the same cells (the
+iterations, budget and settings of each).
+
+Inside a cell: a cell works in ``WORK_DIR/<name>`` on its worker's host (``--work-dir``; default
+``<tmp>/capevo-work/<key of host and RUN_DIR>``), not in a temporary directory, so a cell whose
+process died (a SIGKILLed worker or driver, a machine that went down) keeps its finished
+iterations. The next attempt on that host continues it after its last complete record when the
+method can (``resumes(cell)``: ours through evolve's resume, AM with PPO from its last
+checkpoint; see :class:`capevo.baselines.base.Method`) and the code is the same (the SHA-256 of
+the attempt that began it). A resumed cell is a continuation, not a replay: the interrupted
+iteration is run again from its start, and its random streams differ from an uninterrupted run's.
+Each attempt appends a line to the cell's ``resumes.jsonl`` (after which iteration it began, when,
+on which host, with which code), and ``done.json`` lists ``resumed_after``. Every other case
+starts the cell over in an emptied directory: a method that cannot resume, other code, other
+settings, and any attempt after the method raised (an error is not an interruption). A finished
+cell's work directory is removed once its archive is made; an interrupted attempt's partial
+traces stay in the cell's files.
 
 Invariants:
 1. A cell directory without ``.partial`` in its name has ``done.json`` or ``failed.json``;
@@ -39,7 +54,9 @@ Invariants:
    fewer or out of order fails the attempt.
 3. ``done.json``'s ``env_steps_train`` and ``env_steps_eval`` are the sums over the records.
 4. One cell's failure never stops or loses another cell's files.
-5. No cell runs with other capevo code than the driver's (the package's files differ).
+5. No cell runs with other capevo code than the driver's (the package's files differ), and no
+   cell continues iterations that other code began.
+6. A resumed cell's kept records are byte for byte those the interrupted attempt wrote.
 """
 
 from __future__ import annotations
@@ -52,6 +69,7 @@ import logging
 import os
 import platform
 import shutil
+import socket
 import subprocess
 import sys
 import tarfile
@@ -79,6 +97,7 @@ FAILED = "failed.json"
 EXPERIMENT_JSON = "experiment.json"
 PROVENANCE_JSON = "provenance.json"
 PARTIAL = ".partial"
+RESUMES = "resumes.jsonl"
 PACKAGES = ("capevo", "robosuite", "mujoco", "torch", "stable-baselines3", "ray", "numpy", "scipy", "gymnasium")
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
 """Every cell uses one core: Ray gives each task one CPU, so its math libraries get one thread."""
@@ -91,17 +110,22 @@ def _dumps(obj: Any) -> bytes:
 # --- one cell (runs in a Ray worker) -----------------------------------------------------------
 
 
-def run_cell(cell_dict: Mapping[str, Any], name: str, driver_code: str | None = None) -> dict[str, Any]:
-    """Run one cell in a fresh temporary directory and return its files (the Ray task's body).
+def run_cell(
+    cell_dict: Mapping[str, Any], name: str, driver_code: str | None = None, work_dir: str | None = None
+) -> dict[str, Any]:
+    """Run one cell and return its files (the Ray task's body).
 
     ``driver_code`` is the driver's :data:`CODE_SHA256`: a worker that imported other code
-    refuses the cell (:func:`check_same_code`).
+    refuses the cell (:func:`check_same_code`). ``work_dir`` is where the cell works
+    (``work_dir/<name>``, kept across attempts, resumed where it can be; see the module
+    docstring); None works in a temporary directory and resumes nothing.
 
     Returns:
         ``{"tar": bytes of the cell directory, "wall_s", "env_steps_train", "env_steps_eval",
-        "iterations", "capevo_commit", "learner_steps_traced"}`` (the commit of the code that ran
-        the cell, on the host that ran it; for a method that ran an evolve loop, each iteration's
-        recorded learner steps beside those in its learner's traces, which stay on that host).
+        "iterations", "resumed_after", "capevo_commit", "learner_steps_traced"}`` (the commit of
+        the code that ran the cell, on the host that ran it; for a method that ran an evolve loop,
+        each iteration's recorded learner steps beside those in its learner's traces, which stay
+        on that host). ``wall_s`` of a resumed cell is this attempt's plus the kept iterations'.
 
     Raises:
         Invalid: the method's records are not iterations 0..n-1.
@@ -112,49 +136,124 @@ def run_cell(cell_dict: Mapping[str, Any], name: str, driver_code: str | None = 
     # robosuite sets its logger's level on import: import it first, then quiet it
     import robosuite  # noqa: F401
 
+    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
+    cell = CellSpec.from_dict(cell_dict)
+    with contextlib.ExitStack() as stack:
+        if work_dir is None:
+            base = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix=f"capevo-cell-{name}-")))
+        else:
+            base = Path(work_dir)
+            try:
+                base.mkdir(parents=True, exist_ok=True)
+            except OSError:  # a cluster node without the driver's path: this host's own
+                base = Path(tempfile.gettempdir()) / "capevo-work" / base.name
+                base.mkdir(parents=True, exist_ok=True)
+        d = base / name
+        try:
+            result = _run_cell_in(cell, d, name)
+        except Exception:
+            # an error, not an interruption: the next attempt starts over
+            shutil.rmtree(d, ignore_errors=True)
+            raise
+        if work_dir is not None:
+            shutil.rmtree(d, ignore_errors=True)
+        return result
+
+
+def _run_cell_in(cell: CellSpec, d: Path, name: str) -> dict[str, Any]:
     from capevo.evolve.audit import learner_step_checks
     from capevo.experiment.methods import knowledge_of, make_method
 
-    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
-    cell = CellSpec.from_dict(cell_dict)
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix=f"capevo-cell-{name}-") as tmp:
-        d = Path(tmp) / name
-        d.mkdir()
+    method = make_method(cell.method)
+    records = _kept_records(d, cell, method)
+    if not records:
+        shutil.rmtree(d, ignore_errors=True)
+        d.mkdir(parents=True)
         knowledge = knowledge_of(cell.method, cell.options)
         write_atomically(d / CELL_JSON, _dumps({"cell": cell.to_dict(), "knowledge": knowledge}))
-        records: list[IterationRecord] = []
+    else:
+        # drop a torn last line: the kept records, exactly as they were written (invariant 6)
+        write_atomically(d / METRICS, b"".join(_dumps(r.to_dict()) for r in records))
+    kept = len(records)
+    append_durably(
+        d / RESUMES,
+        _dumps(
+            {
+                "after_iteration": kept,
+                "started_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                "host": socket.gethostname(),
+                "capevo_sha256": CODE_SHA256,
+                "capevo_commit": CODE_COMMIT,
+            }
+        ),
+    )
 
-        def emit(record: IterationRecord) -> None:
-            if record.iteration != len(records) + 1:
-                raise Invalid(
-                    f"{cell.method} emitted iteration {record.iteration} after {len(records)} records "
-                    "(iterations are numbered 1..n)",
-                    details={"field": "iteration"},
-                )
-            append_durably(d / METRICS, _dumps(record.to_dict()))
-            records.append(record)
-
-        # the method's own files (registry/, traces/, checkpoints) go beside cell.json and metrics.jsonl
-        make_method(cell.method).run(cell, d, emit=emit)
-        if len(records) != cell.iterations:
+    def emit(record: IterationRecord) -> None:
+        if record.iteration != len(records) + 1:
             raise Invalid(
-                f"{cell.method} emitted {len(records)} of {cell.iterations} iterations", details={"field": "iterations"}
+                f"{cell.method} emitted iteration {record.iteration} after {len(records)} records "
+                "(iterations are numbered 1..n)",
+                details={"field": "iteration"},
             )
-        buf = io.BytesIO()
-        with tarfile.open(fileobj=buf, mode="w") as tar:
-            tar.add(d, arcname=name)
-        return {
-            "tar": buf.getvalue(),
-            "wall_s": time.perf_counter() - t0,
-            "env_steps_train": sum(r.env_steps_train for r in records),
-            "env_steps_eval": sum(r.env_steps_eval for r in records),
-            "iterations": len(records),
-            "capevo_commit": CODE_COMMIT,
-            "capevo_sha256": CODE_SHA256,
-            # the traces do not travel with the cell (they are large): check them here, on their host
-            "learner_steps_traced": [c.to_dict() for c in learner_step_checks(d / "evolve")],
-        }
+        append_durably(d / METRICS, _dumps(record.to_dict()))
+        records.append(record)
+
+    # the method's own files (registry/, traces/, checkpoints) go beside cell.json and metrics.jsonl
+    if kept == 0:
+        method.run(cell, d, emit=emit)
+    elif kept < cell.iterations:
+        method.run(cell, d, emit=emit, after=kept)  # type: ignore[call-arg]
+    if len(records) != cell.iterations:
+        raise Invalid(
+            f"{cell.method} emitted {len(records)} of {cell.iterations} iterations", details={"field": "iterations"}
+        )
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        tar.add(d, arcname=name)
+    return {
+        "tar": buf.getvalue(),
+        "wall_s": time.perf_counter() - t0 + sum(r.wall_s for r in records[:kept]),
+        "env_steps_train": sum(r.env_steps_train for r in records),
+        "env_steps_eval": sum(r.env_steps_eval for r in records),
+        "iterations": len(records),
+        "resumed_after": _resumed_after(d),
+        "capevo_commit": CODE_COMMIT,
+        "capevo_sha256": CODE_SHA256,
+        # the traces do not travel with the cell (they are large): check them here, on their host
+        "learner_steps_traced": [c.to_dict() for c in learner_step_checks(d / "evolve")],
+    }
+
+
+def _kept_records(d: Path, cell: CellSpec, method: Any) -> list[IterationRecord]:
+    """The records an interrupted attempt left in ``d`` that this attempt may continue after; []
+    to start over (see the module docstring for when)."""
+    resumes = getattr(method, "resumes", None)
+    if not d.is_dir() or not callable(resumes) or not resumes(cell):
+        return []
+    try:
+        began = json.loads((d / CELL_JSON).read_text(encoding="utf-8"))
+        attempts = [json.loads(line) for line in (d / RESUMES).read_text(encoding="utf-8").splitlines()]
+        lines = (d / METRICS).read_bytes().splitlines(keepends=True) if (d / METRICS).exists() else []
+    except (OSError, ValueError):
+        return []
+    if began.get("cell") != cell.to_dict() or not attempts or attempts[0].get("capevo_sha256") != CODE_SHA256:
+        return []
+    records: list[IterationRecord] = []
+    for line in lines:
+        try:
+            record = IterationRecord.from_dict(json.loads(line))
+        except (ValueError, TypeError, KeyError, Invalid):
+            break  # a torn last line: the process died while writing it
+        if record.iteration != len(records) + 1 or _dumps(record.to_dict()) != line:
+            break
+        records.append(record)
+    return records if len(records) <= cell.iterations else []
+
+
+def _resumed_after(d: Path) -> list[int]:
+    lines = (d / RESUMES).read_text(encoding="utf-8").splitlines()
+    return [int(json.loads(line)["after_iteration"]) for line in lines[1:]]
 
 
 # --- the driver --------------------------------------------------------------------------------
@@ -315,6 +414,8 @@ def _extract(run_dir: Path, name: str, result: Mapping[str, Any], attempts: int)
         "capevo_commit": result.get("capevo_commit"),
         "capevo_sha256": result.get("capevo_sha256"),
     }
+    if result.get("resumed_after"):
+        done["resumed_after"] = result["resumed_after"]
     if result.get("learner_steps_traced"):
         done["learner_steps_traced"] = result["learner_steps_traced"]
     write_atomically(partial / DONE, _dumps(done))
@@ -412,6 +513,14 @@ def stop_ray() -> None:
     ray.shutdown()
 
 
+def default_work_dir(run_dir: Path) -> Path:
+    """``<tmp>/capevo-work/<key>``: the cells' work directories of the run in ``run_dir`` started
+    on this host (the key is a digest of the host name and the run directory's absolute path, so
+    two runs never share one and the same run finds its own again)."""
+    key = hashlib.sha256(f"{socket.gethostname()}\0{Path(run_dir).resolve()}".encode()).hexdigest()[:16]
+    return Path(tempfile.gettempdir()) / "capevo-work" / key
+
+
 def run_experiment(
     config: ExperimentConfig,
     run_dir: Path,
@@ -423,6 +532,7 @@ def run_experiment(
     progress: GridProgress | None = None,
     command: Sequence[str] | None = None,
     only: Callable[[CellSpec], bool] | None = None,
+    work_dir: Path | None = None,
 ) -> RunSummary:
     """Run (or resume) ``config``'s grid into ``run_dir``.
 
@@ -436,6 +546,8 @@ def run_experiment(
         progress: Display sink (default: a recording one).
         command: Recorded in ``provenance.json``.
         only: Run only the cells it accepts (the others are left as they are).
+        work_dir: Where cells work on their worker's host, kept until a cell is done so that an
+            interrupted one can resume (default :func:`default_work_dir`).
 
     Returns:
         What ran, what was skipped, what failed.
@@ -477,6 +589,8 @@ def run_experiment(
     earlier = _earlier_runs(run_dir)
     if earlier:
         provenance["earlier_runs"] = earlier
+    work = str(Path(work_dir) if work_dir is not None else default_work_dir(run_dir))
+    provenance["work_dir"] = work
     grid = list(config.cell_names().items())
     states = {name: cell_state(cells_dir / name) for name, _ in grid}
     skipped = tuple(n for n, _ in grid if states[n] == "done")
@@ -495,7 +609,7 @@ def run_experiment(
                 shutil.rmtree(cells_dir / name, ignore_errors=True)  # an unfinished cell starts over
             slots = workers if not address else max(1, int(ray.cluster_resources().get("CPU", 1)))
             attempts = dict.fromkeys((n for n, _ in todo), 1)
-            by_ref = {task.remote(c.to_dict(), n, CODE_SHA256): (n, c) for n, c in todo}
+            by_ref = {task.remote(c.to_dict(), n, CODE_SHA256, work): (n, c) for n, c in todo}
             while by_ref:
                 sink.update(running=min(slots, len(by_ref)))
                 ready, _ = ray.wait(list(by_ref), num_returns=1, timeout=1.0)
@@ -507,7 +621,7 @@ def run_experiment(
                         if attempts[name] <= retries:
                             attempts[name] += 1
                             sink.message(f"retrying {name} (attempt {attempts[name]}): {_short(exc)}")
-                            by_ref[task.remote(cell.to_dict(), name, CODE_SHA256)] = (name, cell)
+                            by_ref[task.remote(cell.to_dict(), name, CODE_SHA256, work)] = (name, cell)
                             continue
                         _record_failure(run_dir, name, cell, exc, attempts[name])
                         failed.append(name)
@@ -545,6 +659,7 @@ __all__ = [
     "METRICS",
     "RunSummary",
     "cell_state",
+    "default_work_dir",
     "run_cell",
     "run_experiment",
     "start_ray",

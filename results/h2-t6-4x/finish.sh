@@ -12,6 +12,8 @@ for cell in "$D"/run/cells/*/; do
   [ -f "$cell/done.json" ] || { echo "$name has not finished: resume the run first" >&2; exit 2; }
   mkdir -p "$D/cells/$name"
   cp "$cell"/cell.json "$cell"/done.json "$cell"/metrics.jsonl "$D/cells/$name/"
+  # a cell resumed after an interruption says when, on which host and with which code
+  if [ -f "$cell/resumes.jsonl" ]; then cp "$cell/resumes.jsonl" "$D/cells/$name/"; fi
   # ours' gate evidence, per iteration (the loop's own metrics)
   if [ -f "$cell/evolve/metrics.jsonl" ]; then cp "$cell/evolve/metrics.jsonl" "$D/cells/$name/evolve-metrics.jsonl"; fi
 done

@@ -318,3 +318,13 @@ def test_the_quoted_overhead_is_the_range_of_the_benchmark_medians(tmp_path: Pat
     assert quoted is not None
     assert (quoted.low_ms, quoted.high_ms) == pytest.approx((0.002, 0.030))
     assert quoted.source == "BENCHMARKS.md § Governance cost per action (`bench.py --n 5`, 2026-01-01, machine Z)"
+
+
+def test_a_resumed_cell_is_named_in_the_cells_table(tmp_path: Path) -> None:
+    write_cell(tmp_path, task="T1", method="am", seed=1, raw=gen_raw(3, iterations=3, episodes=4, p_success=[0.3] * 3))
+    done = tmp_path / "cells" / "T1-am-s1" / "done.json"
+    done.write_text(json.dumps({**json.loads(done.read_text()), "resumed_after": [2]}))
+    write_report(tmp_path)
+    md = (tmp_path / "report" / "report.md").read_text()
+    row = next(line for line in md.splitlines() if line.startswith("| `T1-am-s1` |"))
+    assert "resumed after an interruption, after iteration 2" in row
