@@ -926,7 +926,7 @@ class Gate:
         ordered = sorted(seed_list)
         reason = _summary(name, candidate_version, active_version, promote, checks, cand_stats, paired)
         if companions:
-            reason += f"; decided together with {_versions_text(companions)} (learned as one chain)"
+            reason += f"; decided together with {_versions_text(companions)}, as one change"
         if len(looks) == 2:
             reason += f"; second look: N {looks[0]['n']} -> {looks[1]['n']}, each look at alpha {cfg.look_alpha:.3g}"
         self._say("decided", reason)
