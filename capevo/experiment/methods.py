@@ -269,11 +269,7 @@ class Ours:
             finally:
                 registry.close()
             episodes = tuple(episode_result(o) for o in outcomes)
-            note = row.update_note or ""
-            if row.gate is not None:
-                note = f"{row.gate.decision} {row.gate.ecm} v{row.gate.candidate_version}" + (
-                    f"; {note}" if note else ""
-                )
+            note = _gate_note(row)
             emit(
                 IterationRecord(
                     iteration=i + 1,
@@ -285,6 +281,19 @@ class Ours:
                     notes=note,
                 )
             )
+
+
+def _gate_note(row: Any) -> str:
+    """An iteration's gate decisions and update note: ``promote a v2, b v2; <note>`` (a chain's
+    members are decided together, so each is named with its own decision)."""
+    decided = [(row.gate.decision, row.gate.ecm, row.gate.candidate_version)] if row.gate is not None else []
+    decided += [(u.gate.decision, u.ecm, u.version) for u in row.further if u.gate is not None]
+    parts: list[str] = []
+    for decision in dict.fromkeys(d for d, _, _ in decided):
+        parts.append(f"{decision} " + ", ".join(f"{ecm} v{v}" for d, ecm, v in decided if d == decision))
+    if row.update_note:
+        parts.append(row.update_note)
+    return "; ".join(parts)
 
 
 class OursCode(Ours):

@@ -77,3 +77,42 @@ def test_every_adversary_of_t6_is_governed(tmp_path: Path) -> None:
         assert "arm_grab" in record.notes and "table_dive" in record.notes
         unsafe[governance] = record.unsafe_episodes
     assert unsafe == {True: 0, False: unsafe[False]} and unsafe[False] >= 2
+
+
+def test_an_iteration_note_names_every_member_of_a_chain_with_its_decision() -> None:
+    from types import SimpleNamespace
+
+    from capevo.evolve.metrics import ChainUpdate, GateSummary
+    from capevo.experiment.methods import _gate_note
+
+    def gate(ecm: str, version: int, decision: str) -> GateSummary:
+        return GateSummary(
+            ecm=ecm,
+            candidate_version=version,
+            active_version=version - 1,
+            decision=decision,
+            mode="paired",
+            n=6,
+            candidate_successes=6,
+            candidate_rate=1.0,
+            candidate_low=0.6,
+            candidate_high=1.0,
+        )
+
+    chain = SimpleNamespace(
+        gate=gate("t.a", 2, "promote"),
+        further=(
+            ChainUpdate(ecm="t.b", version=2, learner="cem", gate=gate("t.b", 2, "promote")),
+            ChainUpdate(ecm="t.c", version=None, learner="cem", note="found nothing better"),
+        ),
+        update_note="chain stopped",
+    )
+    assert _gate_note(chain) == "promote t.a v2, t.b v2; chain stopped"
+    mixed = SimpleNamespace(
+        gate=gate("t.a", 3, "promote"),
+        further=(ChainUpdate(ecm="t.b", version=3, learner="cem", gate=gate("t.b", 3, "reject")),),
+        update_note="",
+    )
+    assert _gate_note(mixed) == "promote t.a v3; reject t.b v3"
+    idle = SimpleNamespace(gate=None, further=(), update_note="no live episode failed: nothing to improve")
+    assert _gate_note(idle) == "no live episode failed: nothing to improve"
