@@ -6,10 +6,17 @@ unseen (``results/h1/README.md``). The code learners (CEM, the LLM's attempts, h
 episode through an evaluator that traces it to ``traces/learner/`` of the report directory, so
 those files give a second count that does not go through the loop.
 
+A resumed run (:mod:`capevo.evolve.loop`, "Resuming") redoes an interrupted iteration from its
+start, so an interrupted attempt's learner traces lie between the previous row's end and the
+redo's ``started_at``. They are counted apart, as ``interrupted``: the redo either learned again
+(its row records only its own steps) or gated the candidate the interrupted attempt published
+(its row records that attempt's steps).
+
 Invariants:
-1. An iteration's traced steps are the steps of the episodes in the learner traces written
-   during it: a trace file belongs to the last iteration whose ``started_at`` precedes its last
-   write (the learner writes only between the live and the gate episodes of its iteration).
+1. An iteration's traced steps are the steps of the episodes in the learner traces last written
+   within its row's span, ``started_at`` to ``started_at + wall_s`` (the learner writes only
+   between the live and the gate episodes of its iteration); its ``interrupted`` steps are those
+   of the traces last written after the previous row's span and before its own.
 2. A row is checked only when its learner is a code learner (:data:`TRACED_LEARNERS`): SAC and BC
    run their episodes in their own environments, which trace nothing.
 3. :func:`learner_step_checks` of a directory without ``metrics.jsonl`` is ``()``.
@@ -28,6 +35,9 @@ from capevo.evolve.metrics import MetricsLog, read_metrics
 LEARNER_TRACES = Path("traces") / "learner"
 """Where, under a report directory, the code learners' evaluator writes its traces."""
 
+SPAN_SLACK_S = 1.0
+"""Allowance on a row's end for a file system's timestamps (its span is measured by the clock)."""
+
 TRACED_LEARNERS = ("cem", "hybrid", "llm")
 """Learner ids (the last ``/`` part, by prefix) whose episodes are traced; see invariant 2."""
 
@@ -40,6 +50,8 @@ class LearnerStepCheck:
     learner: str
     recorded: int
     traced: int
+    interrupted: int = 0
+    """Steps of the learner traces of an interrupted attempt of this iteration (see the module docstring)."""
 
     @property
     def checked(self) -> bool:
@@ -49,10 +61,24 @@ class LearnerStepCheck:
 
     @property
     def ok(self) -> bool:
-        return not self.checked or self.recorded == self.traced
+        """Unchecked, or the recorded steps are the finished attempt's traced ones, alone or with
+        the interrupted attempt's (whose candidate the redo gated)."""
+        return not self.checked or self.recorded in (self.traced, self.traced + self.interrupted)
+
+    @property
+    def discarded(self) -> int:
+        """Learner steps an interrupted attempt spent that the row does not record (the redo learned
+        again): spent, but they shaped nothing the run kept."""
+        return 0 if self.recorded == self.traced + self.interrupted else self.interrupted
 
     def to_dict(self) -> dict[str, object]:
-        return {"iteration": self.iteration, "learner": self.learner, "recorded": self.recorded, "traced": self.traced}
+        return {
+            "iteration": self.iteration,
+            "learner": self.learner,
+            "recorded": self.recorded,
+            "traced": self.traced,
+            "interrupted": self.interrupted,
+        }
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> LearnerStepCheck:
@@ -66,6 +92,7 @@ class LearnerStepCheck:
             learner=str(d.get("learner") or ""),
             recorded=int(d["recorded"]),
             traced=int(d["traced"]),
+            interrupted=int(d.get("interrupted", 0)),
         )
 
 
@@ -79,13 +106,21 @@ def learner_step_checks(report_dir: str | Path) -> tuple[LearnerStepCheck, ...]:
     rows = read_metrics(report)
     starts = [row.started_at for row in rows]
     traced = [0] * len(rows)
+    interrupted = [0] * len(rows)
     for path in sorted((report / LEARNER_TRACES).rglob("*.mcap")):
-        k = bisect.bisect_right(starts, path.stat().st_mtime) - 1
-        if k >= 0:
-            traced[k] += sum(e.steps for e in summarize(path).episodes)
+        written = path.stat().st_mtime
+        k = bisect.bisect_right(starts, written) - 1
+        steps = sum(e.steps for e in summarize(path).episodes)
+        if k >= 0 and written <= rows[k].started_at + rows[k].wall_s + SPAN_SLACK_S:
+            traced[k] += steps
+        elif k + 1 < len(rows):
+            interrupted[k + 1] += steps
+        # else: an attempt of an iteration that has no row yet
     return tuple(
-        LearnerStepCheck(iteration=row.iteration, learner=row.learner or "", recorded=row.learner_steps, traced=t)
-        for row, t in zip(rows, traced, strict=True)
+        LearnerStepCheck(
+            iteration=row.iteration, learner=row.learner or "", recorded=row.learner_steps, traced=t, interrupted=x
+        )
+        for row, t, x in zip(rows, traced, interrupted, strict=True)
     )
 
 

@@ -714,6 +714,11 @@ def compute_numbers(run: Run) -> Book:
                 sum(not ch.ok for _, ch in checks),
                 [f"{c.path}/{DONE}" for c in cells],
             )
+            book.put(
+                f"parity/{label}/discarded_learner_steps",
+                sum(ch.discarded for _, ch in checks),
+                [f"{c.path}/{DONE}" for c in cells],
+            )
 
     # per label, not per method: what ``ours`` starts from depends on its modality option
     knowledge: dict[str, list[Cell]] = {}
@@ -1317,7 +1322,14 @@ def _fairness(add: Any, run: Run, book: Book) -> None:
             n = book.get(f"parity/{label}/traced_iterations")
             bad = book.get(f"parity/{label}/traced_iterations_differing")
             verdict = "all equal" if not bad else f"**{bad} differ**"
-            add(f"- {_esc(label)}: {n} iteration(s) checked, {verdict}.")
+            lost = book.get(f"parity/{label}/discarded_learner_steps")
+            extra = (
+                f" Interrupted attempts (cells resumed after an interruption) also spent {_steps(lost)} learner "
+                "env steps that their iteration's redo learned again; they are not in `env_steps_train`."
+                if lost
+                else ""
+            )
+            add(f"- {_esc(label)}: {n} iteration(s) checked, {verdict}.{extra}")
         add("")
 
 

@@ -43,7 +43,8 @@ on which host, with which code), and ``done.json`` lists ``resumed_after``. Ever
 starts the cell over in an emptied directory: a method that cannot resume, other code, other
 settings, and any attempt after the method raised (an error is not an interruption). A finished
 cell's work directory is removed once its archive is made; an interrupted attempt's partial
-traces stay in the cell's files.
+traces stay in the cell's files (the learner-step audit counts its learner traces apart,
+:mod:`capevo.evolve.audit`).
 
 Invariants:
 1. A cell directory without ``.partial`` in its name has ``done.json`` or ``failed.json``;

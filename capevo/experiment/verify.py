@@ -117,7 +117,10 @@ def check_learner_steps(run_dir: Path) -> list[Mismatch]:
         for c in checks:
             if not c.ok:
                 name = f"{rel}:iteration {c.iteration}:learner_steps"
-                out.append(Mismatch(name=name, reported=c.recorded, recomputed=f"{c.traced} traced", sources=(rel,)))
+                traced = f"{c.traced} traced"
+                if c.interrupted:
+                    traced += f" (+{c.interrupted} by an interrupted attempt)"
+                out.append(Mismatch(name=name, reported=c.recorded, recomputed=traced, sources=(rel,)))
     return out
 
 

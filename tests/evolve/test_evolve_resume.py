@@ -15,6 +15,7 @@ import pytest
 from evolve_support import NAMES, evolve_command, kill, run_cli, wait_for
 
 from capevo.agent import read_episodes
+from capevo.evolve.audit import learner_step_checks
 from capevo.evolve.metrics import read_metrics
 from capevo.records import Action, State
 from capevo.registry.local import LocalRegistry
@@ -100,6 +101,16 @@ def test_sigkill_mid_iteration_then_resume(tmp_path: Path) -> None:
     assert len(pairs) == len(set(pairs))
     assert sorted(pairs) == sorted((r.iteration, s) for r in rows for s in r.live_seeds)
     assert (report / "report.md").is_file() and (report / "timeline.png").is_file()
+
+    # the learners' traces still account for every recorded learner step: the interrupted
+    # attempt's traces are counted apart, and the redo's row records them only if it gated what
+    # that attempt learned
+    checks = learner_step_checks(report)
+    assert [c.iteration for c in checks] == [0, 1]
+    assert all(c.ok for c in checks), checks
+    if killed_at["event"] == "candidate":
+        assert checks[k].interrupted > 0 and checks[k].recorded == checks[k].traced + checks[k].interrupted
+        assert checks[k].discarded == 0
 
     # a third run has nothing left to do
     again = run_cli(args, cwd=tmp_path)

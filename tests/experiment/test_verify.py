@@ -56,6 +56,25 @@ def test_learner_steps_that_differ_from_their_traces_are_reported_and_fail_verif
     ]
 
 
+def test_an_interrupted_attempts_learner_steps_are_accounted_not_a_mismatch(tmp_path: Path) -> None:
+    """A resumed cell's interrupted attempt traced learner steps of its own (capevo.evolve.audit):
+    discarded when the redo learned again, recorded when it gated that attempt's candidate."""
+    root, _ = build_run(tmp_path / "run")
+    done = root / "cells" / "T6-ours-code-s42" / "done.json"
+    doc = json.loads(done.read_text())
+    doc["learner_steps_traced"] = [
+        {"iteration": 0, "learner": "cem", "recorded": 700, "traced": 700, "interrupted": 0},
+        {"iteration": 1, "learner": "cem", "recorded": 600, "traced": 600, "interrupted": 250},  # learned again
+        {"iteration": 2, "learner": "cem", "recorded": 800, "traced": 500, "interrupted": 300},  # gated its candidate
+    ]
+    doc["resumed_after"] = [1, 2]
+    done.write_text(json.dumps(doc))
+    write_report(root)
+    text = (root / "report" / "report.md").read_text()
+    assert "3 iteration(s) checked, all equal. Interrupted attempts" in text and "spent 250 learner" in text
+    assert verify_run(root) == []
+
+
 def test_an_edited_derived_field_is_the_one_mismatch(reported: Path) -> None:
     metrics = reported / "cells" / "T6-am-s7" / "metrics.jsonl"
 
