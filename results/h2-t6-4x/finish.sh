@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # After `capevo experiment run results/h2-t6-4x/h2-t6-4x.yaml --out results/h2-t6-4x/run` has
-# finished every cell: copy the small files of the run out of run/ (which git ignores) and write
+# finished every cell: copy the small records of the run out of run/ (where git tracks only them) and write
 # and check the report. Run from the repository root.
 set -euo pipefail
 D=results/h2-t6-4x
