@@ -367,14 +367,7 @@ def registry_options(func: F) -> F:
             help="Zenoh endpoint of a running registry, e.g. tcp/127.0.0.1:7447; repeatable (env CAPEVO_CONNECT).",
         ),
         *LOGIN_OPTIONS,
-        click.option(
-            "--timeout",
-            type=click.FloatRange(min=0.01),
-            default=DEFAULT_TIMEOUT_S,
-            envvar="CAPEVO_TIMEOUT",
-            show_default=True,
-            help="Seconds to wait for the registry.",
-        ),
+        registry_timeout_option,
         json_option,
     ]
     out: Any = wrapper
@@ -384,6 +377,25 @@ def registry_options(func: F) -> F:
 
 
 json_option = click.option("--json", "as_json", is_flag=True, help="Print JSON instead of tables.")
+
+registry_timeout_option = click.option(
+    "--timeout",
+    type=click.FloatRange(min=0.01),
+    default=DEFAULT_TIMEOUT_S,
+    envvar="CAPEVO_TIMEOUT",
+    show_default=True,
+    help="Seconds to wait for each registry reply (env CAPEVO_TIMEOUT).",
+)
+"""``--timeout``: how long a command waits for each reply of a registry it talks to."""
+
+identity_option = click.option(
+    "--identity",
+    "identity_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Agent identity memory (M_id) YAML. [default: the packaged one]",
+)
+"""``--identity``: the persistent agent's identity memory (:mod:`capevo.agent`)."""
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 """How every command's log lines look on stderr."""

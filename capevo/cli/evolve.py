@@ -29,6 +29,7 @@ from capevo.cli import (
     DEFAULT_ROOT,
     EXIT_INTERRUPTED,
     LOG_FORMAT,
+    identity_option,
     log_level_option,
     login_options,
     make_table,
@@ -151,13 +152,7 @@ def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
     help="Object jitter, observation noise and dropped actions (the benchmark setting).",
 )
 @phi_option
-@click.option(
-    "--identity",
-    "identity_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Agent identity memory (M_id) YAML. [default: the packaged one]",
-)
+@identity_option
 @click.option("--report-only", is_flag=True, help="Only rewrite the report of the run in --report-dir.")
 @click.option("--json", "as_json", is_flag=True, help="Print the run's summary as JSON on stdout.")
 @log_level_option()

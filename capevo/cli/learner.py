@@ -24,7 +24,15 @@ from typing import Any
 
 import click
 
-from capevo.cli import CapevoGroup, log_level_option, log_to_stderr, login_options, phi_option, remember_password
+from capevo.cli import (
+    CapevoGroup,
+    log_level_option,
+    log_to_stderr,
+    login_options,
+    phi_option,
+    registry_timeout_option,
+    remember_password,
+)
 from capevo.errors import Invalid
 
 
@@ -128,14 +136,7 @@ def learner() -> None:
     show_default=True,
     help="Seconds to wait for all the episodes of one batch of samples on the workers.",
 )
-@click.option(
-    "--timeout",
-    type=click.FloatRange(min=0.01),
-    default=10.0,
-    envvar="CAPEVO_TIMEOUT",
-    show_default=True,
-    help="Seconds to wait for each registry reply.",
-)
+@registry_timeout_option
 @log_level_option()
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON event per line.")
 def serve_cmd(

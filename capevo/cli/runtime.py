@@ -27,11 +27,13 @@ from capevo.cli import (
     CapevoGroup,
     emit,
     fmt_time,
+    identity_option,
     json_option,
     log_level_option,
     log_to_stderr,
     make_table,
     phi_option,
+    registry_timeout_option,
     remember_password,
     resolve_target,
 )
@@ -96,13 +98,7 @@ def _connection_options(func: Any) -> Any:
     help="Enforce the safety envelope Φ; --no-governance only counts what it would do (evaluation only).",
 )
 @phi_option
-@click.option(
-    "--identity",
-    "identity_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Agent identity memory (M_id) YAML. [default: the packaged one]",
-)
+@identity_option
 @click.option("--step-budget", type=click.IntRange(min=1), default=200, show_default=True, help="Steps per ECM run.")
 @click.option(
     "--ecm-timeout", type=click.FloatRange(min=0.001), default=0.5, show_default=True, help="Seconds per ECM call."
@@ -114,14 +110,7 @@ def _connection_options(func: Any) -> Any:
     show_default=True,
     help="What to do when an ECM call fails.",
 )
-@click.option(
-    "--timeout",
-    type=click.FloatRange(min=0.01),
-    default=10.0,
-    envvar="CAPEVO_TIMEOUT",
-    show_default=True,
-    help="Seconds to wait for each registry reply.",
-)
+@registry_timeout_option
 @log_level_option()
 @json_option
 def serve_cmd(
