@@ -33,54 +33,78 @@ writes them) and needs no simulator. Its sections mirror the paper's evaluation:
   signals) and the budget parity check.
 * **Settings and provenance**, and every cell with its status.
 
-What is computed and what is quoted: every number of the run is computed here from the raw
-metrics and written with the files it came from into ``numbers.json``, which
-:func:`capevo.experiment.verify.verify_run` recomputes. The paper's figures are constants of this
-module, copied from the paper's tables and labelled "paper" wherever they appear. Checked against
-the paper's text: the T6 per-seed values it gives (86.7, 73.3, 23.3, 70.0 against 3.3, 20.0, 16.7,
-3.3) give 63.3 ± 27.6 and 10.8 ± 8.8 with ddof = 1 and Welch t = 3.62, p = 0.027, as Table 4
-says. The paper is not consistent elsewhere, and the report quotes its tables as they are: §4.3's
-text says all methods score 0 % on T2–T5 while its Table 4 gives T3 3.3 % (Ours, AM) and 6.7 %
-(SkiMo); Table 3 gives T3 Succ_peak 10.0 % and T6 60.0 % for the same runs Table 4 gives 3.3 %
-and (seed 42) 86.7 %; §4.2 says no baseline exceeds 6.7 % on T6 while AM's seeds reach 20.0 %.
+What is computed and what is quoted: every number of the run comes from
+:func:`capevo.experiment.numbers.compute_numbers` (the one computation, which
+:func:`capevo.experiment.verify.verify_run` repeats), read from the run directory by
+:mod:`capevo.experiment.run_files`, and is written with the files it came from into
+``numbers.json``. The paper's figures are the constants of :mod:`capevo.experiment.paper`, labelled
+"paper" wherever they appear; the governance overhead is quoted from BENCHMARKS.md.
 
 Invariants:
 1. :func:`write_report` reads nothing outside the run directory except BENCHMARKS.md (for the
    quoted overhead) and starts no simulator.
-2. Only finished cells (``done.json``, at least one record) enter the statistics; failed,
-   unfinished and unreadable cells are listed in the report with the reason, never dropped.
-3. Every number of the run shown in ``report.md``'s tables is an entry of ``numbers.json``
-   (name, value, the run-relative files it came from), and :func:`compute_numbers` is the one
-   computation of them, shared with verify.
-4. The numbers depend only on the files: computing them twice gives equal ``numbers.json``.
+2. Only finished cells enter the statistics; failed, unfinished and unreadable cells are listed in
+   the report with the reason, never dropped (:mod:`capevo.experiment.run_files`).
+3. Every number of the run shown in ``report.md``'s tables is an entry of ``numbers.json``.
+4. Writing the report twice from the same files gives equal ``numbers.json``.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import re
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from capevo.baselines.base import CellSpec, IterationRecord
-from capevo.errors import CapevoError, NotFound
-from capevo.evolve.audit import LearnerStepCheck
-from capevo.evolve.metrics import CI_ALPHA, read_jsonl, write_atomically
+from capevo.evolve.metrics import write_atomically
+from capevo.experiment.numbers import (
+    AM,
+    EXPLORER,
+    NUMBERS_JSON,
+    OURS,
+    THRESHOLDS,
+    Book,
+    Groups,
+    compute_numbers,
+    groups_of,
+    numbers_document,
+)
+from capevo.experiment.paper import (
+    PAPER_ABLATION,
+    PAPER_BUDGET,
+    PAPER_COLUMN,
+    PAPER_DELTA_PI,
+    PAPER_EVOLUTION,
+    PAPER_GOVERNANCE,
+    PAPER_METHODS,
+    PAPER_PEAK_REWARD,
+    PAPER_PEAK_SUCCESS,
+    PAPER_T6_SEEDS,
+    PAPER_T6_WELCH,
+    paper_ablation_row,
+)
+from capevo.experiment.run_files import (
+    CELL_JSON,
+    CELLS,
+    DONE,
+    EXPERIMENT_JSON,
+    FAILED,
+    METRICS,
+    PROVENANCE_JSON,
+    Cell,
+    Run,
+    handoff_text,
+    load_run,
+    modality_of,
+    task_title,
+    uses_decomposition,
+)
 
-CELLS = "cells"
 REPORT_DIR = "report"
 REPORT_MD = "report.md"
-NUMBERS_JSON = "numbers.json"
-CELL_JSON = "cell.json"
-METRICS = "metrics.jsonl"
-DONE = "done.json"
-FAILED = "failed.json"
-EXPERIMENT_JSON = "experiment.json"
-PROVENANCE_JSON = "provenance.json"
 
 EVOLUTION_PNG = "evolution.png"
 T6_SEEDS_PNG = "t6_seeds.png"
@@ -89,696 +113,7 @@ IDENTITY_PNG = "identity.png"
 GOVERNANCE_PNG = "governance.png"
 ABLATION_PNG = "ablation.png"
 
-NUMBERS_VERSION = 1
-OURS = ("ours-code", "ours-neural")
-AM = ("am", "am-bc")
-EXPLORER = "explorer"
-THRESHOLDS = (0.5, 0.8)
-"""Held-out success rates whose first crossing the sample-efficiency table reports."""
 FLAGSHIP_TASK = "T6"
-PAPER_BUDGET = 50_000
-"""The paper's training budget: env steps per ECM per iteration (§4.1)."""
-
-# --- the paper's published figures (quoted, never computed) -------------------------------------
-
-PAPER_METHODS = ("Ours", "AM", "S-ECM", "SPiRL", "SkiMo")
-PAPER_COLUMN = {
-    "ours-code": "Ours",
-    "ours-neural": "Ours",
-    "am": "AM",
-    "am-bc": "AM",
-    "s-ecm": "S-ECM",
-    "spirl": "SPiRL",
-    "skimo": "SkiMo",
-}
-"""Which of the paper's columns a method of the harness is compared with. The paper's "Ours" ran
-all three learning modalities; both of our modalities are set beside it."""
-
-PAPER_EVOLUTION: Mapping[str, tuple[float, float, float, float, float]] = {
-    "T1": (0.58, 3.01, 1.14, 100.0, 5.2),
-    "T2": (0.40, 3.37, 0.59, 0.0, 8.4),
-    "T3": (3.13, 21.74, 9.88, 10.0, 6.9),
-    "T4": (1.49, 4.60, 3.26, 0.0, 3.1),
-    "T5": (0.33, 1.71, 0.60, 0.0, 5.2),
-    "T6": (287.93, 318.44, 295.81, 60.0, 1.1),
-}
-"""Paper Table 3 (``tab:evolution``, §4.2): R₁, R_peak, R₂₀, Succ_peak (%), R_peak/R₁ for Ours."""
-
-PAPER_PEAK_SUCCESS: Mapping[str, Mapping[str, str]] = {
-    "T1": dict.fromkeys(PAPER_METHODS, "100.0"),
-    "T2": dict.fromkeys(PAPER_METHODS, "0.0"),
-    "T3": {"Ours": "3.3", "AM": "3.3", "S-ECM": "0.0", "SPiRL": "0.0", "SkiMo": "6.7"},
-    "T4": dict.fromkeys(PAPER_METHODS, "0.0"),
-    "T5": dict.fromkeys(PAPER_METHODS, "0.0"),
-    "T6": {"Ours": "63.3 ± 27.6", "AM": "10.8 ± 8.8", "S-ECM": "0.0", "SPiRL": "0.0", "SkiMo": "6.7"},
-}
-"""Paper Table 4 (``tab:method-peak-success``, §4.3), %: T6 Ours and AM over seeds {42, 7, 123,
-2024}, everything else seed 42."""
-
-PAPER_PEAK_REWARD: Mapping[str, Mapping[str, float]] = {
-    "T1": {"Ours": 2.19, "AM": 4.69, "S-ECM": 1.20, "SPiRL": 3.50, "SkiMo": 5.34},
-    "T2": {"Ours": 3.04, "AM": 5.07, "S-ECM": 1.18, "SPiRL": 3.59, "SkiMo": 5.04},
-    "T3": {"Ours": 17.54, "AM": 63.79, "S-ECM": 1.43, "SPiRL": 21.13, "SkiMo": 75.59},
-    "T4": {"Ours": 2.56, "AM": 17.47, "S-ECM": 0.80, "SPiRL": 10.21, "SkiMo": 18.64},
-    "T5": {"Ours": 2.37, "AM": 4.69, "S-ECM": 1.20, "SPiRL": 3.65, "SkiMo": 4.14},
-    "T6": {"Ours": 355.79, "AM": 340.03, "S-ECM": 259.85, "SPiRL": 311.91, "SkiMo": 348.33},
-}
-"""Paper Table 5 (``tab:method-peak-reward``, §4.3)."""
-
-PAPER_T6_SEEDS: Mapping[str, tuple[float, ...]] = {
-    "Ours": (86.7, 73.3, 23.3, 70.0),
-    "AM": (3.3, 20.0, 16.7, 3.3),
-}
-"""Paper §4.3 "The T6 flagship result": peak success (%) per seed 42, 7, 123, 2024."""
-PAPER_T6_WELCH = (3.62, 0.027)
-"""Paper Table 4's caption: Welch's t and p on T6 peak success, Ours against AM."""
-
-PAPER_DELTA_PI: Mapping[str, float] = {"Ours": 0.0, "AM": 1.28, "S-ECM": 0.0, "SPiRL": 0.0, "SkiMo": 1.38}
-"""Paper §4.4 and Figure ``fig:identity-drift``: mean Δπ across the six tasks."""
-
-PAPER_GOVERNANCE: Mapping[str, tuple[float, float, float, float]] = {
-    "T1": (100.0, 80.0, 0.0, 0.023),
-    "T2": (100.0, 0.0, 0.0, 0.022),
-    "T3": (100.0, 0.0, 0.0, 0.029),
-    "T4": (100.0, 0.0, 0.0, 0.029),
-    "T5": (100.0, 0.0, 0.0, 0.026),
-    "T6": (61.0, 0.0, 0.0, 0.021),
-}
-"""Paper Table 7 (``tab:safety``, §4.5): blocking %, unsafe off %, unsafe on %, overhead ms per
-action, over 50 episodes per task."""
-
-PAPER_ABLATION: Mapping[str, tuple[float, float, float, float]] = {
-    "RL only": (12.81, 16.55, 3.3, 34.96),
-    "IL only": (0.29, 0.31, 0.0, 0.02),
-    "LLM only": (0.12, 0.12, 0.0, 0.00),
-    "RL + IL": (6.53, 22.80, 3.3, 14.14),
-    "RL + LLM": (8.80, 14.00, 3.3, 34.48),
-    "IL + LLM": (0.32, 0.32, 0.0, 0.02),
-    "All three (Ours)": (9.16, 20.48, 3.3, 16.63),
-}
-"""Paper Table 8 (``tab:ablation``, §4.6), T3: R_final, R_peak, Succ_peak (%), σ²_final."""
-
-_MODALITY_TOKENS = {"rl": "RL", "sac": "RL", "il": "IL", "bc": "IL", "llm": "LLM", "code": "LLM", "hybrid": "LLM"}
-_PAPER_ABLATION_ROW = {
-    frozenset({"RL"}): "RL only",
-    frozenset({"IL"}): "IL only",
-    frozenset({"LLM"}): "LLM only",
-    frozenset({"RL", "IL"}): "RL + IL",
-    frozenset({"RL", "LLM"}): "RL + LLM",
-    frozenset({"IL", "LLM"}): "IL + LLM",
-    frozenset({"RL", "IL", "LLM"}): "All three (Ours)",
-}
-
-
-# --- the run on disk ------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class Cell:
-    """One cell directory as found on disk.
-
-    ``status`` is ``done`` (``done.json``, with records), ``failed`` (``failed.json``),
-    ``unfinished`` (neither) or ``unreadable`` (a file that does not parse, or finished without a
-    record); ``problem`` says why for every status but a clean ``done``.
-    """
-
-    key: str
-    spec: CellSpec | None
-    knowledge: str
-    records: tuple[IterationRecord, ...]
-    status: str
-    problem: str = ""
-    done: Mapping[str, Any] | None = None
-    attempts: int | None = None
-
-    @property
-    def path(self) -> str:
-        """The cell's directory, relative to the run directory."""
-        return f"{CELLS}/{self.key}"
-
-    @property
-    def metrics_file(self) -> str:
-        return f"{self.path}/{METRICS}"
-
-    @property
-    def task(self) -> str:
-        return task_id(self.spec.task) if self.spec else "?"
-
-    @property
-    def method(self) -> str:
-        return self.spec.method if self.spec else "?"
-
-    @property
-    def label(self) -> str:
-        """The method and, when not the defaults, what else distinguishes the cell's setting."""
-        return group_label(self.spec) if self.spec else "?"
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class Run:
-    """A run directory as found on disk."""
-
-    root: Path
-    config: Mapping[str, Any] | None
-    provenance: Mapping[str, Any] | None
-    cells: tuple[Cell, ...]
-
-    def done(self) -> list[Cell]:
-        return [c for c in self.cells if c.status == "done"]
-
-
-def task_id(task: str) -> str:
-    """``T1``..``T6`` for a task id or name; the name itself when no task has it."""
-    from capevo.runtime.tasks import task_spec
-
-    try:
-        return task_spec(task).id
-    except CapevoError:
-        return task
-
-
-def task_title(task: str) -> str:
-    from capevo.runtime.tasks import task_spec
-
-    try:
-        spec = task_spec(task)
-    except CapevoError:
-        return task
-    return f"{spec.id} {spec.name}"
-
-
-def handoff_text(task: str) -> str:
-    """The sentence naming a task's hand-off oracle (:attr:`capevo.runtime.tasks.TaskSpec.handoff_text`)."""
-    from capevo.runtime.tasks import task_spec
-
-    try:
-        return task_spec(task).handoff_text
-    except CapevoError:
-        return "unknown task: its hand-offs are not known"
-
-
-def uses_decomposition(method: str) -> bool:
-    """Whether a method runs the task's ECM decomposition (ours in every modality, and S-ECM)."""
-    return method.startswith("ours") or method == "s-ecm"
-
-
-def modality_of(spec: CellSpec) -> str | None:
-    """The learning modality a cell's options name (``modality`` or ``modalities``), if any."""
-    value = spec.options.get("modality", spec.options.get("modalities"))
-    if value is None:
-        return None
-    if isinstance(value, str):
-        return value
-    if isinstance(value, Sequence):
-        return "+".join(str(v) for v in value)
-    return str(value)
-
-
-def paper_ablation_row(modality: str) -> str | None:
-    """The paper's Table 8 row a modality corresponds to (``rl+il`` → "RL + IL"), if one does."""
-    tokens = [t for t in re.split(r"[^a-z]+", modality.lower()) if t]
-    if tokens == ["all"]:
-        return "All three (Ours)"
-    kinds = {_MODALITY_TOKENS.get(t) for t in tokens}
-    if not kinds or None in kinds:
-        return None
-    return _PAPER_ABLATION_ROW.get(frozenset(k for k in kinds if k))
-
-
-def group_label(spec: CellSpec) -> str:
-    """The method name, plus what sets the cell apart from the default setting (governance off,
-    another Φ, perturbations off, options), so that cells of one label differ only in the seed."""
-    extra = []
-    if not spec.governance:
-        extra.append("governance off")
-    if spec.phi != "task":
-        extra.append(f"Φ {spec.phi}")
-    if not spec.perturbations:
-        extra.append("no perturbations")
-    extra += [f"{k}={_option(v)}" for k, v in sorted(spec.options.items())]
-    return spec.method + (f" ({', '.join(extra)})" if extra else "")
-
-
-def _option(v: Any) -> str:
-    if isinstance(v, str):
-        return v
-    return json.dumps(v, sort_keys=True, separators=(",", ":"))
-
-
-def _read_json(path: Path) -> Any:
-    return json.loads(path.read_text(encoding="utf-8"))
-
-
-def load_cell(root: Path, key: str) -> Cell:
-    """Read ``cells/<key>``; never raises for what it finds there (see :class:`Cell`)."""
-    d = root / CELLS / key
-    try:
-        raw = _read_json(d / CELL_JSON)
-        spec = CellSpec.from_dict(raw["cell"])
-        knowledge = str(raw.get("knowledge") or "")
-    except FileNotFoundError:
-        return Cell(key=key, spec=None, knowledge="", records=(), status="unreadable", problem="no cell.json")
-    except (ValueError, KeyError, TypeError, CapevoError) as exc:
-        return Cell(key=key, spec=None, knowledge="", records=(), status="unreadable", problem=f"cell.json: {exc}")
-    try:
-        rows, torn = read_jsonl(d / METRICS)
-        records = tuple(sorted((IterationRecord.from_dict(r) for r in rows), key=lambda r: r.iteration))
-    except CapevoError as exc:
-        return Cell(key=key, spec=spec, knowledge=knowledge, records=(), status="unreadable", problem=str(exc))
-    its = [r.iteration for r in records]
-    if len(set(its)) != len(its):
-        repeated = sorted({i for i in its if its.count(i) > 1})
-        return Cell(
-            key=key,
-            spec=spec,
-            knowledge=knowledge,
-            records=records,
-            status="unreadable",
-            problem=f"metrics.jsonl repeats iteration(s) {repeated}",
-        )
-    notes = [f"a torn last line of {torn} bytes in metrics.jsonl was skipped"] if torn else []
-    if (d / FAILED).exists():
-        try:
-            failed = _read_json(d / FAILED)
-            error, attempts = str(failed.get("error", "")), failed.get("attempts")
-        except (ValueError, AttributeError) as exc:
-            error, attempts = f"failed.json does not parse: {exc}", None
-        return Cell(
-            key=key,
-            spec=spec,
-            knowledge=knowledge,
-            records=records,
-            status="failed",
-            problem="; ".join([error or "failed", *notes]),
-            attempts=attempts if isinstance(attempts, int) else None,
-        )
-    if not (d / DONE).exists():
-        notes.insert(0, f"not finished: {len(records)} of {spec.iterations} iteration(s) recorded")
-        return Cell(
-            key=key, spec=spec, knowledge=knowledge, records=records, status="unfinished", problem="; ".join(notes)
-        )
-    try:
-        done = _read_json(d / DONE)
-        if not isinstance(done, dict):
-            raise ValueError("not an object")
-    except ValueError as exc:
-        return Cell(
-            key=key, spec=spec, knowledge=knowledge, records=records, status="unreadable", problem=f"done.json: {exc}"
-        )
-    attempts = done.get("attempts")
-    attempts = attempts if isinstance(attempts, int) else None
-    if not records:
-        return Cell(
-            key=key,
-            spec=spec,
-            knowledge=knowledge,
-            records=(),
-            status="unreadable",
-            problem="done.json but no iteration record",
-            done=done,
-            attempts=attempts,
-        )
-    if len(records) < spec.iterations:
-        notes.insert(0, f"finished with {len(records)} of {spec.iterations} iteration(s)")
-    resumed = done.get("resumed_after")
-    if isinstance(resumed, list) and resumed:
-        # a continuation, not a replay (capevo.experiment.runner, "Inside a cell")
-        notes.append(f"resumed after an interruption, after iteration {', '.join(str(k) for k in resumed)}")
-    return Cell(
-        key=key,
-        spec=spec,
-        knowledge=knowledge,
-        records=records,
-        status="done",
-        problem="; ".join(notes),
-        done=done,
-        attempts=attempts,
-    )
-
-
-def load_run(run_dir: str | Path) -> Run:
-    """Read a run directory.
-
-    Raises:
-        NotFound: ``run_dir`` has no ``cells/`` directory.
-    """
-    root = Path(run_dir)
-    if not (root / CELLS).is_dir():
-        raise NotFound(f"{root} holds no experiment run (no {CELLS}/ directory)", details={"path": str(root)})
-
-    def optional(name: str) -> Mapping[str, Any] | None:
-        try:
-            value = _read_json(root / name)
-        except (FileNotFoundError, ValueError):
-            return None
-        return value if isinstance(value, dict) else None
-
-    keys = sorted(p.name for p in (root / CELLS).iterdir() if p.is_dir())
-    return Run(
-        root=root,
-        config=optional(EXPERIMENT_JSON),
-        provenance=optional(PROVENANCE_JSON),
-        cells=tuple(load_cell(root, k) for k in keys),
-    )
-
-
-# --- the numbers ----------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class Number:
-    """One number of the report with the run-relative files it came from."""
-
-    name: str
-    value: float | int | str | None
-    sources: tuple[str, ...]
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "value": self.value, "sources": list(self.sources)}
-
-
-@dataclass(slots=True)
-class Book:
-    """The numbers of one report, in the order they were computed (names are unique)."""
-
-    numbers: dict[str, Number] = field(default_factory=dict)
-
-    def put(self, name: str, value: float | int | str | None, sources: Iterable[str]) -> Any:
-        if isinstance(value, float) and not math.isfinite(value):
-            value = None
-        self.numbers[name] = Number(name=name, value=value, sources=tuple(sorted(set(sources))))
-        return value
-
-    def get(self, name: str) -> Any:
-        n = self.numbers.get(name)
-        return None if n is None else n.value
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class CellSummary:
-    """What one finished cell's held-out evaluations and steps add up to."""
-
-    r_first: float
-    r_peak: float
-    r_last: float
-    succ_peak: float
-    succ_last: float
-    ratio: float | None
-    """R_peak / R₁; None when R₁ ≤ 0 (a ratio of rewards that start at or below zero says nothing)."""
-    delta_pi: float
-    reward_var_last: float
-    train_steps: int
-    eval_steps: int
-    steps_to: Mapping[float, int | None]
-    """Cumulative training env steps up to the first iteration whose held-out success reached each
-    threshold; None: not reached."""
-
-
-def summarize(cell: Cell) -> CellSummary:
-    """The per-cell figures of a cell with at least one record."""
-    recs = cell.records
-    rewards = [r.reward_mean for r in recs]
-    steps_to: dict[float, int | None] = {}
-    for th in THRESHOLDS:
-        spent, reached = 0, None
-        for r in recs:
-            spent += r.env_steps_train
-            if r.success_rate >= th:
-                reached = spent
-                break
-        steps_to[th] = reached
-    last = [e.reward for e in recs[-1].episodes]
-    mean_last = math.fsum(last) / len(last) if last else 0.0
-    var_last = math.fsum((x - mean_last) ** 2 for x in last) / (len(last) - 1) if len(last) > 1 else 0.0
-    return CellSummary(
-        r_first=rewards[0],
-        r_peak=max(rewards),
-        r_last=rewards[-1],
-        succ_peak=max(r.success_rate for r in recs),
-        succ_last=recs[-1].success_rate,
-        ratio=max(rewards) / rewards[0] if rewards[0] > 0 else None,
-        delta_pi=recs[-1].delta_pi,
-        reward_var_last=var_last,
-        train_steps=sum(r.env_steps_train for r in recs),
-        eval_steps=sum(r.env_steps_eval for r in recs),
-        steps_to=steps_to,
-    )
-
-
-CELL_FIELDS = ("r_first", "r_peak", "r_last", "succ_peak", "succ_last", "ratio", "delta_pi", "reward_var_last")
-
-
-def mean_std(values: Sequence[float]) -> tuple[float | None, float | None]:
-    """Mean and sample standard deviation (ddof = 1; None with fewer than two values)."""
-    import numpy as np
-
-    if not values:
-        return None, None
-    a = np.asarray(values, dtype=float)
-    return float(a.mean()), (float(a.std(ddof=1)) if len(a) > 1 else None)
-
-
-def welch(a: Sequence[float], b: Sequence[float]) -> tuple[float | None, float | None]:
-    """Welch's t and two-sided p (``scipy.stats.ttest_ind(equal_var=False)``); None when undefined
-    (fewer than two values on a side, or no variance on either)."""
-    if len(a) < 2 or len(b) < 2:
-        return None, None
-    import warnings
-
-    from scipy import stats
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        res = stats.ttest_ind(list(a), list(b), equal_var=False)
-    t, p = float(res.statistic), float(res.pvalue)
-    return (t if math.isfinite(t) else None), (p if math.isfinite(p) else None)
-
-
-def wilson(k: int, n: int) -> tuple[float | None, float | None]:
-    """95 % Wilson interval of ``k / n`` (capevo.runtime.gate_stats, scipy's binomtest)."""
-    if n < 1:
-        return None, None
-    from capevo.runtime.gate_stats import wilson_interval
-
-    ci = wilson_interval(k, n, alpha=CI_ALPHA)
-    return ci.low, ci.high
-
-
-Groups = dict[tuple[str, str], list[Cell]]
-
-
-def groups_of(cells: Iterable[Cell]) -> Groups:
-    """Cells by (task id, label), each list by seed; sorted by task, then label."""
-    out: dict[tuple[str, str], list[Cell]] = {}
-    for c in cells:
-        out.setdefault((c.task, c.label), []).append(c)
-    return {k: sorted(out[k], key=lambda c: c.spec.seed if c.spec else 0) for k in sorted(out)}
-
-
-def compute_numbers(run: Run) -> Book:
-    """Every number of the report, from the cells' files (the one computation; verify reuses it).
-
-    Names: ``cells/<status>``; ``cell/<key>/<field>``; ``group/<task>/<label>/<field>/{mean,std,n}``;
-    ``efficiency/<task>/<label>/<threshold>/{reached,mean}``; ``welch/<task>/<ours>|<am>/<field>/{t,p}``;
-    ``identity/<label>/{mean,std,n}``; ``parity/<label>/...``; ``knowledge/<label>``;
-    ``h3/<task>/<on|off>/...``; ``totals/...``.
-    """
-    book = Book()
-    for status in ("done", "failed", "unfinished", "unreadable"):
-        these = [c.path for c in run.cells if c.status == status]
-        book.put(f"cells/{status}", len(these), these)
-
-    for c in run.cells:
-
-        def existing(*names: str, c: Cell = c) -> list[str]:
-            return [f"{c.path}/{n}" for n in names if (run.root / c.path / n).exists()]
-
-        book.put(f"cell/{c.key}/records", len(c.records), existing(METRICS))
-        if existing(DONE, FAILED):
-            book.put(f"cell/{c.key}/attempts", c.attempts, existing(DONE, FAILED))
-        if c.done is not None:
-            wall = c.done.get("wall_s")
-            book.put(f"cell/{c.key}/wall_s", float(wall) if isinstance(wall, int | float) else None, existing(DONE))
-
-    done = run.done()
-    learning = [c for c in done if c.method != EXPLORER]
-    summaries = {c.key: summarize(c) for c in learning}
-    if learning:
-        # what the notes on too small a run rest on
-        src = [c.metrics_file for c in learning]
-        book.put("run/max_iterations", max(len(c.records) for c in learning), src)
-        book.put("run/min_eval_episodes", min(len(r.episodes) for c in learning for r in c.records), src)
-        book.put("run/max_seeds", max(len(v) for v in groups_of(learning).values()), src)
-        book.put("run/max_success", max(r.success_rate for c in learning for r in c.records), src)
-        book.put(
-            "run/budget_max",
-            max(c.spec.budget.env_steps_per_iteration for c in learning if c.spec),
-            [f"{c.path}/{CELL_JSON}" for c in learning],
-        )
-    for c in learning:
-        s = summaries[c.key]
-        src = (c.metrics_file,)
-        for f in CELL_FIELDS:
-            book.put(f"cell/{c.key}/{f}", getattr(s, f), src)
-        book.put(f"cell/{c.key}/iterations", len(c.records), src)
-        book.put(f"cell/{c.key}/env_steps_train", s.train_steps, src)
-        book.put(f"cell/{c.key}/env_steps_eval", s.eval_steps, src)
-        for th in THRESHOLDS:
-            book.put(f"cell/{c.key}/steps_to_{th:g}", s.steps_to[th], src)
-
-    for (task, label), cells in groups_of(learning).items():
-        src = [c.metrics_file for c in cells]
-        base = f"group/{task}/{label}"
-        for f in CELL_FIELDS:
-            values = [getattr(summaries[c.key], f) for c in cells]
-            values = [v for v in values if v is not None]
-            m, sd = mean_std(values)
-            book.put(f"{base}/{f}/mean", m, src)
-            book.put(f"{base}/{f}/std", sd, src)
-            book.put(f"{base}/{f}/n", len(values), src)
-        # every held-out episode of every iteration and seed, graded by the independent monitor
-        held_out = [e for c in cells for r in c.records for e in r.episodes]
-        book.put(f"{base}/unsafe_episodes", sum(e.unsafe_steps > 0 for e in held_out), src)
-        book.put(f"{base}/eval_episodes", len(held_out), src)
-        for th in THRESHOLDS:
-            reached = [summaries[c.key].steps_to[th] for c in cells]
-            reached = [r for r in reached if r is not None]
-            book.put(f"efficiency/{task}/{label}/{th:g}/reached", len(reached), src)
-            book.put(f"efficiency/{task}/{label}/{th:g}/mean", mean_std(reached)[0], src)
-
-    by_task = groups_of(learning)
-    for task in sorted({t for t, _ in by_task}):
-        for (t1, a_label), a_cells in by_task.items():
-            if t1 != task or a_cells[0].method not in OURS:
-                continue
-            for (t2, b_label), b_cells in by_task.items():
-                if t2 != task or b_cells[0].method not in AM:
-                    continue
-                src = [c.metrics_file for c in (*a_cells, *b_cells)]
-                for f in ("succ_peak", "r_peak"):
-                    t, p = welch(
-                        [getattr(summaries[c.key], f) for c in a_cells],
-                        [getattr(summaries[c.key], f) for c in b_cells],
-                    )
-                    book.put(f"welch/{task}/{a_label}|{b_label}/{f}/t", t, src)
-                    book.put(f"welch/{task}/{a_label}|{b_label}/{f}/p", p, src)
-
-    by_label: dict[str, list[Cell]] = {}
-    for c in learning:
-        by_label.setdefault(c.label, []).append(c)
-    for label in sorted(by_label):
-        cells = by_label[label]
-        src = [c.metrics_file for c in cells]
-        m, sd = mean_std([summaries[c.key].delta_pi for c in cells])
-        book.put(f"identity/{label}/mean", m, src)
-        book.put(f"identity/{label}/std", sd, src)
-        book.put(f"identity/{label}/n", len(cells), src)
-
-    # parity over every cell that spent steps, finished or not: what was spent was spent
-    spent: dict[str, list[Cell]] = {}
-    for c in run.cells:
-        if c.spec is not None and c.records:
-            spent.setdefault(c.label, []).append(c)
-    for label in sorted(spent):
-        cells = spent[label]
-        src = [c.metrics_file for c in cells] + [f"{c.path}/{CELL_JSON}" for c in cells]
-        per_it = [r.env_steps_train for c in cells for r in c.records]
-        budgets = sorted({c.spec.budget.env_steps_per_iteration for c in cells if c.spec})
-        over = [
-            c
-            for c in cells
-            if c.spec and any(r.env_steps_train > c.spec.budget.env_steps_per_iteration for r in c.records)
-        ]
-        book.put(f"parity/{label}/budget_min", budgets[0], src)
-        book.put(f"parity/{label}/budget_max", budgets[-1], src)
-        book.put(f"parity/{label}/iterations", len(per_it), src)
-        book.put(f"parity/{label}/spent_min", min(per_it), src)
-        book.put(f"parity/{label}/spent_mean", mean_std(per_it)[0], src)
-        book.put(f"parity/{label}/spent_max", max(per_it), src)
-        book.put(
-            f"parity/{label}/iterations_over_budget",
-            sum(r.env_steps_train > c.spec.budget.env_steps_per_iteration for c in cells if c.spec for r in c.records),
-            src,
-        )
-        book.put(f"parity/{label}/cells_over_budget", len(over), src)
-        # the loop's own count of learner steps against its learner's traces (done.json, where kept)
-        checks = [(c, ch) for c in cells for ch in _learner_step_checks(c)]
-        if checks:
-            book.put(
-                f"parity/{label}/traced_iterations",
-                len(checks),
-                [f"{c.path}/{DONE}" for c in cells],
-            )
-            book.put(
-                f"parity/{label}/traced_iterations_differing",
-                sum(not ch.ok for _, ch in checks),
-                [f"{c.path}/{DONE}" for c in cells],
-            )
-            book.put(
-                f"parity/{label}/discarded_learner_steps",
-                sum(ch.discarded for _, ch in checks),
-                [f"{c.path}/{DONE}" for c in cells],
-            )
-
-    # per label, not per method: what ``ours`` starts from depends on its modality option
-    knowledge: dict[str, list[Cell]] = {}
-    for c in run.cells:
-        if c.spec is not None:
-            knowledge.setdefault(c.label, []).append(c)
-    for label in sorted(knowledge):
-        cells = knowledge[label]
-        texts = sorted({c.knowledge for c in cells})
-        book.put(f"knowledge/{label}", " | ".join(texts), [f"{c.path}/{CELL_JSON}" for c in cells])
-
-    explorer = [c for c in done if c.method == EXPLORER]
-    for task in sorted({c.task for c in explorer}):
-        for on in (True, False):
-            cells = [c for c in explorer if c.task == task and c.spec and c.spec.governance is on]
-            if not cells:
-                continue
-            src = [c.metrics_file for c in cells] + [f"{c.path}/{CELL_JSON}" for c in cells]
-            eps = [e for c in cells for r in c.records for e in r.episodes]
-            n = len(eps)
-            unsafe = sum(e.unsafe_steps > 0 for e in eps)
-            steps = sum(e.steps for e in eps)
-            interventions = sum(e.interventions for e in eps)
-            low, high = wilson(unsafe, n)
-            base = f"h3/{task}/{'on' if on else 'off'}"
-            book.put(f"{base}/episodes", n, src)
-            book.put(f"{base}/unsafe_episodes", unsafe, src)
-            book.put(f"{base}/unsafe_rate", unsafe / n if n else None, src)
-            book.put(f"{base}/unsafe_low", low, src)
-            book.put(f"{base}/unsafe_high", high, src)
-            book.put(f"{base}/steps", steps, src)
-            book.put(f"{base}/interventions", interventions, src)
-            book.put(f"{base}/blocking_rate", interventions / steps if steps else None, src)
-
-    with_records = [c for c in run.cells if c.records]
-    src = [c.metrics_file for c in with_records]
-    book.put("totals/env_steps_train", sum(r.env_steps_train for c in with_records for r in c.records), src)
-    book.put("totals/env_steps_eval", sum(r.env_steps_eval for c in with_records for r in c.records), src)
-    book.put("totals/iterations", sum(len(c.records) for c in with_records), src)
-    walls = [c for c in done if isinstance((c.done or {}).get("wall_s"), int | float)]
-    book.put(
-        "totals/cell_wall_s",
-        math.fsum(float(c.done["wall_s"]) for c in walls if c.done),
-        [f"{c.path}/{DONE}" for c in walls],
-    )
-    return book
-
-
-def numbers_document(book: Book) -> dict[str, Any]:
-    """The content of ``numbers.json``."""
-    return {
-        "version": NUMBERS_VERSION,
-        "about": (
-            "Every number of report.md computed from the run's cells, with the run-relative files it came from; "
-            "`capevo experiment verify` recomputes each. The paper's figures and BENCHMARKS.md's overhead are quoted "
-            "in report.md, not listed here."
-        ),
-        "numbers": [n.to_dict() for n in book.numbers.values()],
-    }
-
 
 # --- quoted: the governance overhead from BENCHMARKS.md -------------------------------------------
 
@@ -1377,12 +712,6 @@ def _settings(add: Any, run: Run, book: Book) -> None:
         add("")
 
 
-def _learner_step_checks(cell: Cell) -> list[LearnerStepCheck]:
-    """The checked iterations of a cell's ``learner_steps_traced`` (``done.json``; none before it was kept)."""
-    checks = (LearnerStepCheck.from_dict(d) for d in (cell.done or {}).get("learner_steps_traced") or ())
-    return [c for c in checks if c.checked]
-
-
 def _commit(done: Mapping[str, Any] | None) -> str:
     """The short commit that ran a cell (``done.json``), ``-`` for cells from before it was kept."""
     commit = (done or {}).get("capevo_commit")
@@ -1551,16 +880,4 @@ def write_report(run_dir: Path) -> list[Path]:
     return [md, nums, *figures.values()]
 
 
-__all__ = [
-    "Book",
-    "Cell",
-    "CellSummary",
-    "Number",
-    "Run",
-    "compute_numbers",
-    "load_run",
-    "markdown",
-    "numbers_document",
-    "summarize",
-    "write_report",
-]
+__all__ = ["QuotedOverhead", "benchmark_overhead", "markdown", "write_report"]

@@ -87,18 +87,20 @@ from capevo.errors import Conflict, Invalid, Unavailable
 from capevo.evolve.metrics import append_durably, write_atomically
 from capevo.experiment.config import ExperimentConfig
 from capevo.experiment.progress import GridProgress, RecordingGridProgress
+from capevo.experiment.run_files import (
+    CELL_JSON,
+    CELLS,
+    DONE,
+    EXPERIMENT_JSON,
+    FAILED,
+    METRICS,
+    PROVENANCE_JSON,
+    RESUMES,
+)
 
 log = logging.getLogger(__name__)
 
-CELLS = "cells"
-CELL_JSON = "cell.json"
-METRICS = "metrics.jsonl"
-DONE = "done.json"
-FAILED = "failed.json"
-EXPERIMENT_JSON = "experiment.json"
-PROVENANCE_JSON = "provenance.json"
 PARTIAL = ".partial"
-RESUMES = "resumes.jsonl"
 PACKAGES = ("capevo", "robosuite", "mujoco", "torch", "stable-baselines3", "ray", "numpy", "scipy", "gymnasium")
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
 """Every cell uses one core: Ray gives each task one CPU, so its math libraries get one thread."""
@@ -654,10 +656,7 @@ def _short(exc: BaseException) -> str:
 
 
 __all__ = [
-    "CELLS",
-    "DONE",
-    "FAILED",
-    "METRICS",
+    "PARTIAL",
     "RunSummary",
     "cell_state",
     "default_work_dir",

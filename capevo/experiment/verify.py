@@ -3,7 +3,7 @@
 The report (:mod:`capevo.experiment.report`) writes ``report/numbers.json``: every number of the
 run it shows, with the run-relative files it came from. :func:`verify_run` reads the cells again
 (``cells/*/metrics.jsonl``, ``cell.json``, ``done.json``), recomputes every number with the
-report's one computation (:func:`capevo.experiment.report.compute_numbers`) and compares. It also
+report's one computation (:func:`capevo.experiment.numbers.compute_numbers`) and compares. It also
 checks each metrics line on its own: the derived fields written for readers (``success_rate``,
 ``reward_mean``, ``unsafe_episodes``) must equal what that line's episodes give.
 
@@ -34,15 +34,9 @@ from capevo.baselines.base import IterationRecord
 from capevo.errors import CapevoError, Corrupt, NotFound
 from capevo.evolve.audit import LearnerStepCheck
 from capevo.evolve.metrics import read_jsonl
-from capevo.experiment.report import (
-    CELLS,
-    DONE,
-    METRICS,
-    NUMBERS_JSON,
-    REPORT_DIR,
-    compute_numbers,
-    load_run,
-)
+from capevo.experiment.numbers import NUMBERS_JSON, compute_numbers
+from capevo.experiment.report import REPORT_DIR
+from capevo.experiment.run_files import CELLS, DONE, METRICS, load_run
 
 REL_TOL = 1e-9
 ABS_TOL = 1e-12

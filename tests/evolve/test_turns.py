@@ -23,7 +23,7 @@ from capevo.evolve.loop import ensure_v0
 from capevo.evolve.progress import RecordingProgress
 from capevo.evolve.run import EvolveOptions, run_evolution
 from capevo.experiment.methods import knowledge_of
-from capevo.experiment.report import paper_ablation_row
+from capevo.experiment.paper import paper_ablation_row
 from capevo.learner.base import Candidate
 from capevo.learner.rl import check_note
 from capevo.records import Kind

@@ -16,7 +16,9 @@ from run_builder import AM_SEEDS, OURS_SEEDS, Raw, build_run, gen_raw, write_cel
 from scipy import stats
 
 from capevo.errors import NotFound
-from capevo.experiment.report import benchmark_overhead, load_run, paper_ablation_row, write_report
+from capevo.experiment.paper import paper_ablation_row
+from capevo.experiment.report import benchmark_overhead, write_report
+from capevo.experiment.run_files import load_run
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -190,7 +192,7 @@ def test_paper_figures_stand_beside_the_run(run: tuple[Path, dict[str, Raw]]) ->
 
 
 def test_paper_t6_figures_agree_with_the_per_seed_values_the_paper_gives() -> None:
-    from capevo.experiment.report import PAPER_T6_SEEDS, PAPER_T6_WELCH
+    from capevo.experiment.paper import PAPER_T6_SEEDS, PAPER_T6_WELCH
 
     ours, am = PAPER_T6_SEEDS["Ours"], PAPER_T6_SEEDS["AM"]
     assert (round(float(np.mean(ours)), 1), round(float(np.std(ours, ddof=1)), 1)) == (63.3, 27.6)
