@@ -53,7 +53,7 @@ from runtime_support import LIFT, Proc, publish, publish_pick, start_worker
 from capevo.records import Origin
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.gate import Gate, GateConfig, SeedPlan
-from capevo.runtime.worker import RemoteEvaluator
+from capevo.runtime.remote_evaluator import RemoteEvaluator
 
 WORKERS = ("bench-w1", "bench-w2")
 ECM = "pick.lift"

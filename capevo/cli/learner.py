@@ -235,7 +235,7 @@ def serve_cmd(
         sys.stdout.flush()
 
     def open_evaluator(trace_dir: Path) -> Any:
-        from capevo.runtime.worker import RemoteEvaluator
+        from capevo.runtime.remote_evaluator import RemoteEvaluator
 
         return RemoteEvaluator(
             list(endpoints),

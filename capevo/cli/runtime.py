@@ -221,7 +221,7 @@ def list_cmd(
     connect: tuple[str, ...], namespace: str, user: str | None, password: str | None, timeout: float, as_json: bool
 ) -> None:
     """List the runtime workers that answer on <ns>/runtime/*/adopted, with the versions they run."""
-    from capevo.runtime.worker import list_workers
+    from capevo.runtime.remote_evaluator import list_workers
 
     workers = list_workers(
         list(connect), namespace=namespace, user=user or None, password=remember_password(password), timeout=timeout
@@ -357,7 +357,7 @@ def evaluate_cmd(
     if root_path is not None:
         outcomes = _evaluate_locally(root_path, task, pinned, seed_list, phi=phi, horizon=horizon, actor=user)
     else:
-        from capevo.runtime.worker import RemoteEvaluator
+        from capevo.runtime.remote_evaluator import RemoteEvaluator
 
         with RemoteEvaluator(
             list(endpoints),
@@ -494,7 +494,7 @@ def gate_cmd(
             registry, evaluator = _local_registry_and_evaluator(stack, root_path, phi=phi, actor=user or "gate")
         else:
             from capevo.registry.open import open_registry
-            from capevo.runtime.worker import RemoteEvaluator
+            from capevo.runtime.remote_evaluator import RemoteEvaluator
 
             password = remember_password(password)
             registry = open_registry(connect=list(endpoints), namespace=namespace, user=user or None, password=password)

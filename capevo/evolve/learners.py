@@ -139,7 +139,7 @@ class UpdaterContext:
     candidate_evaluator: Any = None
     """Runs code learners' candidate episodes (a :class:`~capevo.learner.base.CandidateEvaluator`)
     in place of an in-process evaluator over a scratch registry: with ``--connect``, a
-    :class:`~capevo.runtime.worker.RemoteEvaluator`, so CEM samples run on the same runtime
+    :class:`~capevo.runtime.remote_evaluator.RemoteEvaluator`, so CEM samples run on the same runtime
     workers as the live and gate episodes, sent inline (issue 19). The code updater closes it;
     neural updaters ignore it (their candidates are published versions)."""
 

@@ -7,7 +7,7 @@ Two ways to run, as ``capevo evolve`` offers them:
   learner in this process. Nothing to start first.
 * **connect**: a running registry server over Zenoh (:class:`~capevo.registry.client.Client`)
   and the episodes (live, gate, final) on runtime workers of the task
-  (:class:`~capevo.runtime.worker.RemoteEvaluator`; start them with
+  (:class:`~capevo.runtime.remote_evaluator.RemoteEvaluator`; start them with
   ``capevo runtime serve --connect EP --task T --idle``), each call split across all of them.
   The learner still runs here (``learner="local"``: a neural learner's training episodes run
   in this process; CEM's candidate samples go inline to the same runtime workers), or learner workers
@@ -263,7 +263,7 @@ def _evaluator(
     report_dir: Path,
 ) -> Any:
     if options.connect:
-        from capevo.runtime.worker import RemoteEvaluator
+        from capevo.runtime.remote_evaluator import RemoteEvaluator
 
         # the workers' traces come back into the report (the loop reads the live ones to pick
         # the ECM to update), also from workers on other hosts
@@ -307,7 +307,7 @@ def _updater(
         return RemoteCandidates(registry, timeout_s=options.learner_timeout_s, should_stop=should_stop)
     candidates = None
     if options.connect and options.modality not in NEURAL_MODALITIES:
-        from capevo.runtime.worker import RemoteEvaluator
+        from capevo.runtime.remote_evaluator import RemoteEvaluator
 
         # CEM's samples run on the runtime workers too, sent inline; their traces come back
         # here, where CEM reads them (issue 19: one path for live, gate and candidate episodes).

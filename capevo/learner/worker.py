@@ -190,7 +190,7 @@ class LearnerContext:
     torch_threads: int | None
     open_candidate_evaluator: Callable[[Path], Any] | None = None
     """Builds the evaluator that runs code learners' candidate samples, given the directory their
-    traces go to (a :class:`~capevo.runtime.worker.RemoteEvaluator`: the samples run on the
+    traces go to (a :class:`~capevo.runtime.remote_evaluator.RemoteEvaluator`: the samples run on the
     runtime workers, sent inline, and their traces come back to that directory); None runs them
     in this process over a scratch mirror of the registry."""
 
@@ -445,7 +445,7 @@ class LearnerWorker:
         open_registry: Returns the registry to use (called once per run; the worker closes it).
         emit: Receives every event dict.
         open_candidate_evaluator: Given a trace directory, returns the evaluator code learners'
-            candidate samples run on (a :class:`~capevo.runtime.worker.RemoteEvaluator`: on the
+            candidate samples run on (a :class:`~capevo.runtime.remote_evaluator.RemoteEvaluator`: on the
             runtime workers); None runs them in this process. Called once per update; the worker
             closes what it returns.
     """

@@ -1,6 +1,6 @@
 """One evaluation call's seeds split across runtime workers, and the outcomes merged back.
 
-:class:`~capevo.runtime.worker.RemoteEvaluator` runs a call's episodes on every live runtime
+:class:`~capevo.runtime.remote_evaluator.RemoteEvaluator` runs a call's episodes on every live runtime
 worker of the task at once (issue 19, "Rollouts across runtime workers"). This module holds
 the bookkeeping of that, without any Zenoh: :func:`split` decides which worker runs which
 seeds, and a :class:`SeedLedger` tracks, for each position of the call's seed list, whether

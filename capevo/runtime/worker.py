@@ -7,42 +7,22 @@
   (cached on disk by sha256, see :mod:`capevo.runtime.artifact_cache`);
 * subscribes to the registry's events and, on a ``promote`` or ``rollback`` of an ECM it
   runs, hot-swaps that ECM at the next episode boundary (never inside an ECM execution);
-* announces itself and what it runs on Zenoh (key space below);
+* announces itself and what it runs on Zenoh (:mod:`capevo.runtime.worker_protocol`);
 * keeps running episodes on its last good versions while the registry is away; when the
   registry's liveliness token returns it re-reads the capability set and catches up;
 * serves evaluation requests (``evaluate(task, versions, seeds)``, optionally with inline
   candidate artifacts in place of some ECMs' registry artifacts) between its own episodes, on
-  its own environment; :class:`RemoteEvaluator` is the client side, and splits one call's
-  seeds across every live worker of the task (:mod:`capevo.runtime.fanout`);
+  its own environment; :class:`~capevo.runtime.remote_evaluator.RemoteEvaluator` is the client
+  side, and splits one call's seeds across every live worker of the task
+  (:mod:`capevo.runtime.fanout`);
 * shuts down cleanly on SIGTERM/SIGINT (ends the running episode, replies to queued
   requests with ``unavailable``, closes traces and sessions). It never forks.
 
-Key space, under the registry's namespace ``<ns>``::
-
-    <ns>/runtime/<worker_id>/alive      liveliness token while the worker serves
-    <ns>/runtime/<worker_id>/serves/<task>
-                                        liveliness token: the same, naming its task (task
-                                        name); get <ns>/runtime/*/serves/<task> finds the
-                                        live workers of a task in one round trip
-    <ns>/runtime/<worker_id>/adopted    queryable: JSON Adoption {worker_id, task, revision,
-                                        versions, pending, episodes, registry_connected, pid,
-                                        started_at}; get <ns>/runtime/*/adopted lists all
-    <ns>/runtime/<worker_id>/evaluate   queryable: run an EvaluateRequest on this worker
-    <ns>/runtime/evaluate/<task>        queryable (complete): the same, served by any one
-                                        worker of <task> (task name, e.g. ``pick``)
-
-An evaluate request's payload is JSON ``{"task", "versions", "seeds"}``, plus optionally
-``"overrides": {ecm: base64 artifact}`` and ``"override_origin"``: unpublished candidate
-artifacts (a learner's CEM samples) that run in place of the named ECMs' artifacts at the
-version ``versions`` (or the registry) names, keeping that version's descriptor and interface.
-Candidates reach a worker this way, inline, or as registry versions pinned in ``versions``;
-never as paths on a shared disk. Inline code never runs in the worker's process: an override
-whose origin the trust policy would run in-process is refused (:class:`Forbidden`). The reply
-is JSON ``{"worker_id", "outcomes": [EpisodeOutcome.to_dict(), ...]}``, or an error reply
-carrying :meth:`CapevoError.to_payload`. With ``"traces": true`` the reply's attachment is the
-call's MCAP trace file (written to a temporary directory and removed when the worker keeps no
-traces of its own; the outcomes' ``trace_path`` is then None), so the caller can read the
-episodes without sharing the worker's disk.
+Keys, requests and replies: :mod:`capevo.runtime.worker_protocol`. Inline code never runs in the
+worker's process: an override whose origin the trust policy would run in-process is refused
+(:class:`Forbidden`). A call's trace file (``"traces": true``) is written to a temporary
+directory and removed when the worker keeps no traces of its own (the outcomes' ``trace_path``
+is then None).
 
 Invariants:
 1. The loaded versions change only between episodes (``LoadedCapabilitySet.begin_episode``).
@@ -56,15 +36,10 @@ Invariants:
 6. Overrides change only the request they come with: the worker's own episodes and later
    requests load the registry's artifacts, and an override's bytes never enter the on-disk
    artifact cache.
-7. :meth:`RemoteEvaluator.evaluate` returns one outcome per seed, in seed order, each from
-   exactly one episode, whichever workers ran them and however many died on the way (see
-   :mod:`capevo.runtime.fanout` for the split and the retry rules).
 """
 
 from __future__ import annotations
 
-import base64
-import binascii
 import contextlib
 import dataclasses
 import hashlib
@@ -72,12 +47,9 @@ import json
 import logging
 import os
 import queue
-import re
-import socket
 import tempfile
 import threading
 import time
-import uuid
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -91,9 +63,7 @@ from capevo.errors import (
     Invalid,
     NotFound,
     Timeout,
-    TooLarge,
     Unavailable,
-    error_from_payload,
 )
 from capevo.records import Action, ArtifactRef, AuditEvent, CapabilitySet, EcmVersion, Origin, State
 from capevo.registry.keys import DEFAULT_NAMESPACE, Keys, validate_namespace
@@ -108,8 +78,7 @@ from capevo.runtime.episode import (
     run_episode_detailed,
 )
 from capevo.runtime.evaluation import EpisodeOutcome
-from capevo.runtime.evaluator import LocalEvaluator, check_seeds, check_versions
-from capevo.runtime.fanout import DEFAULT_MAX_ATTEMPTS, Part, SeedLedger
+from capevo.runtime.evaluator import LocalEvaluator
 from capevo.runtime.governance import Phi
 from capevo.runtime.policy import DecisionPolicy
 from capevo.runtime.safety_monitor import SafetyLimits
@@ -120,286 +89,22 @@ from capevo.runtime.traces import (
     TraceWriter,
     check_compression,
 )
+from capevo.runtime.worker_protocol import (
+    JSON_ENCODING,
+    MAX_QUEUED_EVALUATIONS,
+    MAX_TRACE_REPLY_BYTES,
+    Adoption,
+    EvaluateRequest,
+    RuntimeKeys,
+    default_worker_id,
+    encode_outcomes,
+    first_line,
+    validate_worker_id,
+    zenoh_client_config,
+)
 from capevo.shutdown import stop_on_signals
 
 log = logging.getLogger("capevo.runtime.worker")
-
-RUNTIME_SEGMENT = "runtime"
-EVALUATE = "evaluate"
-WORKER_ID_PATTERN = re.compile(r"[A-Za-z0-9_.-]{1,64}")
-MAX_EVAL_SEEDS = 1000
-MAX_QUEUED_EVALUATIONS = 16
-MAX_REQUEST_BYTES = 4 << 20
-"""Inline artifacts travel in the request (base64): code skills are a few kB; a large neural
-candidate goes through the registry instead (publish it as a candidate, pin its version)."""
-DEFAULT_EVALUATE_TIMEOUT_S = 600.0
-JSON_ENCODING = "application/json"
-SERVES = "serves"
-MAX_TRACE_REPLY_BYTES = 256 << 20
-"""A call's trace file travels back with its outcomes up to this size (lz4 MCAP)."""
-DISCOVERY_TIMEOUT_S = 5.0
-"""At most this long to list the live workers of a task (the router answers from its table)."""
-
-
-def validate_worker_id(worker_id: object) -> str:
-    """Return ``worker_id`` if it is a usable key chunk (1-64 of ``[A-Za-z0-9_.-]``, not ``evaluate``).
-
-    Raises:
-        Invalid: anything else.
-    """
-    if not isinstance(worker_id, str) or not WORKER_ID_PATTERN.fullmatch(worker_id) or worker_id == EVALUATE:
-        raise Invalid(
-            f"worker id {worker_id!r} must be 1-64 letters, digits, '_', '.' or '-' (and not {EVALUATE!r})",
-            details={"field": "worker_id"},
-        )
-    return worker_id
-
-
-def default_worker_id() -> str:
-    """``<host>-<pid>``, reduced to the characters a key chunk allows."""
-    host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname())[:40] or "host"
-    return f"{host}-{os.getpid()}"
-
-
-@dataclass(frozen=True, slots=True)
-class RuntimeKeys:
-    """The runtime workers' keys under a namespace (see the module docstring)."""
-
-    namespace: str = DEFAULT_NAMESPACE
-
-    def __post_init__(self) -> None:
-        validate_namespace(self.namespace)
-
-    @property
-    def root(self) -> str:
-        return f"{self.namespace}/{RUNTIME_SEGMENT}"
-
-    def alive(self, worker_id: str) -> str:
-        return f"{self.root}/{validate_worker_id(worker_id)}/alive"
-
-    def alive_all(self) -> str:
-        return f"{self.root}/*/alive"
-
-    def serves(self, worker_id: str, task: str) -> str:
-        return f"{self.root}/{validate_worker_id(worker_id)}/{SERVES}/{task_spec(task).name}"
-
-    def serves_task(self, task: str) -> str:
-        return f"{self.root}/*/{SERVES}/{task_spec(task).name}"
-
-    def adopted(self, worker_id: str) -> str:
-        return f"{self.root}/{validate_worker_id(worker_id)}/adopted"
-
-    def adopted_all(self) -> str:
-        return f"{self.root}/*/adopted"
-
-    def evaluate(self, worker_id: str) -> str:
-        return f"{self.root}/{validate_worker_id(worker_id)}/{EVALUATE}"
-
-    def evaluate_task(self, task: str) -> str:
-        return f"{self.root}/{EVALUATE}/{task_spec(task).name}"
-
-    def worker_of(self, key: str) -> str | None:
-        """The worker id in a ``<ns>/runtime/<id>/...`` key, or None."""
-        prefix = self.root + "/"
-        if not key.startswith(prefix):
-            return None
-        part = key[len(prefix) :].split("/", 1)[0]
-        return part if part and part != EVALUATE else None
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class Adoption:
-    """What a worker runs now: the reply of ``<ns>/runtime/<worker_id>/adopted``."""
-
-    worker_id: str
-    task: str
-    revision: int
-    versions: Mapping[str, int]
-    pending: Mapping[str, int] = field(default_factory=dict)
-    episodes: int = 0
-    registry_connected: bool = True
-    pid: int = 0
-    started_at: float = 0.0
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "worker_id": self.worker_id,
-            "task": self.task,
-            "revision": self.revision,
-            "versions": dict(sorted(self.versions.items())),
-            "pending": dict(sorted(self.pending.items())),
-            "episodes": self.episodes,
-            "registry_connected": self.registry_connected,
-            "pid": self.pid,
-            "started_at": self.started_at,
-        }
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> Adoption:
-        """Inverse of :meth:`to_dict`.
-
-        Raises:
-            Invalid: a missing or mistyped field.
-        """
-        try:
-            return cls(
-                worker_id=str(d["worker_id"]),
-                task=str(d["task"]),
-                revision=int(d["revision"]),
-                versions={str(k): int(v) for k, v in d["versions"].items()},
-                pending={str(k): int(v) for k, v in (d.get("pending") or {}).items()},
-                episodes=int(d.get("episodes", 0)),
-                registry_connected=bool(d.get("registry_connected", True)),
-                pid=int(d.get("pid", 0)),
-                started_at=float(d.get("started_at", 0.0)),
-            )
-        except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            raise Invalid(f"malformed adoption record: {type(exc).__name__}: {exc}") from None
-
-
-def check_overrides(overrides: Mapping[str, bytes] | None, task: str) -> dict[str, bytes]:
-    """``overrides`` as ``{ecm: bytes}`` for ECMs of ``task``'s plan.
-
-    Raises:
-        Invalid: not a mapping of plan ECM names to non-empty bytes; unknown task.
-    """
-    if overrides is None:
-        return {}
-    if not isinstance(overrides, Mapping):
-        raise Invalid(f"overrides must be a mapping, got {type(overrides).__name__}", details={"field": "overrides"})
-    spec = task_spec(task)
-    out: dict[str, bytes] = {}
-    for name, data in overrides.items():
-        if not isinstance(name, str) or name not in spec.ecm_names:
-            raise Invalid(
-                f"override {name!r} is not an ECM of task {spec.name!r} ({', '.join(spec.ecm_names)})",
-                details={"field": "overrides"},
-            )
-        if not isinstance(data, (bytes, bytearray)) or not data:
-            raise Invalid(f"override {name!r} must be non-empty bytes", details={"field": "overrides"})
-        out[name] = bytes(data)
-    return out
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class EvaluateRequest:
-    """The payload of an evaluate query.
-
-    ``overrides`` (inline artifacts, base64 on the wire) run in place of the named ECMs'
-    registry artifacts; ``override_origin`` is the origin they run under (default the
-    overridden version's), which decides where code runs (see the module docstring).
-    """
-
-    task: str
-    versions: Mapping[str, int]
-    seeds: tuple[int, ...]
-    overrides: Mapping[str, bytes] = field(default_factory=dict)
-    override_origin: Origin | None = None
-    traces: bool = False
-    """Send the call's trace file back with the outcomes (the reply's attachment)."""
-
-    def to_json(self) -> bytes:
-        body: dict[str, Any] = {"task": self.task, "versions": dict(self.versions), "seeds": list(self.seeds)}
-        if self.traces:
-            body["traces"] = True
-        if self.overrides:
-            body["overrides"] = {k: base64.b64encode(v).decode("ascii") for k, v in sorted(self.overrides.items())}
-        if self.override_origin is not None:
-            body["override_origin"] = self.override_origin.value
-        return json.dumps(body, separators=(",", ":")).encode()
-
-    @classmethod
-    def from_json(cls, payload: bytes, *, max_seeds: int = MAX_EVAL_SEEDS) -> EvaluateRequest:
-        """Parse and check a request.
-
-        Raises:
-            TooLarge: the payload or the seed list is over the limit.
-            Invalid: not JSON, a missing or mistyped field, an unknown task, an override of an
-                ECM outside the task's plan, an unknown origin.
-        """
-        if len(payload) > MAX_REQUEST_BYTES:
-            raise TooLarge(f"evaluate request is {len(payload)} bytes; the limit is {MAX_REQUEST_BYTES}")
-        try:
-            body = json.loads(payload)
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise Invalid(f"evaluate request is not JSON: {exc}", details={"field": "payload"}) from None
-        if not isinstance(body, dict):
-            raise Invalid("evaluate request must be a JSON object", details={"field": "payload"})
-        unknown = sorted(set(body) - {"task", "versions", "seeds", "overrides", "override_origin", "traces"})
-        if unknown:
-            raise Invalid(f"evaluate request: unknown field(s) {', '.join(unknown)}", details={"field": unknown[0]})
-        task = body.get("task")
-        if not isinstance(task, str):
-            raise Invalid("evaluate request: task must be a string", details={"field": "task"})
-        spec = task_spec(task)
-        seeds = body.get("seeds")
-        if not isinstance(seeds, list):
-            raise Invalid("evaluate request: seeds must be a list of integers", details={"field": "seeds"})
-        if len(seeds) > max_seeds:
-            raise TooLarge(f"evaluate request has {len(seeds)} seeds; a worker runs at most {max_seeds} per request")
-        raw = body.get("overrides") or {}
-        if not isinstance(raw, dict) or not all(isinstance(v, str) for v in raw.values()):
-            raise Invalid(
-                "evaluate request: overrides must map ECM names to base64 text", details={"field": "overrides"}
-            )
-        try:
-            decoded = {k: base64.b64decode(v, validate=True) for k, v in raw.items()}
-        except (binascii.Error, ValueError):
-            raise Invalid("evaluate request: an override is not base64", details={"field": "overrides"}) from None
-        traces = body.get("traces", False)
-        if not isinstance(traces, bool):
-            raise Invalid("evaluate request: traces must be true or false", details={"field": "traces"})
-        origin = body.get("override_origin")
-        if origin is not None:
-            try:
-                origin = Origin(origin)
-            except (ValueError, TypeError):
-                valid = ", ".join(o.value for o in Origin)
-                raise Invalid(
-                    f"evaluate request: unknown override_origin {origin!r}; valid: {valid}",
-                    details={"field": "override_origin"},
-                ) from None
-        return cls(
-            task=spec.name,
-            versions=check_versions(body.get("versions") or {}),
-            seeds=tuple(check_seeds(seeds)),
-            overrides=check_overrides(decoded, spec.name),
-            override_origin=origin,
-            traces=traces,
-        )
-
-
-def encode_outcomes(worker_id: str, outcomes: Sequence[EpisodeOutcome]) -> bytes:
-    return json.dumps({"worker_id": worker_id, "outcomes": [o.to_dict() for o in outcomes]}).encode()
-
-
-def decode_outcomes(payload: bytes) -> tuple[str, list[EpisodeOutcome]]:
-    """Inverse of :func:`encode_outcomes`.
-
-    Raises:
-        CapevoError: a malformed reply.
-    """
-    try:
-        body = json.loads(payload)
-        return str(body.get("worker_id", "")), [EpisodeOutcome.from_dict(o) for o in body["outcomes"]]
-    except (ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise CapevoError(f"malformed evaluate reply from a runtime worker: {type(exc).__name__}: {exc}") from None
-
-
-def _zenoh_config(connect: Sequence[str], user: str | None, password: str | None) -> zenoh.Config:
-    from capevo.registry.zconfig import client_config
-
-    return client_config(connect=list(connect), user=user, password=password)
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc)
-    return text.split(" at /", 1)[0].splitlines()[0][:300] if text else type(exc).__name__
-
-
-# ---------------------------------------------------------------------------------------
-# Worker
-# ---------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -864,9 +569,9 @@ class RuntimeWorker:
 
     def _open_session(self, stack: contextlib.ExitStack) -> zenoh.Session:
         try:
-            session = zenoh.open(_zenoh_config(self.config.connect, self.config.user, self.config.password))
+            session = zenoh.open(zenoh_client_config(self.config.connect, self.config.user, self.config.password))
         except zenoh.ZError as exc:
-            raise Unavailable(f"cannot open the worker's Zenoh session: {_first_line(exc)}") from None
+            raise Unavailable(f"cannot open the worker's Zenoh session: {first_line(exc)}") from None
         stack.callback(session.close)
         for key, handler, complete in (
             (self.keys.adopted(self.worker_id), self._on_adopted, False),
@@ -1024,411 +729,3 @@ class RuntimeWorker:
                     break
         for item in items:
             _reply(item.query, Unavailable(why))
-
-
-# ---------------------------------------------------------------------------------------
-# Clients of workers
-# ---------------------------------------------------------------------------------------
-
-
-class _SessionOwner:
-    """A Zenoh session given by the caller, or opened (and later closed) here."""
-
-    def __init__(
-        self,
-        *,
-        session: zenoh.Session | None,
-        connect: Sequence[str] | str | None,
-        user: str | None,
-        password: str | None,
-    ) -> None:
-        from capevo.registry.zconfig import split_endpoints
-
-        if (session is None) == (not split_endpoints(connect)):
-            raise Invalid("give exactly one of session or connect", details={"field": "connect"})
-        self._own = session is None
-        if session is None:
-            endpoints = split_endpoints(connect)
-            try:
-                session = zenoh.open(_zenoh_config(endpoints, user, password))
-            except zenoh.ZError as exc:
-                raise Unavailable(
-                    f"cannot reach {', '.join(endpoints)}: {_first_line(exc)}", details={"connect": list(endpoints)}
-                ) from None
-        self.session: zenoh.Session = session
-        self._closed = False
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        if self._own:
-            with contextlib.suppress(zenoh.ZError):
-                self.session.close()
-
-
-class RemoteEvaluator:
-    """:class:`capevo.runtime.evaluation.Evaluator` served by runtime workers over Zenoh.
-
-    One call's seeds are split across every live worker of the task (found by their
-    ``<ns>/runtime/*/serves/<task>`` liveliness tokens) and run concurrently, one query per
-    worker; the outcomes are merged back in seed order (:mod:`capevo.runtime.fanout`). A worker
-    that dies mid-call (its liveliness token goes, or its query ends without outcomes) or
-    refuses with ``unavailable`` (shutting down, queue full) has its unfinished seeds re-split
-    across the workers still alive, re-listing them first if none is left; every seed is
-    counted once (invariant 7). Any other error from a worker (``invalid``, ``not_found``, an
-    evaluation failure) ends the call with that error, as a local evaluation would.
-
-    It also implements :class:`capevo.learner.base.CandidateEvaluator`: ``overrides`` travel
-    inline in the request, so a learner's unpublished candidates run on the workers too.
-
-    Args:
-        connect: Endpoint(s) of the registry router (or any router the workers reach); or
-        session: an open Zenoh session to use (not closed here).
-        namespace: The registry's namespace.
-        user, password: Zenoh credentials when ``connect`` is given.
-        worker_id: Ask only this worker (no split); default every live worker of the task.
-        timeout: Seconds to wait for all the outcomes of one call.
-        max_attempts: Dispatches of one seed before the call gives up with ``unavailable``.
-        trace_dir: When given, each worker sends its part's trace file back with the outcomes
-            and it is written here (``<worker_id>-<file name>``); the outcomes' ``trace_path``
-            names these local copies, so learners read a remote worker's episodes without a
-            shared disk. None leaves each ``trace_path`` as the worker's own (None when the
-            worker keeps no traces).
-
-    Raises:
-        Invalid: neither or both of ``connect``/``session``; bad namespace, worker id, timeout or
-            max_attempts.
-        Unavailable: the session cannot open.
-    """
-
-    def __init__(
-        self,
-        connect: Sequence[str] | str | None = None,
-        *,
-        session: zenoh.Session | None = None,
-        namespace: str = DEFAULT_NAMESPACE,
-        user: str | None = None,
-        password: str | None = None,
-        worker_id: str | None = None,
-        timeout: float = DEFAULT_EVALUATE_TIMEOUT_S,
-        max_attempts: int = DEFAULT_MAX_ATTEMPTS,
-        trace_dir: str | os.PathLike[str] | None = None,
-    ) -> None:
-        self.keys = RuntimeKeys(namespace)
-        self.trace_dir = Path(trace_dir) if trace_dir is not None else None
-        self.worker_id = validate_worker_id(worker_id) if worker_id is not None else None
-        if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout > 0:
-            raise Invalid(
-                f"timeout must be a positive number of seconds, got {timeout!r}", details={"field": "timeout"}
-            )
-        self.timeout = float(timeout)
-        SeedLedger((), max_attempts=max_attempts)  # checks max_attempts
-        self.max_attempts = max_attempts
-        self.last_call: dict[str, Any] = {}
-        """How the last call went: ``parts``, ``failed_parts``, ``dropped``, ``workers``."""
-        self._owner = _SessionOwner(session=session, connect=connect, user=user, password=password)
-        self._listeners: set[queue.Queue[tuple[str, Any, Any]]] = set()
-        self._listeners_lock = threading.Lock()
-        try:
-            # One subscriber for the evaluator's life: a call learns of a death while it waits.
-            self._liveliness: Any = self._owner.session.liveliness().declare_subscriber(
-                self.keys.alive_all(), zenoh.handlers.Callback(self._on_liveliness)
-            )
-        except zenoh.ZError as exc:
-            self._owner.close()
-            raise Unavailable(f"cannot watch the runtime workers: {_first_line(exc)}") from None
-
-    def _on_liveliness(self, sample: zenoh.Sample) -> None:
-        if sample.kind != zenoh.SampleKind.DELETE:
-            return
-        worker = self.keys.worker_of(str(sample.key_expr))
-        if worker is None:
-            return
-        with self._listeners_lock:
-            for q in self._listeners:
-                q.put(("gone", worker, None))
-
-    def live_workers(self, task: str, timeout: float = DISCOVERY_TIMEOUT_S) -> list[str]:
-        """The ids of the workers whose ``serves/<task>`` token is alive, sorted.
-
-        Raises:
-            Invalid: unknown task. Unavailable: the liveliness query failed.
-        """
-        if self.worker_id is not None:
-            return [self.worker_id]
-        key = self.keys.serves_task(task)
-        found = set()
-        try:
-            for reply in self._owner.session.liveliness().get(key, timeout=max(timeout, 0.1)):
-                if reply.ok is not None:
-                    worker = self.keys.worker_of(str(reply.ok.key_expr))
-                    if worker is not None:
-                        found.add(worker)
-        except zenoh.ZError as exc:
-            raise Unavailable(f"{key}: listing runtime workers failed: {_first_line(exc)}") from None
-        return sorted(found)
-
-    def evaluate(
-        self,
-        task: str,
-        versions: Mapping[str, int],
-        seeds: Sequence[int],
-        *,
-        overrides: Mapping[str, bytes] | None = None,
-        override_origin: Origin | None = None,
-    ) -> list[EpisodeOutcome]:
-        """Run the episodes on the task's live workers; one outcome per seed, in seed order.
-
-        Args:
-            task, versions, seeds: As :meth:`capevo.runtime.evaluation.Evaluator.evaluate`.
-            overrides: ECM name to artifact bytes run in place of that ECM's artifact (sent
-                inline; see the module docstring).
-            override_origin: The origin the overrides run under (default the overridden
-                version's); inline code must run in the sandbox.
-
-        Raises:
-            Invalid: bad arguments (checked here first) or refused by a worker.
-            Forbidden: an override the worker would run in its own process.
-            Unavailable: no worker serves the task, or every worker that could run some seed
-                died or refused.
-            Timeout: not every outcome within ``timeout``.
-            CapevoError: whatever a worker's evaluation raised (same class and code).
-        """
-        spec = task_spec(task)
-        if override_origin is not None and not isinstance(override_origin, Origin):
-            raise Invalid(f"override_origin must be an Origin, got {override_origin!r}", details={"field": "origin"})
-        request = EvaluateRequest(
-            task=spec.name,
-            versions=check_versions(versions),
-            seeds=tuple(check_seeds(seeds)),
-            overrides=check_overrides(overrides, spec.name),
-            override_origin=override_origin,
-            traces=self.trace_dir is not None,
-        )
-        deadline = time.monotonic() + self.timeout
-        ledger = SeedLedger(request.seeds, max_attempts=self.max_attempts)
-        events: queue.Queue[tuple[str, Any, Any]] = queue.Queue()
-        tokens: dict[int, zenoh.CancellationToken] = {}
-        out: set[str] = set()  # workers this call no longer sends to: dead or refusing
-        used: set[str] = set()
-        refusals: list[Unavailable] = []
-        with self._listeners_lock:
-            self._listeners.add(events)
-        try:
-            live = set(self.live_workers(spec.name, min(DISCOVERY_TIMEOUT_S, self.timeout)))
-            while not ledger.done:
-                if ledger.pool:
-                    candidates = live - out
-                    if not candidates:  # every worker we knew is gone: one may have joined since
-                        live |= set(self.live_workers(spec.name, min(DISCOVERY_TIMEOUT_S, _left(deadline))))
-                        candidates = live - out
-                    if not candidates:
-                        raise self._no_worker(spec.name, ledger, tried=sorted(used), refusals=refusals)
-                    for part in ledger.dispatch(candidates):
-                        used.add(part.worker_id)
-                        tokens[part.part_id] = self._send(part, request, events, deadline)
-                try:
-                    kind, subject, body = events.get(timeout=_left(deadline))
-                except queue.Empty:
-                    raise Timeout(
-                        f"{self.keys.serves_task(spec.name)}: not every outcome within {self.timeout:g}s",
-                        details={"key": self.keys.serves_task(spec.name), "pending": len(ledger.in_flight())},
-                    ) from None
-                if kind == "gone":
-                    out.add(subject)
-                    for part in ledger.in_flight(subject):
-                        self._lose(ledger, part, tokens, "its liveliness token went away")
-                    continue
-                part = next((p for p in ledger.in_flight() if p.part_id == subject), None)
-                if kind == "ok":
-                    payload, attachment = body
-                    worker, outcomes = decode_outcomes(payload)
-                    local = self._keep_trace(worker, outcomes, attachment)
-                    if local is not None:
-                        outcomes = [dataclasses.replace(o, trace_path=str(local)) for o in outcomes]
-                    if ledger.complete(subject, outcomes) == 0 and local is not None:
-                        local.unlink(missing_ok=True)  # every episode in it was counted from another part
-                elif kind == "err":
-                    if part is None:  # a part given up already; its late error changes nothing
-                        continue
-                    err = _reply_error(body, self.keys.evaluate(part.worker_id), self.timeout)
-                    if not isinstance(err, Unavailable):
-                        raise err
-                    out.add(part.worker_id)
-                    refusals.append(err)
-                    self._lose(ledger, part, tokens, err.message)
-                elif kind == "end" and part is not None:
-                    # The query ended without a reply: its worker vanished with it.
-                    out.add(part.worker_id)
-                    self._lose(ledger, part, tokens, "its query ended without outcomes")
-            return ledger.merged()
-        finally:
-            with self._listeners_lock:
-                self._listeners.discard(events)
-            for token in tokens.values():
-                token.cancel()
-            self.last_call = {
-                "parts": len(tokens),
-                "failed_parts": ledger.failed_parts,
-                "dropped": ledger.dropped,
-                "workers": sorted(used),
-            }
-
-    def _send(
-        self, part: Part, request: EvaluateRequest, events: queue.Queue[tuple[str, Any, Any]], deadline: float
-    ) -> zenoh.CancellationToken:
-        """Query ``part``'s worker; its reply and its end land on ``events`` as ``(kind, part_id, body)``."""
-        key = self.keys.evaluate(part.worker_id)
-        payload = dataclasses.replace(request, seeds=part.seeds).to_json()
-        token = zenoh.CancellationToken()
-        pid = part.part_id
-
-        def on_reply(reply: zenoh.Reply) -> None:
-            if reply.ok is not None:
-                extra = reply.ok.attachment
-                trace = extra.to_bytes() if extra is not None else None
-                events.put(("ok", pid, (reply.ok.payload.to_bytes(), trace)))
-            else:
-                events.put(("err", pid, reply.err.payload.to_bytes() if reply.err is not None else b""))
-
-        def on_end() -> None:
-            events.put(("end", pid, None))
-
-        try:
-            self._owner.session.get(
-                key,
-                zenoh.handlers.Callback(on_reply, on_end),
-                payload=payload,
-                # a little past the call's deadline: the call's own Timeout is the one raised
-                timeout=_left(deadline) + 1.0,
-                target=zenoh.QueryTarget.BEST_MATCHING,
-                consolidation=zenoh.ConsolidationMode.NONE,
-                congestion_control=zenoh.CongestionControl.BLOCK,
-                cancellation_token=token,
-            )
-        except zenoh.ZError as exc:
-            raise Unavailable(f"{key}: query failed: {_first_line(exc)}", details={"key": key}) from None
-        log.debug("sent seeds %s to %s (part %d)", list(part.seeds), part.worker_id, pid)
-        return token
-
-    def _keep_trace(self, worker: str, outcomes: Sequence[EpisodeOutcome], trace: bytes | None) -> Path | None:
-        """Write a part's trace file under :attr:`trace_dir`; its path, or None when there is none."""
-        if self.trace_dir is None or not trace:
-            return None
-        remote = next((o.trace_path for o in outcomes if o.trace_path), None)
-        name = Path(remote).name if remote else f"eval-{uuid.uuid4().hex[:12]}.mcap"
-        path = self.trace_dir / f"{worker}-{name}"
-        self.trace_dir.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-        tmp.write_bytes(trace)
-        os.replace(tmp, path)  # a reader never sees half a file
-        return path
-
-    @staticmethod
-    def _lose(ledger: SeedLedger, part: Part, tokens: Mapping[int, zenoh.CancellationToken], why: str) -> None:
-        back = ledger.fail(part.part_id)
-        token = tokens.get(part.part_id)
-        if token is not None:
-            token.cancel()
-        if back:
-            log.warning(
-                "runtime worker %s lost seeds %s (%s); re-running them elsewhere",
-                part.worker_id,
-                [ledger.seeds[i] for i in back],
-                why,
-            )
-
-    def _no_worker(
-        self, task: str, ledger: SeedLedger, *, tried: list[str], refusals: Sequence[Unavailable]
-    ) -> Unavailable:
-        if refusals and len(tried) == 1:
-            return refusals[-1]  # the one worker asked said why (busy, shutting down)
-        if self.worker_id is not None:
-            key = self.keys.evaluate(self.worker_id)
-            return Unavailable(
-                f"{key}: runtime worker {self.worker_id!r} did not answer (namespace {self.keys.namespace!r}); "
-                "is it running?",
-                details={"key": key},
-            )
-        key = self.keys.serves_task(task)
-        if not tried:
-            return Unavailable(
-                f"{key}: no runtime worker of task {task!r} answered (namespace {self.keys.namespace!r}); "
-                "is one running?",
-                details={"key": key},
-            )
-        lost = [ledger.seeds[i] for i in ledger.pool]
-        return Unavailable(
-            f"{key}: runtime workers {', '.join(tried)} of task {task!r} died or refused with seeds {lost} "
-            "unfinished, and no other worker is alive",
-            details={"key": key, "seeds": lost},
-        )
-
-    def close(self) -> None:
-        with contextlib.suppress(zenoh.ZError):
-            self._liveliness.undeclare()
-        self._owner.close()
-
-    def __enter__(self) -> RemoteEvaluator:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-def _left(deadline: float) -> float:
-    return max(deadline - time.monotonic(), 0.0)
-
-
-def _reply_error(body: bytes, key: str, timeout: float) -> CapevoError:
-    """The error an error reply carries (Zenoh's own query timeout says ``Timeout``)."""
-    if body == b"Timeout":
-        return Timeout(f"{key}: no outcomes within {timeout:g}s", details={"key": key})
-    return error_from_payload(body)
-
-
-def list_workers(
-    connect: Sequence[str] | str | None = None,
-    *,
-    session: zenoh.Session | None = None,
-    namespace: str = DEFAULT_NAMESPACE,
-    user: str | None = None,
-    password: str | None = None,
-    timeout: float = 3.0,
-) -> list[Adoption]:
-    """Every runtime worker that answers ``<ns>/runtime/*/adopted``, sorted by worker id.
-
-    Raises:
-        Invalid: neither or both of ``connect``/``session``. Unavailable: the session cannot open.
-    """
-    keys = RuntimeKeys(namespace)
-    owner = _SessionOwner(session=session, connect=connect, user=user, password=password)
-    try:
-        found: dict[str, Adoption] = {}
-        try:
-            replies = owner.session.get(
-                keys.adopted_all(),
-                timeout=timeout,
-                target=zenoh.QueryTarget.ALL,
-                consolidation=zenoh.ConsolidationMode.NONE,
-            )
-            for reply in replies:
-                if reply.ok is None:
-                    continue
-                try:
-                    adoption = Adoption.from_dict(json.loads(reply.ok.payload.to_bytes()))
-                except (Invalid, ValueError) as exc:
-                    log.warning("ignoring a malformed adoption reply on %s: %s", reply.ok.key_expr, exc)
-                    continue
-                found[adoption.worker_id] = adoption
-        except zenoh.ZError as exc:
-            raise Unavailable(f"listing runtime workers failed: {_first_line(exc)}") from None
-        return [found[k] for k in sorted(found)]
-    finally:
-        owner.close()
-
-
-def new_worker_id(prefix: str = "worker") -> str:
-    """A fresh random worker id (``<prefix>-<8 hex>``)."""
-    return validate_worker_id(f"{prefix}-{uuid.uuid4().hex[:8]}")

@@ -32,8 +32,9 @@ from capevo.errors import CapevoError, Forbidden, Invalid, Unavailable
 from capevo.records import Origin
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.fanout import SeedLedger, split
+from capevo.runtime.remote_evaluator import RemoteEvaluator
 from capevo.runtime.traces import TraceReader
-from capevo.runtime.worker import EvaluateRequest, RemoteEvaluator
+from capevo.runtime.worker_protocol import EvaluateRequest
 
 HORIZON = "20"
 # A reach that holds still with the gripper open: with it no episode gets near the can.
@@ -345,7 +346,7 @@ def test_a_worker_killed_mid_call_loses_no_seed_and_counts_none_twice(
 _SILENT_WORKER = """
 import sys, zenoh
 from capevo.registry.zconfig import client_config
-from capevo.runtime.worker import RuntimeKeys
+from capevo.runtime.worker_protocol import RuntimeKeys
 endpoint, worker_id = sys.argv[1], sys.argv[2]
 keys = RuntimeKeys("capevo")
 session = zenoh.open(client_config(connect=[endpoint]))

@@ -27,9 +27,10 @@ from capevo.registry.client import Client
 from capevo.registry.zconfig import client_config
 from capevo.runtime.evaluation import Evaluator
 from capevo.runtime.gate import SeedPlan
+from capevo.runtime.remote_evaluator import RemoteEvaluator, list_workers
 from capevo.runtime.tasks import task_ids, task_names
 from capevo.runtime.traces import TraceReader
-from capevo.runtime.worker import Adoption, RemoteEvaluator, RuntimeKeys, list_workers
+from capevo.runtime.worker_protocol import Adoption, RuntimeKeys
 
 pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
 

@@ -11,12 +11,12 @@ from hypothesis import strategies as st
 from capevo.errors import CapevoError, Invalid, TooLarge
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.traces import COMPRESSIONS, DEFAULT_COMPRESSION
-from capevo.runtime.worker import (
+from capevo.runtime.worker import WorkerConfig
+from capevo.runtime.worker_protocol import (
     MAX_EVAL_SEEDS,
     Adoption,
     EvaluateRequest,
     RuntimeKeys,
-    WorkerConfig,
     decode_outcomes,
     encode_outcomes,
     validate_worker_id,
