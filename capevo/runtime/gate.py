@@ -578,61 +578,6 @@ class GateRegistry(Protocol):
     def reject(self, name: str, version: int, *, reason: str = "", actor: str | None = None) -> EcmVersion: ...
 
 
-Behaviour = Callable[[int], tuple[bool, float, int] | tuple[bool, float, int, int]]
-"""``seed -> (success, reward, steps[, unsafe_steps])`` of one version in :class:`FakeEvaluator`."""
-
-
-class FakeEvaluator:
-    """In-memory :class:`~capevo.runtime.evaluation.Evaluator` for gate and monitor tests.
-
-    A fake: no simulator runs. Each ``(ECM name, version)`` has a deterministic behaviour
-    ``seed -> (success, reward, steps)``; ``evaluate`` looks up the single pinned version and
-    returns one outcome per seed with ``capability_set`` = ``versions`` (and ``unsafe_steps``
-    when the behaviour gives a fourth value).
-
-    Args:
-        behaviours: ``{(name, version): behaviour}``.
-    """
-
-    def __init__(self, behaviours: Mapping[tuple[str, int], Behaviour] | None = None) -> None:
-        self.behaviours: dict[tuple[str, int], Behaviour] = dict(behaviours or {})
-        self.calls: list[tuple[str, dict[str, int], tuple[int, ...]]] = []
-
-    def set(self, name: str, version: int, behaviour: Behaviour) -> None:
-        self.behaviours[(name, version)] = behaviour
-
-    def evaluate(self, task: str, versions: Mapping[str, int], seeds: Sequence[int]) -> list[EpisodeOutcome]:
-        """One outcome per seed from the pinned version's behaviour.
-
-        Raises:
-            Invalid: not exactly one pinned version, or no behaviour for it.
-        """
-        if len(versions) != 1:
-            raise Invalid(f"FakeEvaluator pins exactly one ECM, got {dict(versions)}", details={"field": "versions"})
-        ((name, version),) = versions.items()
-        behaviour = self.behaviours.get((name, version))
-        if behaviour is None:
-            raise Invalid(f"FakeEvaluator has no behaviour for {name} v{version}", details={"field": "versions"})
-        self.calls.append((task, dict(versions), tuple(seeds)))
-        out = []
-        for s in seeds:
-            success, reward, steps, *unsafe = behaviour(int(s))
-            out.append(
-                EpisodeOutcome(
-                    seed=int(s),
-                    success=bool(success),
-                    reward=float(reward),
-                    steps=int(steps),
-                    duration_s=float(steps) * 0.01,
-                    interventions=0,
-                    unsafe_steps=int(unsafe[0]) if unsafe else 0,
-                    ecm_failures=0,
-                    capability_set=dict(versions),
-                )
-            )
-        return out
-
-
 # --- the gate ---------------------------------------------------------------------------
 
 
@@ -1100,9 +1045,7 @@ def _summary(
 __all__ = [
     "EVIDENCE_SCHEMA",
     "PURPOSES",
-    "Behaviour",
     "Check",
-    "FakeEvaluator",
     "Gate",
     "GateConfig",
     "GateDecision",

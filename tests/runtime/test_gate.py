@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from runtime_support import REACH, skill_spec
+from runtime_support import REACH, Behaviour, FakeEvaluator, skill_spec
 
 from capevo.errors import Conflict, ErrorCode, IllegalTransition, Invalid
 from capevo.records import Action, State
@@ -29,8 +29,6 @@ from capevo.registry.local import LocalRegistry
 from capevo.runtime.evaluation import EpisodeOutcome, Evaluator
 from capevo.runtime.gate import (
     EVIDENCE_SCHEMA,
-    Behaviour,
-    FakeEvaluator,
     Gate,
     GateConfig,
     SeedPlan,

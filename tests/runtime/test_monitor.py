@@ -14,14 +14,14 @@ from pathlib import Path
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from runtime_support import REACH, skill_spec
+from runtime_support import REACH, FakeEvaluator, skill_spec
 from scipy import stats as sps
 
 from capevo.errors import ErrorCode, IllegalTransition, Invalid, Unavailable
 from capevo.records import Action, State
 from capevo.registry.local import LocalRegistry
 from capevo.runtime.evaluation import EpisodeOutcome
-from capevo.runtime.gate import FakeEvaluator, Gate, GateConfig, SeedPlan
+from capevo.runtime.gate import Gate, GateConfig, SeedPlan
 from capevo.runtime.gate_stats import wilson_interval
 from capevo.runtime.monitor import (
     DegradationMonitor,
