@@ -89,9 +89,6 @@ class LearnerState:
 
     # --- SAC's replay buffer ---------------------------------------------------------------
 
-    def has_replay(self) -> bool:
-        return (self.directory / REPLAY).is_file()
-
     def load_replay(self, model: Any) -> int:
         """Load the stored replay buffer into ``model`` (an SB3 off-policy model); returns its size.
 

@@ -150,33 +150,6 @@ class Driver(Protocol):
     def close(self) -> None: ...
 
 
-class CallableDriver:
-    """A :class:`Driver` from a function of the raw observation dict (e.g. a scripted reference).
-
-    Args:
-        name: The ECM it stands in for.
-        termination: When its step is done.
-        act: ``obs_dict -> action`` (None ends it).
-    """
-
-    def __init__(
-        self, name: str, termination: Predicate, act: Callable[[Mapping[str, np.ndarray]], np.ndarray | None]
-    ) -> None:
-        self.name = name
-        self.termination = termination
-        self._act = act
-
-    def start(self) -> None:
-        """Nothing to reset."""
-
-    def act(self, obs: Mapping[str, np.ndarray]) -> np.ndarray | None:
-        out = self._act(obs)
-        return None if out is None else np.asarray(out, dtype=np.float64)
-
-    def close(self) -> None:
-        """Nothing to release."""
-
-
 class InvokerDriver:
     """A :class:`Driver` running a loaded registry version through the runtime's invoker.
 

@@ -75,10 +75,6 @@ class RewardShaping:
             - self.retry_penalty * max(0, int(new_retries))
         )
 
-    def episode_bonus(self, *, success: bool, steps: int, dt: float, retries: int) -> float:
-        """The shaping total of a whole episode: ``α·1[success] − β·steps·dt − γ·retries``."""
-        return (self.success_bonus if success else 0.0) - self.time_penalty * steps * dt - self.retry_penalty * retries
-
     def to_dict(self) -> dict[str, Any]:
         return {
             "success_bonus": self.success_bonus,

@@ -73,23 +73,6 @@ class EventListener(Protocol):
     def on_event(self, event: AuditEvent, record: EcmVersion) -> None: ...
 
 
-class RecordingListener:
-    """In-memory :class:`EventListener` that keeps every ``(event, record)`` it is given."""
-
-    def __init__(self) -> None:
-        self.calls: list[tuple[AuditEvent, EcmVersion]] = []
-        self._lock = threading.Lock()
-
-    def on_event(self, event: AuditEvent, record: EcmVersion) -> None:
-        with self._lock:
-            self.calls.append((event, record))
-
-    @property
-    def events(self) -> list[AuditEvent]:
-        with self._lock:
-            return [e for e, _ in self.calls]
-
-
 def default_actor() -> str:
     """The OS user name, or ``"unknown"`` where there is none (some containers)."""
     try:

@@ -36,7 +36,6 @@ import json
 import os
 import re
 import socket
-import uuid
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -321,8 +320,3 @@ def zenoh_client_config(connect: Sequence[str], user: str | None, password: str 
 def first_line(exc: BaseException) -> str:
     text = str(exc)
     return text.split(" at /", 1)[0].splitlines()[0][:300] if text else type(exc).__name__
-
-
-def new_worker_id(prefix: str = "worker") -> str:
-    """A fresh random worker id (``<prefix>-<8 hex>``)."""
-    return validate_worker_id(f"{prefix}-{uuid.uuid4().hex[:8]}")

@@ -746,11 +746,6 @@ class SqliteStore(AbstractStore):
         return int(row[0])
 
     # --- capability set ---------------------------------------------------------------
-    def current_revision(self) -> int:
-        """The registry revision now (0 before the first pointer move)."""
-        with self._read("revision") as c:
-            return int(c.execute("SELECT COALESCE(MAX(revision), 0) FROM pointer_moves").fetchone()[0])
-
     def capability_set(self, revision: int | None = None) -> CapabilitySet:
         if revision is not None and (isinstance(revision, bool) or not isinstance(revision, int) or revision < 0):
             raise Invalid(f"revision must be a non-negative integer, got {revision!r}", details={"field": "revision"})

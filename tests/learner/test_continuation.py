@@ -20,7 +20,7 @@ import pytest
 from capevo.errors import Invalid
 from capevo.learner.base import LearnRequest
 from capevo.learner.bc import BcConfig, BcLearner, torch_threads
-from capevo.learner.continuation import DEMOS, LATEST, LearnerState
+from capevo.learner.continuation import DEMOS, LATEST, REPLAY, LearnerState
 from capevo.learner.ecm_env import EcmEnvConfig
 from capevo.learner.neural_seed import seed_policy
 from capevo.learner.rl import SacConfig, SacLearner
@@ -55,7 +55,7 @@ def _request(reg: LocalRegistry) -> LearnRequest:
 
 def test_state_files_round_trip_and_demos_accumulate(tmp_path: Path) -> None:
     state = LearnerState(tmp_path, ECM)
-    assert state.latest() is None and state.demos() is None and not state.has_replay()
+    assert state.latest() is None and state.demos() is None and not any(tmp_path.rglob(REPLAY))
     state.save_latest(b"zip-1")
     assert LearnerState(tmp_path, ECM).latest() == b"zip-1"  # invariant 1: another instance reads it
     a = (np.ones((3, 4), np.float32), np.zeros((3, 2), np.float32))

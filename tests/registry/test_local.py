@@ -12,6 +12,7 @@ import logging
 import math
 import random
 import sqlite3
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -27,8 +28,10 @@ from capevo.errors import CapevoError, Corrupt, ErrorCode, Invalid, NotFound, To
 from capevo.records import (
     COMPARISON_OPS,
     Action,
+    AuditEvent,
     Condition,
     Descriptor,
+    EcmVersion,
     Interface,
     IOSpec,
     Kind,
@@ -45,11 +48,27 @@ from capevo.registry.local import (
     DB_FILENAME,
     EventListener,
     LocalRegistry,
-    RecordingListener,
     default_actor,
 )
 
 SPEC = parse_publish_spec("kind: code\ndescription: test skill\n")
+
+
+class RecordingListener:
+    """In-memory :class:`EventListener` that keeps every ``(event, record)`` it is given."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[AuditEvent, EcmVersion]] = []
+        self._lock = threading.Lock()
+
+    def on_event(self, event: AuditEvent, record: EcmVersion) -> None:
+        with self._lock:
+            self.calls.append((event, record))
+
+    @property
+    def events(self) -> list[AuditEvent]:
+        with self._lock:
+            return [e for e, _ in self.calls]
 
 
 @pytest.fixture
