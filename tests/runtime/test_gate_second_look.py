@@ -12,12 +12,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from runtime_support import REACH, skill_spec
+from runtime_support import REACH, Behaviour, FakeEvaluator, skill_spec
 
 from capevo.errors import Invalid
 from capevo.registry.local import LocalRegistry
 from capevo.runtime.evaluation import EpisodeOutcome
-from capevo.runtime.gate import Behaviour, FakeEvaluator, Gate, GateConfig, SeedPlan, decide_paired, promising
+from capevo.runtime.gate import Gate, GateConfig, SeedPlan, decide_paired, promising
 from capevo.runtime.gate_stats import paired_stats
 
 NAME = "pick.reach"
