@@ -41,6 +41,7 @@ Invariants:
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import logging
 import tempfile
@@ -130,6 +131,7 @@ OURS_OPTIONS: Mapping[str, Callable[[Any], bool]] = {
     "modality": lambda v: v in _modalities(),
     "live_episodes": _pos_int,
     "gate_episodes": _pos_int,
+    "gate_extension": lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
     "updates_per_iteration": lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
 }
 
@@ -144,10 +146,12 @@ class Ours:
     iteration's live, learner and gate episodes together stay within the budget,
     :meth:`capevo.evolve.config.EvolveConfig.check_budget`), no final evaluation (the held-out
     one replaces it), and ``live_episodes``, ``gate_episodes``, ``updates_per_iteration`` from
-    the options. Governance cannot be turned off for ours (the runtime always enforces Φ).
+    the options; ``gate_extension`` sets the gate's second look (``GateConfig.extend_n`` more paired
+    seeds after a promising rejection, :mod:`capevo.runtime.gate`; the preset's by default).
+    Governance cannot be turned off for ours (the runtime always enforces Φ).
 
     Options: ``preset``, ``modality`` (``ours`` only), ``live_episodes``, ``gate_episodes``,
-    ``updates_per_iteration``.
+    ``gate_extension``, ``updates_per_iteration``.
     """
 
     name: ClassVar[str] = "ours"
@@ -207,13 +211,13 @@ class Ours:
                 changes[k] = cell.options[k]
         config = make_config(str(cell.options.get("preset", "cpu-small")), **changes)
         if "gate_episodes" in cell.options:
-            import dataclasses
-
             n = int(cell.options["gate_episodes"])
             # fewer paired gate seeds than the preset's minimum: the gate decides on what it has
             config = config.replace(
                 gate_episodes=n, gate=dataclasses.replace(config.gate, min_n=min(config.gate.min_n, n))
             )
+        if "gate_extension" in cell.options:
+            config = config.replace(gate=dataclasses.replace(config.gate, extend_n=int(cell.options["gate_extension"])))
         config.check_budget(cell.task, modality=self.modality_of(cell))
         return config
 

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,7 @@ from hypothesis import strategies as st
 
 from capevo.baselines.base import Budget, CellSpec
 from capevo.errors import ErrorCode, Invalid, NotFound
+from capevo.evolve.config import make_config
 from capevo.experiment.config import (
     ExperimentConfig,
     MethodEntry,
@@ -223,6 +225,23 @@ def test_ours_refuses_governance_off_and_a_budget_below_one_update() -> None:
     with pytest.raises(Invalid) as info:
         make_method("ours-code").evolve_config(bad)  # type: ignore[attr-defined]
     assert info.value.details["field"] == "options.speed"
+
+
+def test_ours_takes_the_gates_size_and_second_look_from_its_options() -> None:
+    budget = Budget(env_steps_per_iteration=80_000, eval_episodes=1)
+    options = {"preset": "cpu-small", "gate_episodes": 6, "gate_extension": 20}
+    cell = CellSpec(task="T6", method="ours-code", seed=1, iterations=1, budget=budget, options=options)
+    config = make_method("ours-code").evolve_config(cell)  # type: ignore[attr-defined]
+    assert (config.gate_episodes, config.gate.extend_n, config.gate.min_n) == (6, 20, 6)
+    assert config.gate_seeds_max == 26
+    default = dataclasses.replace(cell, options={"preset": "cpu-small"})
+    preset = make_method("ours-code").evolve_config(default)  # type: ignore[attr-defined]
+    assert preset.gate.extend_n == make_config("cpu-small").gate.extend_n
+    for bad in (-1, True, 2.5):
+        wrong = dataclasses.replace(cell, options={**options, "gate_extension": bad})
+        with pytest.raises(Invalid) as info:
+            make_method("ours-code").evolve_config(wrong)  # type: ignore[attr-defined]
+        assert info.value.details["field"] == "options.gate_extension"
 
 
 def test_method_entry_round_trip() -> None:
