@@ -221,12 +221,27 @@ def same_episodes(a: list[EpisodeOutcome], b: list[EpisodeOutcome]) -> None:
     assert [(o.seed, o.success, o.reward, o.steps) for o in a] == [(o.seed, o.success, o.reward, o.steps) for o in b]
 
 
+def discovered(evaluator: RemoteEvaluator, expected: Sequence[str], timeout: float = 60.0) -> list[str]:
+    """The task's live workers once ``expected`` are all among them (or whatever is live at the deadline).
+
+    A worker prints ``ready`` once it has declared its liveliness token; the router (or a peer)
+    learns of the token a moment later, so a discovery issued right after ``ready`` can miss it.
+    The split depends on who is live, so tests that assert on it wait for discovery first.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        live = evaluator.live_workers("T1")
+        if set(expected) <= set(live) or time.monotonic() > deadline:
+            return live
+        time.sleep(0.2)
+
+
 @pytest.mark.slow
 @pytest.mark.zenoh
 def test_the_split_is_deterministic_and_merges_to_a_one_worker_run(cluster: Cluster) -> None:
     seeds = [5, 3, 8, 1, 9]
     with RemoteEvaluator(cluster.endpoint, timeout=240) as evaluator:
-        assert evaluator.live_workers("T1") == ["w-a", "w-b"]
+        assert discovered(evaluator, ["w-a", "w-b"]) == ["w-a", "w-b"]
         first = evaluator.evaluate("T1", {}, seeds)
         assert evaluator.last_call == {"parts": 2, "failed_parts": 0, "dropped": 0, "workers": ["w-a", "w-b"]}
         second = evaluator.evaluate("T1", {}, seeds)
@@ -305,6 +320,8 @@ def test_a_worker_killed_mid_call_loses_no_seed_and_counts_none_twice(
     with RemoteEvaluator(cluster.endpoint, worker_id="w-a", timeout=300) as alone:
         reference = alone.evaluate("T1", {}, seeds)
     victim = cluster.start(victim_id)
+    with RemoteEvaluator(cluster.endpoint, timeout=300) as watcher:
+        assert victim_id in discovered(watcher, [victim_id]), victim.log()[-3000:]
     evaluations = cluster.root / victim_id / "evaluations"
     result: dict[str, object] = {}
 
@@ -379,7 +396,8 @@ def test_a_part_whose_query_ends_unanswered_is_rerun_elsewhere(cluster: Cluster)
     try:
         assert silent.stdout is not None and silent.stdout.readline().strip() == "READY"
         with RemoteEvaluator(cluster.endpoint, timeout=240) as evaluator:
-            assert evaluator.live_workers("T1")[0] == "w-0-silent"  # it sorts first: it gets the first part
+            # it sorts first: it gets the first part
+            assert discovered(evaluator, ["w-0-silent", "w-a", "w-b"])[0] == "w-0-silent"
             outcomes = evaluator.evaluate("T1", {}, seeds)
             last = dict(evaluator.last_call)
         assert silent.stdout.readline().strip() == "DROPPED"
@@ -413,6 +431,7 @@ def test_workers_elsewhere_join_through_a_router(tmp_path: Path) -> None:
             c.start("w-x", traces=False)
             c.start("w-y", traces=False)
             with RemoteEvaluator(hub, timeout=240, trace_dir=tmp_path / "here") as evaluator:
+                assert discovered(evaluator, ["w-x", "w-y"]) == ["w-x", "w-y"]
                 outcomes = evaluator.evaluate("T1", {}, [21, 22, 23])
                 assert evaluator.last_call["workers"] == ["w-x", "w-y"]
             with RemoteEvaluator(hub, worker_id="w-y", timeout=240) as alone:
@@ -457,6 +476,7 @@ def test_the_split_works_under_access_control(tmp_path: Path) -> None:
         with RemoteEvaluator(
             registry.endpoint, user="rita", password="rita-secret", timeout=240, trace_dir=tmp_path / "here"
         ) as evaluator:
+            assert discovered(evaluator, ["w-1", "w-2"]) == ["w-1", "w-2"]
             outcomes = evaluator.evaluate("T1", {}, [41, 42])
             assert evaluator.last_call["workers"] == ["w-1", "w-2"]
         assert [o.seed for o in outcomes] == [41, 42]
