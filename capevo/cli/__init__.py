@@ -191,10 +191,6 @@ class RegistryOptions:
     as_json: bool = False
 
     @property
-    def is_local(self) -> bool:
-        return self.root is not None
-
-    @property
     def where(self) -> str:
         """Human description of the target, for messages (never includes the password)."""
         return f"root {self.root}" if self.root is not None else f"registry at {', '.join(self.connect)}"

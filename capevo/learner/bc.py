@@ -756,7 +756,6 @@ class BcLearner:
         self.only_successful = only_successful
         self.learner_id = learner_id or default_learner_id(self.modality)
         self.progress = progress
-        self.last_report: BcReport | None = None
 
     def gather(self, request: LearnRequest, target: EcmTarget) -> Demos:
         """Demonstrations for ``request``: the successful steps of its traces, plus
@@ -854,7 +853,6 @@ class BcLearner:
         new_rows = len(demos)
         gathered_steps = demos.env_steps
         demos, report, dagger = self.clone_keeping(model, request, target, demos, state)
-        self.last_report = report
         candidate = neural_candidate(
             model,
             target,

@@ -522,7 +522,6 @@ class SacLearner:
         self.learner_id = learner_id or default_learner_id(self.modality)
         self.progress_bar = progress_bar
         self._make_env = make_env
-        self.last_report: TrainReport | None = None
         self.last_model: Any = None
         self.last_dagger: dict[str, Any] | None = None
         self.last_clone_steps = 0
@@ -722,7 +721,6 @@ class SacLearner:
             env_total += sum(c.env_steps for c in (before, after) if c is not None)
         finally:
             env.close()
-        self.last_report = report
         self.last_model = model
         log.info(
             "%s: SAC %d steps in %.1fs (%.1f steps/s), %d episodes, %d successes",
