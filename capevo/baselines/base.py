@@ -188,9 +188,13 @@ class EpisodeResult:
     """Steps the independent safety monitor graded unsafe."""
     interventions: int
     """Steps governance changed or blocked the action."""
+    strict_success: bool | None = None
+    """The task's stricter check beside ``success`` (``TaskEnv.strict_success``; T6: the peg
+    through the plate, where robosuite's check passes short of it); None where the task has none.
+    Written only when set, so records of tasks without it read as before."""
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        d: dict[str, Any] = {
             "seed": self.seed,
             "success": self.success,
             "reward": self.reward,
@@ -198,6 +202,9 @@ class EpisodeResult:
             "unsafe_steps": self.unsafe_steps,
             "interventions": self.interventions,
         }
+        if self.strict_success is not None:
+            d["strict_success"] = self.strict_success
+        return d
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> EpisodeResult:
@@ -208,6 +215,7 @@ class EpisodeResult:
             steps=int(d["steps"]),
             unsafe_steps=int(d["unsafe_steps"]),
             interventions=int(d["interventions"]),
+            strict_success=None if d.get("strict_success") is None else bool(d["strict_success"]),
         )
 
 

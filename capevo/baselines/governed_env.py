@@ -441,6 +441,7 @@ def _episode(
         steps=steps,
         unsafe_steps=unsafe,
         interventions=intervened,
+        strict_success=env.task_env.strict_success,
     )
     if sink is not None:
         sink.write_episode_summary(

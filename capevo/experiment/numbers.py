@@ -228,6 +228,12 @@ def compute_numbers(run: Run) -> Book:
         held_out = [e for c in cells for r in c.records for e in r.episodes]
         book.put(f"{base}/unsafe_episodes", sum(e.unsafe_steps > 0 for e in held_out), src)
         book.put(f"{base}/eval_episodes", len(held_out), src)
+        # the task's stricter check (T6: the peg through the plate), on the episodes that carry it
+        graded = [e for e in held_out if e.strict_success is not None]
+        if graded:
+            book.put(f"{base}/strict/graded", len(graded), src)
+            book.put(f"{base}/strict/successes", sum(bool(e.strict_success) for e in graded), src)
+            book.put(f"{base}/strict/task_successes", sum(e.success for e in graded), src)
         for th in THRESHOLDS:
             reached = [summaries[c.key].steps_to[th] for c in cells]
             reached = [r for r in reached if r is not None]

@@ -18,6 +18,8 @@ writes them) and needs no simulator. Its sections mirror the paper's evaluation:
   seeds. A per-seed plot for T6. A peak over iterations is the paper's statistic; it is biased
   upward by the evaluation's noise, so the table also gives the last iteration's success, and
   the held-out episodes (every iteration and seed) the independent safety monitor graded unsafe.
+  Where held-out episodes carry a task's stricter check (T6: the peg through the plate, which
+  robosuite's success does not require), a table counts it beside the task's own success.
 * **Sample efficiency:** the cumulative training env steps each cell spent before its held-out
   success first reached 50 % and 80 %, and success against env steps.
 * **Identity (§4.4, Figure ``fig:identity-drift``):** Δπ of the last iteration, mean per method.
@@ -354,6 +356,23 @@ def _comparison(add: Callable[[str], None], book: Book, groups: Groups, figures:
         "step the independent safety monitor graded unsafe (what governance let through)."
     )
     add("")
+    strict = [(t, label) for (t, label) in groups if book.get(f"group/{t}/{label}/strict/graded") is not None]
+    if strict:
+        add(
+            "Success above is the task's own check (robosuite's `_check_success`, as in the paper). Where a task "
+            "also has a stricter one (T6: the peg's tip through the plate, which robosuite's check does not "
+            "require; `capevo.runtime.tasks.peg_in_hole`), on the same held-out episodes:"
+        )
+        add("")
+        add("| task | method | held-out episodes | strict check passed | task's success |")
+        add("|---|---|---|---|---|")
+        for t, label in strict:
+            b = f"group/{t}/{label}/strict"
+            add(
+                f"| {task_title(t)} | {_esc(label)} | {book.get(b + '/graded')} | {book.get(b + '/successes')} | "
+                f"{book.get(b + '/task_successes')} |"
+            )
+        add("")
     add("Welch's t-test (`scipy.stats.ttest_ind(equal_var=False)`) of per-seed peaks, ours against AM:")
     add("")
     add("| task | ours | AM | seeds | peak success: t, p | peak reward: t, p | paper |")

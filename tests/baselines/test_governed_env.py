@@ -182,3 +182,17 @@ def test_handoff_signals_extend_the_observation_with_the_predicates_exact_signal
     finally:
         plain.close()
         both.close()
+
+
+def test_the_strict_check_is_recorded_where_the_task_has_one() -> None:
+    """T6's held-out episodes carry its strict insertion check (a bool), T1's none; a record
+    without it reads and writes as before the field existed."""
+    rng = np.random.default_rng(1)
+    t6, _ = evaluate_policy("T6", lambda obs: rng.uniform(-1, 1, 12).astype(np.float32), (2_000_000_000,), horizon=8)
+    t1, _ = evaluate_policy("T1", lambda obs: np.zeros(7, np.float32), (2_000_000_000,), horizon=8)
+    assert t6[0].strict_success is False  # 8 random steps do not put the peg through the plate
+    assert t1[0].strict_success is None
+    assert "strict_success" not in t1[0].to_dict()
+    assert t6[0].to_dict()["strict_success"] is False
+    for r in (t6[0], t1[0]):
+        assert EpisodeResult.from_dict(r.to_dict()) == r

@@ -19,6 +19,7 @@ from capevo.errors import NotFound
 from capevo.experiment.paper import paper_ablation_row
 from capevo.experiment.report import benchmark_overhead, write_report
 from capevo.experiment.run_files import load_run
+from capevo.experiment.verify import verify_run
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -330,3 +331,37 @@ def test_a_resumed_cell_is_named_in_the_cells_table(tmp_path: Path) -> None:
     md = (tmp_path / "report" / "report.md").read_text()
     row = next(line for line in md.splitlines() if line.startswith("| `T1-am-s1` |"))
     assert "resumed after an interruption, after iteration 2" in row
+
+
+def test_a_stricter_check_is_reported_beside_the_tasks_own_where_episodes_carry_it(
+    run: tuple[Path, dict[str, Raw]],
+) -> None:
+    """T6's strict insertion check, counted over the held-out episodes that carry it; a run whose
+    episodes carry none (every other test here) gets no such table and no such numbers."""
+    root, _ = run
+    write_report(root)
+    assert "stricter one" not in (root / "report" / "report.md").read_text()
+    assert not [n for n in _numbers(root) if "/strict/" in n]
+    expected = {"graded": 0, "successes": 0, "task_successes": 0}
+    for seed in OURS_SEEDS:
+        path = root / "cells" / f"T6-ours-code-s{seed}" / "metrics.jsonl"
+        records = [json.loads(line) for line in path.read_text().splitlines()]
+        for record in records:
+            for k, episode in enumerate(record["episodes"]):
+                # strict only on every other success: it never passes where the task's check fails
+                episode["strict_success"] = bool(episode["success"] and k % 2 == 0)
+                expected["graded"] += 1
+                expected["successes"] += episode["strict_success"]
+                expected["task_successes"] += episode["success"]
+        path.write_text("".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
+    write_report(root)
+    nums = _numbers(root)
+    for key, value in expected.items():
+        assert nums[f"group/T6/ours-code/strict/{key}"]["value"] == value
+    assert 0 < expected["successes"] < expected["task_successes"]
+    assert not [n for n in nums if n.startswith("group/T6/am/strict/")]
+    md = (root / "report" / "report.md").read_text()
+    counts = " | ".join(str(expected[k]) for k in ("graded", "successes", "task_successes"))
+    row = f"| T6 peg_in_hole | ours-code | {counts} |"
+    assert row in md
+    assert verify_run(root) == []
