@@ -42,6 +42,8 @@ def test_the_smoke_grid_runs_every_method_and_its_report_verifies(tmp_path: Path
             # budget parity: no method spends more training steps than an iteration's budget
             assert 0 <= r.env_steps_train <= budget, (name, r.iteration, r.env_steps_train)
             assert [e.seed for e in r.episodes] == list(cell.eval_seeds())
+            # T6's strict insertion check rides along on every method's held-out episodes; other tasks have none
+            assert all(isinstance(e.strict_success, bool) == (cell.task == "T6") for e in r.episodes), name
         if cell.method in ("ours-code", "ours-neural", "s-ecm", "explorer"):
             assert all(r.delta_pi == 0.0 for r in records), name
         if cell.method in ("s-ecm", "explorer"):
@@ -54,3 +56,9 @@ def test_the_smoke_grid_runs_every_method_and_its_report_verifies(tmp_path: Path
     files = write_report(run_dir)
     assert (run_dir / "report" / "report.md") in files and (run_dir / "report" / "numbers.json").is_file()
     assert verify_run(run_dir) == []  # also: every traced learner count equals the loop's (verify invariant 4)
+    numbers = {n["name"]: n["value"] for n in json.loads((run_dir / "report" / "numbers.json").read_text())["numbers"]}
+    t6_groups = [
+        k.removesuffix("/eval_episodes") for k in numbers if k.startswith("group/T6/") and k.endswith("/eval_episodes")
+    ]
+    assert t6_groups and all(numbers[f"{g}/strict/graded"] == numbers[f"{g}/eval_episodes"] for g in t6_groups)
+    assert not [k for k in numbers if k.startswith("group/T1/") and "/strict/" in k]
