@@ -1,12 +1,14 @@
 #!/usr/bin/env bash
-# After `capevo experiment run results/h2-t6-4x/h2-t6-4x.yaml --out results/h2-t6-4x/run` has
-# finished every cell: copy the small records of the run out of run/ (where git tracks only them) and write
-# and check the report. Run from the repository root.
+# Usage: results/finish-run.sh RESULTS_DIR CELLS
+# After `capevo experiment run CONFIG --out RESULTS_DIR/run` has finished all CELLS cells: copy the
+# small records of the run out of run/ (where git tracks only them) into RESULTS_DIR/cells, and write
+# and check the report in RESULTS_DIR. Run from the repository root.
 set -euo pipefail
-D=results/h2-t6-4x
+D=${1:?usage: results/finish-run.sh RESULTS_DIR CELLS}
+N=${2:?usage: results/finish-run.sh RESULTS_DIR CELLS}
 PY=${PY:-.venv/bin/python}
-done_cells=$(ls -d "$D"/run/cells/*/ 2>/dev/null | wc -l)
-[ "$done_cells" -eq 8 ] || { echo "$done_cells of 8 cells have finished: resume the run first" >&2; exit 2; }
+done_cells=$(ls -d "$D"/run/cells/*/ 2>/dev/null | grep -vc '\.partial/$' || true)
+[ "$done_cells" -eq "$N" ] || { echo "$done_cells of $N cells have finished: resume the run first" >&2; exit 2; }
 for cell in "$D"/run/cells/*/; do
   name=$(basename "$cell")
   [ -f "$cell/done.json" ] || { echo "$name has not finished: resume the run first" >&2; exit 2; }
