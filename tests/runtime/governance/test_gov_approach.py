@@ -141,6 +141,9 @@ def test_shrinking_kinds_never_grow_or_flip_a_component(constraint, data) -> Non
 )
 # within 1 cm of the floor face, moving fast along it: the cap scales the push (found by hypothesis)
 @example(p=(0.0, 0.0, 0.609375), action=(0.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.0), restore=0.5)
+# already pushing inward at exactly the restore speed: nothing changes, and the governor hands back
+# the action it was given, a list here (found by hypothesis)
+@example(p=(0.0, 0.0, 0.5), action=[0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.0], restore=0.5)
 def test_workspace_guard_steers_an_arm_outside_the_box_back_slowly(p, action, restore) -> None:
     guard = WorkspaceGuard(restore=restore)
     state = RobotState(arms=(ArmState(eef_pos=p, eef_force=(0.0, 0.0, 0.0)),))
@@ -152,7 +155,7 @@ def test_workspace_guard_steers_an_arm_outside_the_box_back_slowly(p, action, re
         for k, inward in outside:
             assert out[k] * inward >= restore - TOL
         assert all(abs(x) <= restore + TOL for x in out[:6])
-        assert out[3:6] == (0.0, 0.0, 0.0)  # frozen: outside is within the margin
+        assert tuple(out[3:6]) == (0.0, 0.0, 0.0)  # frozen: outside is within the margin
     else:
         # the guard alone keeps its invariants, 7 included (within restore_within of a face,
         # steered back in proportion); the cap after it may scale a push down, never turn it
