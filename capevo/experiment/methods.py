@@ -95,7 +95,7 @@ def episode_result(outcome: Any) -> EpisodeResult:
         steps=int(outcome.steps),
         unsafe_steps=int(outcome.unsafe_steps),
         interventions=int(steps_touched if steps_touched is not None else outcome.interventions),
-        strict_success=getattr(outcome, "strict_success", None),
+        strict_success=outcome.strict_success,
     )
 
 
