@@ -90,6 +90,10 @@ DEFAULT_MAX_IN_FLIGHT = 64
 DEFAULT_HEAVY_WORKERS = 1
 DEFAULT_HEAVY_MAX_IN_FLIGHT = 4
 # The actor recorded when a remote request names none.
+MEMO_ROUTES = 4096
+"""Hot-read keys whose parsed route the server keeps (one per ECM version asked for, roughly)."""
+_JSON = zenoh.Encoding(JSON_ENCODING)
+
 REMOTE_ACTOR = "remote"
 READY_PREFIX = "READY "
 
@@ -441,12 +445,19 @@ class _Dispatcher:
         self._heavy = _Lane(
             "heavy reads (verify, whole history)", workers=heavy_workers, max_in_flight=heavy_max_in_flight
         )
+        # Hot-read keys already parsed: a cold parse was about a tenth of the server's CPU per
+        # resolve (issue 21). Only well-formed memory keys are kept; dropped whole when full.
+        self._routes: dict[str, Route] = {}
 
     def on_read(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
         payload = self._from_memory(key, query)
         if payload is not None:
-            _reply_once(query, Answer(payload=payload))
+            try:
+                with query:
+                    query.reply(query.key_expr, payload, encoding=_JSON)
+            except zenoh.ZError as exc:
+                log.warning("could not reply to %s: %s", key, exc)
             return
         heavy = is_heavy_read(self._ctx.keys, key)
         self._submit(self._heavy if heavy else self._ordinary, query, answer_read)
@@ -460,12 +471,20 @@ class _Dispatcher:
         failing cache returns None, and the lane's handler answers it, errors included.
         """
         try:
-            route = self._ctx.keys.parse_read_key(key)
-            if route.endpoint not in MEMORY_ENDPOINTS or query.attachment is not None:
+            route = self._routes.get(key)
+            if route is None:
+                route = self._ctx.keys.parse_read_key(key)
+                if route.endpoint not in MEMORY_ENDPOINTS:
+                    return None
+                if len(self._routes) >= MEMO_ROUTES:
+                    self._routes.clear()
+                self._routes[key] = route
+            if query.attachment is not None:
                 return None
             if query.payload is not None and len(query.payload) > 0:
                 return None
-            params = read_parameters(route.endpoint, list(query.parameters))
+            parameters = query.parameters
+            params = {} if parameters.is_empty() else read_parameters(route.endpoint, list(parameters))
             return self._cache.current().reply(route, params)
         except Invalid:
             return None

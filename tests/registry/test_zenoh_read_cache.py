@@ -16,7 +16,7 @@ import pytest
 from procs import LOOPBACK, ServerProcess, free_tcp_port, start_server
 from read_cache_crash_child import KILL_REASON
 
-from capevo.errors import CapevoError
+from capevo.errors import CapevoError, Invalid, NotFound
 from capevo.records import Action
 from capevo.registry.descriptor import parse_publish_spec
 from capevo.registry.keys import Keys, Route
@@ -134,6 +134,32 @@ def test_a_promote_acknowledged_by_another_process_is_served_at_once(tmp_path: P
             direct.promote("born-elsewhere", 0)
             assert client.get_version("born-elsewhere").version == 0
             assert client.get_version("born-elsewhere", 0).state.value == "active"
+    finally:
+        assert server.stop() == 0, server.log_text()
+
+
+@pytest.mark.zenoh
+def test_a_hot_key_answered_before_still_checks_its_parameters(tmp_path: Path) -> None:
+    """The server keeps the parsed route of a hot key; a later query on the same key with
+    parameters is still checked (past revisions from SQLite, unknown parameters refused)."""
+    root = tmp_path / "registry"
+    with LocalRegistry(root) as direct:
+        direct.publish("alpha", b"v0", SPEC)
+        direct.promote("alpha", 0)
+    server = start_server(root)
+    try:
+        with server.client() as client:
+            for _ in range(3):
+                assert client.capability_set().revision == 1
+                assert client.get_version("alpha").version == 0
+            assert client.capability_set(revision=0).active == {}
+            assert client.capability_set(revision=1).active == {"alpha": 0}
+            with pytest.raises(NotFound):
+                client.capability_set(revision=7)
+            for key in (client._keys.capability_set(), client._keys.version("alpha", None)):
+                with pytest.raises(Invalid, match="unknown parameter"):
+                    client._read(key, dict, what="probe", colour="blue")
+            assert client.get_version("alpha").version == 0
     finally:
         assert server.stop() == 0, server.log_text()
 
