@@ -450,12 +450,13 @@ class _Dispatcher:
         self._routes: dict[str, Route] = {}
 
     def on_read(self, query: zenoh.Query) -> None:
-        key = str(query.key_expr)
+        key_expr = query.key_expr
+        key = str(key_expr)
         payload = self._from_memory(key, query)
         if payload is not None:
             try:
                 with query:
-                    query.reply(query.key_expr, payload, encoding=_JSON)
+                    query.reply(key_expr, payload, encoding=_JSON)
             except zenoh.ZError as exc:
                 log.warning("could not reply to %s: %s", key, exc)
             return
@@ -465,9 +466,9 @@ class _Dispatcher:
     def _from_memory(self, key: str, query: zenoh.Query) -> bytes | None:
         """The reply of a well-formed hot read, from the read cache; None sends it the SQLite way.
 
-        Runs on a Zenoh callback thread, so it must never block: it parses the key, asks
-        SQLite's ``data_version`` on the cache's own connection (a reader, which in WAL mode
-        never waits for a writer) and looks the bytes up. A malformed query, a miss or a
+        Runs on a Zenoh callback thread, so it must never block: it parses the key (once: the
+        route is kept), asks SQLite's ``data_version`` on the cache's own connection (a reader,
+        which in WAL mode never waits for a writer) and looks the bytes up. A malformed query, a miss or a
         failing cache returns None, and the lane's handler answers it, errors included.
         """
         try:
