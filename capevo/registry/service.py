@@ -89,11 +89,9 @@ DEFAULT_WORKERS = 8
 DEFAULT_MAX_IN_FLIGHT = 64
 DEFAULT_HEAVY_WORKERS = 1
 DEFAULT_HEAVY_MAX_IN_FLIGHT = 4
-# The actor recorded when a remote request names none.
 MEMO_ROUTES = 4096
 """Hot-read keys whose parsed route the server keeps (one per ECM version asked for, roughly)."""
-_JSON = zenoh.Encoding(JSON_ENCODING)
-
+# The actor recorded when a remote request names none.
 REMOTE_ACTOR = "remote"
 READY_PREFIX = "READY "
 
@@ -450,15 +448,10 @@ class _Dispatcher:
         self._routes: dict[str, Route] = {}
 
     def on_read(self, query: zenoh.Query) -> None:
-        key_expr = query.key_expr
-        key = str(key_expr)
+        key = str(query.key_expr)
         payload = self._from_memory(key, query)
         if payload is not None:
-            try:
-                with query:
-                    query.reply(key_expr, payload, encoding=_JSON)
-            except zenoh.ZError as exc:
-                log.warning("could not reply to %s: %s", key, exc)
+            _reply_once(query, Answer(payload=payload))
             return
         heavy = is_heavy_read(self._ctx.keys, key)
         self._submit(self._heavy if heavy else self._ordinary, query, answer_read)
@@ -468,8 +461,8 @@ class _Dispatcher:
 
         Runs on a Zenoh callback thread, so it must never block: it parses the key (once: the
         route is kept), asks SQLite's ``data_version`` on the cache's own connection (a reader,
-        which in WAL mode never waits for a writer) and looks the bytes up. A malformed query, a miss or a
-        failing cache returns None, and the lane's handler answers it, errors included.
+        which in WAL mode never waits for a writer) and looks the bytes up. A malformed query, a
+        miss or a failing cache returns None, and the lane's handler answers it, errors included.
         """
         try:
             route = self._routes.get(key)
