@@ -28,6 +28,12 @@ literature, so a run shows which of them keeps the cloned skill:
   ``min(exp(A(s, a) / λ), 20)`` with ``A = Q(s, a) − Q(s, π(s))`` from SAC's critics, so it can only
   move towards actions it has seen do better. SAC's critic update is unchanged; its own actor
   step is switched off by freezing the actor, and a callback takes one AWAC step per env step;
+* ``--layer-norm`` puts a LayerNorm after every hidden layer of both critics and their targets
+  (Ball et al. 2023, RLPD: it bounds how far the critic extrapolates to actions it has not seen);
+* ``--demo-ratio R`` fills a second buffer with the clone's own successful episodes before SAC
+  (``--demo-episodes`` rollouts at the clone's exploration spread, their env steps counted in
+  ``wall_s`` and ``demo_env_steps``) and draws a share R of every SAC minibatch from it (RLPD's
+  symmetric sampling at R = 0.5); ``--utd G`` takes G gradient steps per env step;
 * ``--potential`` feeds the task's dense reward as a potential difference ``γΦ(s') − Φ(s)``
   (Ng et al. 1999) instead of as a per-step reward. Added per step, a positive dense reward pays an
   ECM for *not* reaching its termination, which ends its episode.
@@ -62,6 +68,12 @@ import _common
 EVAL_SEED_OFFSET = 50_000
 """Evaluation episodes run training-range seeds this far past the learner's own."""
 
+END_SIGNALS = ("eef_object_xy_dist", "eef_object_dz", "gripper_opening", "grasped", "object_height_above_start")
+"""Signals read where a failed evaluation episode ends: which part of the ECM's termination it missed."""
+
+DEMO_SEED_OFFSET = 20_000
+"""The clone's demo episodes (``--demo-ratio``) run training-range seeds this far past the learner's own."""
+
 
 def _potential_wrapper(gamma: float) -> Any:
     import gymnasium as gym
@@ -88,6 +100,7 @@ def evaluate(model: Any, make_env: Any, episodes: int) -> dict[str, float]:
 
     env = make_env(EVAL_SEED_OFFSET)
     successes, returns, steps = 0, [], []
+    ends: list[dict[str, float]] = []
     try:
         for k in range(episodes):
             obs, _ = env.reset(seed=k)
@@ -102,6 +115,9 @@ def evaluate(model: Any, make_env: Any, episodes: int) -> dict[str, float]:
             successes += bool(info.get("is_success"))
             returns.append(total)
             steps.append(t)
+            if not info.get("is_success"):
+                signals = env.task_env.signals()
+                ends.append({k: round(float(signals[k]), 4) for k in END_SIGNALS if k in signals})
     finally:
         env.close()
     return {
@@ -109,6 +125,7 @@ def evaluate(model: Any, make_env: Any, episodes: int) -> dict[str, float]:
         "episodes": episodes,
         "mean_return": float(np.mean(returns)),
         "mean_steps": float(np.mean(steps)),
+        "failed_ends": ends,
     }
 
 
@@ -186,6 +203,80 @@ def awac_actor(lam: float, stats: dict[str, int]) -> Any:
                 p.requires_grad_(True)
 
     return AwacActor()
+
+
+def layer_norm_critics(model: Any) -> None:
+    """Rebuild both critics and their targets with a LayerNorm after every hidden layer (``--layer-norm``)."""
+    import torch
+
+    def with_norms(seq: Any) -> Any:
+        layers: list[Any] = []
+        for m in seq:
+            layers.append(m)
+            if isinstance(m, torch.nn.Linear) and m is not seq[-1]:
+                layers.append(torch.nn.LayerNorm(m.out_features))
+        return torch.nn.Sequential(*layers)
+
+    for critic in (model.critic, model.critic_target):
+        for k, q in enumerate(list(critic.q_networks)):
+            normed = with_norms(q)
+            critic.q_networks[k] = normed
+            critic.add_module(f"qf{k}", normed)
+    model.critic_target.load_state_dict(model.critic.state_dict())
+    model.critic.optimizer = model.critic.optimizer_class(
+        model.critic.parameters(), lr=model.lr_schedule(1), **model.critic.optimizer_kwargs
+    )
+    model.critic_target.set_training_mode(False)
+
+
+def collect_clone_successes(model: Any, env: Any, episodes: int, first_seed: int) -> tuple[Any, int, int]:
+    """A replay buffer of ``model``'s stochastic actor's successful episodes in ``env`` (shaped rewards).
+
+    Returns the buffer, the successful episodes and the env steps spent."""
+    import numpy as np
+    from stable_baselines3.common.buffers import ReplayBuffer
+
+    buffer = ReplayBuffer(50_000, env.observation_space, env.action_space, device="cpu", n_envs=1)
+    good, steps = 0, 0
+    for k in range(episodes):
+        obs, _ = env.reset(seed=first_seed + k)
+        rows, done, info = [], False, {}
+        while not done:
+            action, _ = model.predict(obs, deterministic=False)
+            nxt, reward, terminated, truncated, info = env.step(action)
+            rows.append((obs, nxt, action, reward, terminated, truncated))
+            obs, done = nxt, terminated or truncated
+            steps += 1
+        if info.get("is_success"):
+            good += 1
+            for o, n, a, r, term, trunc in rows:
+                buffer.add(
+                    np.asarray(o)[None],
+                    np.asarray(n)[None],
+                    np.asarray(a)[None],
+                    np.array([r], dtype=np.float32),
+                    np.array([term]),
+                    [{"TimeLimit.truncated": bool(trunc)}],
+                )
+    return buffer, good, steps
+
+
+def symmetric_sampling(model: Any, demo: Any, ratio: float) -> None:
+    """Draw a share ``ratio`` of each of ``model``'s minibatches from ``demo`` (``--demo-ratio``)."""
+    import torch
+    from stable_baselines3.common.type_aliases import ReplayBufferSamples
+
+    online = model.replay_buffer
+    own_sample = online.sample
+
+    def sample(batch_size: int, env: Any = None) -> Any:
+        from_demo = round(batch_size * ratio)
+        a = own_sample(batch_size - from_demo, env=env)
+        b = demo.sample(from_demo, env=env)
+        # fields a buffer does not fill (SB3's n-step ``discounts``) are None on both sides
+        return ReplayBufferSamples(*(None if x is None else torch.cat([x, y]) for x, y in zip(a, b, strict=True)))
+
+    online.sample = sample
 
 
 def residual_over(clone: Any, env: Any, sac: Any, explore_std: float) -> Any:
@@ -288,6 +379,21 @@ def run(args: argparse.Namespace, scratch: Path) -> dict[str, Any]:
         with torch.no_grad():
             model.actor.log_std.weight.zero_()
             model.actor.log_std.bias.fill_(math.log(args.explore_std))
+    if args.layer_norm:
+        layer_norm_critics(model)
+    if args.utd > 1:
+        model.gradient_steps = args.utd
+    demo_buffer = None
+    if args.demo_ratio:
+        demo_env = make_env(DEMO_SEED_OFFSET)
+        shaped_demo_env = ShapedReward(
+            _potential_wrapper(sac.gamma)(demo_env) if args.potential else demo_env, preset.shaping, dt=env.control_dt
+        )
+        demo_buffer, good, spent = collect_clone_successes(model, shaped_demo_env, args.demo_episodes, 0)
+        demo_env.close()
+        if good == 0:
+            raise SystemExit("the clone succeeded in none of its demo episodes; nothing to sample")
+        symmetric_sampling(model, demo_buffer, args.demo_ratio)
     row: dict[str, Any] = {
         "name": args.name,
         "settings": {k: v for k, v in vars(args).items() if k != "name"},
@@ -295,6 +401,8 @@ def run(args: argparse.Namespace, scratch: Path) -> dict[str, Any]:
         "bc_loss": [cloned.loss_before, cloned.loss_after],
         "after_bc": evaluate(clone, make_env, args.eval_episodes),
     }
+    if demo_buffer is not None:
+        row["demo_episodes"] = {"successful": good, "of": args.demo_episodes, "env_steps": spent}
     if args.residual:
         row["residual_start"] = evaluate(model, make_env, args.eval_episodes)
     stats = {"episodes": 0, "successes": 0}
@@ -348,6 +456,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--critic-warmup", type=int, default=0)
     parser.add_argument("--bc-weight", type=float, default=0.0)
     parser.add_argument("--potential", action="store_true")
+    parser.add_argument("--layer-norm", action="store_true", help="LayerNorm in the critics (RLPD)")
+    parser.add_argument("--demo-ratio", type=float, default=0.0, help="minibatch share from the clone's successes")
+    parser.add_argument("--demo-episodes", type=int, default=20, help="clone rollouts collected for --demo-ratio")
+    parser.add_argument("--utd", type=int, default=1, help="gradient steps per env step")
     parser.add_argument("--residual", action="store_true", help="train a residual over the frozen clone")
     parser.add_argument("--awac", type=float, default=None, metavar="LAMBDA", help="AWAC's actor update, temperature λ")
     args = parser.parse_args(argv)
@@ -355,6 +467,10 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--awac needs a temperature > 0")
     if args.awac and args.bc_weight:
         raise SystemExit("--awac and --bc-weight are two actor updates; choose one")
+    if not 0 <= args.demo_ratio < 1:
+        raise SystemExit("--demo-ratio must be in [0, 1)")
+    if args.utd < 1:
+        raise SystemExit("--utd must be >= 1")
     if args.critic_warmup >= args.steps:
         raise SystemExit("--critic-warmup must be below --steps")
     with tempfile.TemporaryDirectory(prefix="capevo-sac-diag-") as scratch:
@@ -374,6 +490,7 @@ def main(argv: list[str] | None = None) -> int:
                     "after_critic_warmup",
                     "sac_training_episodes",
                     "after_sac",
+                    "demo_episodes",
                     "head_norm",
                 )
                 if k in row
