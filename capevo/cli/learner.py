@@ -4,6 +4,7 @@ Usage::
 
     capevo learner serve --connect tcp/127.0.0.1:7447 --ecm pick.reach --modality rl \\
         [--task T1] [--preset tiny|cpu-small|paper] [--traces DIR]... [--once] [--json]
+    capevo learner distil --root DIR --task T6 --traces DIR --round 10 [--extension 20] [--json]
 
 Invariants:
 1. ``serve --once`` exits 0 after publishing one candidate; without ``--once`` it exits 0 after
@@ -11,7 +12,9 @@ Invariants:
 2. With ``--json`` every line ``serve`` prints on stdout is one JSON object with an ``event``
    field (``ready``, ``waiting``, ``trigger``, ``training``, ``published``, ``unchanged``,
    ``abandoned``, ``error``, ``stopped``); logs and progress bars go to stderr.
-3. Errors follow the ``capevo`` convention: one ``error [code]: message`` line on stderr and the
+3. ``distil --json`` prints one JSON document on stdout (the candidates, the ECMs skipped and
+   the gate's decision); the learners' events go to stderr.
+4. Errors follow the ``capevo`` convention: one ``error [code]: message`` line on stderr and the
    code's exit status; the password is never printed.
 """
 
@@ -33,6 +36,7 @@ from capevo.cli import (
     registry_timeout_option,
     remember_password,
 )
+from capevo.cli.runtime import episode_target_options, gate_options, open_gate_side, where_episodes_run
 from capevo.errors import Invalid
 
 
@@ -250,6 +254,121 @@ def serve_cmd(
         config, open_it, emit=show, open_candidate_evaluator=open_evaluator if evaluate_on_workers else None
     )
     worker.run(handle_signals=True)
+
+
+@learner.command("distil")
+@episode_target_options
+@click.option("--task", required=True, help="Task: T1..T6 or its name.")
+@click.option(
+    "--traces",
+    "traces",
+    multiple=True,
+    required=True,
+    type=click.Path(exists=True, path_type=Path),
+    help="Trace file or directory of the current set's episodes; its successful ones are cloned. Repeatable.",
+)
+@gate_options
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seeds the learners.")
+@click.option("--worker-id", default=None, help="With --connect: ask this worker. [default: any worker of the task]")
+@click.option(
+    "--timeout",
+    type=click.FloatRange(min=0.01),
+    default=600.0,
+    show_default=True,
+    help="Seconds to wait for the gate's episodes.",
+)
+@click.option(
+    "--torch-threads", type=click.IntRange(min=1), default=1, show_default=True, help="CPU threads for torch."
+)
+@phi_option
+@log_level_option()
+@click.option("--json", "as_json", is_flag=True, help="Print the result as one JSON document.")
+def distil_cmd(
+    connect: tuple[str, ...],
+    root: str | None,
+    namespace: str,
+    user: str | None,
+    password: str | None,
+    task: str,
+    traces: tuple[Path, ...],
+    preset: str,
+    extension: int | None,
+    seed_plan: int,
+    round_: int,
+    seed: int,
+    worker_id: str | None,
+    timeout: float,
+    torch_threads: int,
+    phi: str,
+    log_level: str,
+    as_json: bool,
+) -> None:
+    """Clone every ECM of --task from the set's successful traces and gate the clones as one change.
+
+    The hybrid path from code to neural ECMs (issue 19): each ECM whose steps ran to a hand-over
+    in a successful episode of --traces gets a behaviour-cloned neural candidate (modality il,
+    one update, the --preset's budget); ECMs without such steps keep their active version. The
+    gate then judges the active set against the set with all the candidates, one decision for
+    all (capevo runtime gate ... --with ...), on batch --round of the seed plan's gate seeds.
+
+    \b
+    --root DIR: the registry directory; the gate's episodes run in this process under --phi.
+    --connect EP: the registry server; the gate's episodes run on the task's runtime workers.
+    """
+    import contextlib
+    import dataclasses
+
+    from capevo.evolve.config import make_config
+    from capevo.evolve.distil import distil_set
+
+    log_to_stderr(log_level)
+    root_path, endpoints = where_episodes_run(root, connect)
+    config = make_config(preset)
+    gate_config = config.gate if extension is None else dataclasses.replace(config.gate, extend_n=extension)
+
+    def show(event: dict[str, Any]) -> None:
+        if event.get("event") == "skipped":
+            click.echo(f"{event['ecm']}: kept as it is ({event['reason']})", err=True)
+        else:
+            click.echo(_human(event), err=True)
+
+    with contextlib.ExitStack() as stack:
+        registry, evaluator = open_gate_side(
+            stack,
+            root_path,
+            endpoints,
+            namespace=namespace,
+            user=user,
+            password=password,
+            worker_id=worker_id,
+            timeout=timeout,
+            phi=phi,
+            actor="distil",
+        )
+        result = distil_set(
+            registry,
+            evaluator,
+            task=task,
+            traces=traces,
+            gate_config=gate_config,
+            gate_episodes=config.gate_episodes,
+            round_=round_,
+            preset=preset,
+            phi=phi,
+            seed=seed,
+            seed_plan=seed_plan,
+            actor=user or "distil",
+            torch_threads=torch_threads,
+            emit=show,
+        )
+    if as_json:
+        click.echo(json.dumps(result.to_dict(), default=str))
+        return
+    names = ", ".join(f"{c.name} v{c.version}" for c in result.candidates)
+    click.echo(f"cloned: {names}")
+    for skipped in result.skipped:
+        click.echo(f"kept as it is: {skipped.ecm} ({skipped.reason})")
+    click.echo(f"{'promoted' if result.decision.promoted else 'rejected'} as one change: {result.decision.reason}")
 
 
 def _human(event: dict[str, Any]) -> str:

@@ -278,7 +278,7 @@ def parse_seeds(text: str) -> list[int]:
     return seeds
 
 
-def _where_episodes_run(root: str | None, connect: tuple[str, ...]) -> tuple[Path | None, tuple[str, ...]]:
+def where_episodes_run(root: str | None, connect: tuple[str, ...]) -> tuple[Path | None, tuple[str, ...]]:
     """``(root, ())`` to run episodes in this process, or ``(None, endpoints)`` for runtime workers."""
     ctx = click.get_current_context()
     return resolve_target(
@@ -289,7 +289,7 @@ def _where_episodes_run(root: str | None, connect: tuple[str, ...]) -> tuple[Pat
     )
 
 
-def _episode_target_options(func: Any) -> Any:
+def episode_target_options(func: Any) -> Any:
     """``--connect``/``--root`` (where the episodes run) and the login options of ``evaluate`` and ``gate``."""
     decorators = [
         click.option(
@@ -319,7 +319,7 @@ def _episode_target_options(func: Any) -> Any:
 
 
 @runtime.command("evaluate")
-@_episode_target_options
+@episode_target_options
 @click.option("--task", required=True, help="Task: T1..T6 or its name.")
 @click.option("--seeds", default="0-4", show_default=True, help="Seeds, e.g. 0-9 or 1,5,7.")
 @click.option("--version", "versions", multiple=True, metavar="NAME=VERSION", help="Run NAME at VERSION; repeatable.")
@@ -351,7 +351,7 @@ def evaluate_cmd(
     """
     from capevo.runtime.gate_stats import wilson_interval
 
-    root_path, endpoints = _where_episodes_run(root, connect)
+    root_path, endpoints = where_episodes_run(root, connect)
     pinned = _parse_versions(versions)
     seed_list = parse_seeds(seeds)
     if root_path is not None:
@@ -394,35 +394,51 @@ def evaluate_cmd(
     emit(as_json, [o.to_dict() for o in outcomes], render)
 
 
+def gate_options(func: Any) -> Any:
+    """The gate's ``--preset``, ``--extension``, ``--seed-plan`` and ``--round``, as ``gate`` and
+    ``capevo learner distil`` take them."""
+    decorators = [
+        click.option(
+            "--preset",
+            type=click.Choice(PRESETS),
+            default="cpu-small",
+            show_default=True,
+            help="Budget preset: the gate's thresholds and paired seeds N (distil: the learners' budget too), "
+            "as capevo evolve uses them.",
+        ),
+        click.option(
+            "--extension",
+            type=click.IntRange(min=0),
+            default=None,
+            help="Paired seeds of the gate's second look (0: one look). [default: the preset's]",
+        ),
+        click.option(
+            "--seed-plan",
+            type=click.IntRange(min=0),
+            default=0,
+            show_default=True,
+            help="The run's seed plan (evolve --seed).",
+        ),
+        click.option(
+            "--round",
+            "round_",
+            type=click.IntRange(min=0),
+            required=True,
+            help="Which disjoint batch of the plan's gate seeds to use. capevo evolve uses batch i in iteration i: "
+            "pick one no earlier decision has used, or the gate sees seeds it was already judged on.",
+        ),
+    ]
+    for decorate in reversed(decorators):
+        func = decorate(func)
+    return func
+
+
 @runtime.command("gate")
 @click.argument("name")
 @click.argument("version", type=click.IntRange(min=0))
-@_episode_target_options
+@episode_target_options
 @click.option("--task", default=None, help="Task: T1..T6 or its name. [default: the ECM name's prefix]")
-@click.option(
-    "--preset",
-    type=click.Choice(PRESETS),
-    default="cpu-small",
-    show_default=True,
-    help="The gate's thresholds and paired seeds N, as capevo evolve uses them.",
-)
-@click.option(
-    "--extension",
-    type=click.IntRange(min=0),
-    default=None,
-    help="Paired seeds of the gate's second look (0: one look). [default: the preset's]",
-)
-@click.option(
-    "--seed-plan", type=click.IntRange(min=0), default=0, show_default=True, help="The run's seed plan (evolve --seed)."
-)
-@click.option(
-    "--round",
-    "round_",
-    type=click.IntRange(min=0),
-    required=True,
-    help="Which disjoint batch of the plan's gate seeds to use. capevo evolve uses batch i in iteration i: "
-    "pick one no earlier decision has used, or the gate sees seeds it was already judged on.",
-)
+@gate_options
 @click.option(
     "--with",
     "with_",
@@ -477,7 +493,7 @@ def gate_cmd(
     companions = _parse_versions(with_, "with")
     for other in companions:
         validate_name(other)
-    root_path, endpoints = _where_episodes_run(root, connect)
+    root_path, endpoints = where_episodes_run(root, connect)
     config = make_config(preset)
     gate_config = config.gate if extension is None else dataclasses.replace(config.gate, extend_n=extension)
     plan = SeedPlan(base_seed=seed_plan)
@@ -490,25 +506,18 @@ def gate_cmd(
             f"--with names ECMs of another task than {name}'s: {', '.join(strangers)}", details={"field": "with"}
         )
     with contextlib.ExitStack() as stack:
-        if root_path is not None:
-            registry, evaluator = _local_registry_and_evaluator(stack, root_path, phi=phi, actor=user or "gate")
-        else:
-            from capevo.registry.open import open_registry
-            from capevo.runtime.remote_evaluator import RemoteEvaluator
-
-            password = remember_password(password)
-            registry = open_registry(connect=list(endpoints), namespace=namespace, user=user or None, password=password)
-            stack.callback(registry.close)
-            evaluator = stack.enter_context(
-                RemoteEvaluator(
-                    list(endpoints),
-                    namespace=namespace,
-                    user=user or None,
-                    password=password,
-                    worker_id=worker_id,
-                    timeout=timeout,
-                )
-            )
+        registry, evaluator = open_gate_side(
+            stack,
+            root_path,
+            endpoints,
+            namespace=namespace,
+            user=user,
+            password=password,
+            worker_id=worker_id,
+            timeout=timeout,
+            phi=phi,
+            actor="gate",
+        )
         gate = Gate(registry, evaluator, gate_config, actor=user or "gate", seed_plan=plan)  # type: ignore[arg-type]
         decision = gate.run(
             name, version, task=task_name, seeds=seeds, extension_seeds=more, with_candidates=companions
@@ -518,6 +527,43 @@ def gate_cmd(
         console.print(decision.reason)
 
     emit(as_json, decision.to_dict(), render)
+
+
+def open_gate_side(
+    stack: contextlib.ExitStack,
+    root: Path | None,
+    endpoints: tuple[str, ...],
+    *,
+    namespace: str,
+    user: str | None,
+    password: str | None,
+    worker_id: str | None,
+    timeout: float,
+    phi: str,
+    actor: str,
+) -> tuple[Any, Any]:
+    """The registry and the evaluator a gate decision uses, both closed with ``stack``: a local
+    registry and episodes in this process (``root``), or the registry server and its runtime
+    workers (``endpoints``)."""
+    if root is not None:
+        return _local_registry_and_evaluator(stack, root, phi=phi, actor=user or actor)
+    from capevo.registry.open import open_registry
+    from capevo.runtime.remote_evaluator import RemoteEvaluator
+
+    password = remember_password(password)
+    registry = open_registry(connect=list(endpoints), namespace=namespace, user=user or None, password=password)
+    stack.callback(registry.close)
+    evaluator = stack.enter_context(
+        RemoteEvaluator(
+            list(endpoints),
+            namespace=namespace,
+            user=user or None,
+            password=password,
+            worker_id=worker_id,
+            timeout=timeout,
+        )
+    )
+    return registry, evaluator
 
 
 def _local_registry_and_evaluator(
