@@ -26,6 +26,10 @@ Invariants:
    decision, either all of them are active or none is.
 2. An ECM without enough demonstration rows is skipped, never an error, unless every ECM is
    (then :class:`~capevo.errors.Invalid`, before any episode of the gate).
+3. Nothing is resumed: a process stopped before the decision leaves the clones it published as
+   candidates (the gate never saw them), and running again clones anew. A decision cut short
+   while promoting keeps its evidence on the members; :meth:`~capevo.runtime.gate.Gate.settle`
+   finishes it (capevo evolve calls it when it resumes a chain; this function does not).
 """
 
 from __future__ import annotations
