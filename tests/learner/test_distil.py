@@ -29,9 +29,9 @@ def pick_traces(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return d
 
 
-def _distil(root: Path, task: str, traces: Path) -> subprocess.CompletedProcess[str]:
+def _distil(root: Path, task: str, traces: Path, *, as_json: bool = True) -> subprocess.CompletedProcess[str]:
     cmd = [sys.executable, "-m", "capevo", "learner", "distil", "--root", str(root), "--task", task]
-    cmd += ["--traces", str(traces), "--preset", "tiny", "--round", "0", "--json"]
+    cmd += ["--traces", str(traces), "--preset", "tiny", "--round", "0", *(["--json"] if as_json else [])]
     return subprocess.run(cmd, capture_output=True, text=True, env=subprocess_env(), timeout=900, check=False)
 
 
@@ -61,6 +61,22 @@ def test_every_ecm_with_demonstrations_is_cloned_and_all_are_decided_together(
     want = State.ACTIVE if result["promoted"] else State.REJECTED
     assert {r.state for r in records} == {want}
     assert active == dict.fromkeys(PICK, 1 if result["promoted"] else 0)
+
+
+@pytest.mark.slow
+def test_without_json_it_names_the_clones_and_the_decision_for_people(tmp_path: Path, pick_traces: Path) -> None:
+    root = tmp_path / "reg"
+    with LocalRegistry(root, actor="test") as reg:
+        seed_registry(reg, "pick")
+    done = _distil(root, "T1", pick_traces, as_json=False)
+    assert done.returncode == 0, done.stderr[-3000:]
+    first, second = done.stdout.splitlines()
+    assert first == "cloned: pick.reach v1, pick.grasp v1, pick.lift v1"
+    with LocalRegistry(root, actor="reader") as reg:
+        promoted = reg.get_version("pick.reach", 1).state is State.ACTIVE
+    verdict, action = ("promoted", "promote") if promoted else ("rejected", "reject")
+    assert second.startswith(f"{verdict} as one change: gate: {action} pick.reach v1 ")
+    assert second.endswith("decided together with pick.grasp v1, pick.lift v1, as one change")
 
 
 @pytest.mark.slow
