@@ -290,7 +290,8 @@ def where_episodes_run(root: str | None, connect: tuple[str, ...]) -> tuple[Path
 
 
 def episode_target_options(func: Any) -> Any:
-    """``--connect``/``--root`` (where the episodes run) and the login options of ``evaluate`` and ``gate``."""
+    """``--connect``/``--root`` (where the episodes run) and the login options of ``evaluate``,
+    ``gate`` and ``capevo learner distil``."""
     decorators = [
         click.option(
             "--connect",
