@@ -328,6 +328,13 @@ def episode_target_options(func: Any) -> Any:
 @click.option("--timeout", type=click.FloatRange(min=0.01), default=600.0, show_default=True, help="Seconds to wait.")
 @phi_option
 @click.option("--horizon", type=click.IntRange(min=1), default=None, help="With --root: episode length.")
+@click.option(
+    "--trace-dir",
+    type=click.Path(path_type=Path, file_okay=False),
+    default=None,
+    help="Write the episodes' MCAP traces here (with --connect, each worker's part comes back as a file); "
+    "read them with `capevo trace blame`.",
+)
 @json_option
 def evaluate_cmd(
     connect: tuple[str, ...],
@@ -342,6 +349,7 @@ def evaluate_cmd(
     timeout: float,
     phi: str,
     horizon: int | None,
+    trace_dir: Path | None,
     as_json: bool,
 ) -> None:
     """Run evaluation episodes and print their outcomes, with 95 % Wilson intervals.
@@ -349,6 +357,7 @@ def evaluate_cmd(
     \b
     --connect EP: on a runtime worker of the task (its own Φ, horizon and perturbations apply).
     --root DIR: in this process, on the local registry, under --phi, perturbations on.
+    With --trace-dir, each outcome's trace_path names its episode's trace there.
     """
     from capevo.runtime.gate_stats import wilson_interval
 
@@ -356,7 +365,9 @@ def evaluate_cmd(
     pinned = _parse_versions(versions)
     seed_list = parse_seeds(seeds)
     if root_path is not None:
-        outcomes = _evaluate_locally(root_path, task, pinned, seed_list, phi=phi, horizon=horizon, actor=user)
+        outcomes = _evaluate_locally(
+            root_path, task, pinned, seed_list, phi=phi, horizon=horizon, actor=user, trace_dir=trace_dir
+        )
     else:
         from capevo.runtime.remote_evaluator import RemoteEvaluator
 
@@ -367,6 +378,7 @@ def evaluate_cmd(
             password=remember_password(password),
             worker_id=worker_id,
             timeout=timeout,
+            trace_dir=trace_dir,
         ) as evaluator:
             outcomes = evaluator.evaluate(task, pinned, seed_list)
     n = len(outcomes)
@@ -568,7 +580,13 @@ def open_gate_side(
 
 
 def _local_registry_and_evaluator(
-    stack: contextlib.ExitStack, root: Path, *, phi: str, actor: str, horizon: int | None = None
+    stack: contextlib.ExitStack,
+    root: Path,
+    *,
+    phi: str,
+    actor: str,
+    horizon: int | None = None,
+    trace_dir: Path | None = None,
 ) -> tuple[Any, Any]:
     """A local registry and an in-process evaluator on it, both closed with ``stack``."""
     from capevo.agent import DecompositionPolicy, IdentityMemory, identity_hash
@@ -586,7 +604,7 @@ def _local_registry_and_evaluator(
             policy=policy,
             phi=phi,
             horizon=horizon,
-            trace_dir=None,
+            trace_dir=trace_dir,
             agent_identity_hash=identity_hash(policy, policy.identity),
             worker_id="capevo-runtime-evaluate",
         )
@@ -603,9 +621,12 @@ def _evaluate_locally(
     phi: str,
     horizon: int | None,
     actor: str | None,
+    trace_dir: Path | None,
 ) -> list[Any]:
     with contextlib.ExitStack() as stack:
-        _, evaluator = _local_registry_and_evaluator(stack, root, phi=phi, actor=actor or "evaluate", horizon=horizon)
+        _, evaluator = _local_registry_and_evaluator(
+            stack, root, phi=phi, actor=actor or "evaluate", horizon=horizon, trace_dir=trace_dir
+        )
         return evaluator.evaluate(task, pinned, seeds)
 
 

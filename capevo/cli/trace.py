@@ -6,6 +6,7 @@ Commands::
     capevo trace export FILE... [--episodes [SPEC]] [-o OUT] [--format npz|jsonl] [--ecm NAME]...
                                 [--allow-incomplete] [--force] [--json]
     capevo trace recover FILE [-o OUT] [--force] [--json]
+    capevo trace blame PATH... [--json]
 
 Invariants:
 1. Errors (missing file, not an MCAP file, unfinished file, bad episode selection) print
@@ -13,17 +14,25 @@ Invariants:
    :mod:`capevo.cli`), never a traceback; this holds when the group runs on its own too.
 2. ``--json`` prints exactly one JSON document on stdout.
 3. ``export`` and ``recover`` never replace an existing output without ``--force``.
+4. ``blame`` reads only the files it is given (a directory: its ``*.mcap`` files, recursively)
+   and judges their failed episodes as ``capevo evolve`` does when it picks the ECM to update
+   (:func:`capevo.learner.experience.failure_weights`).
 """
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import click
 from rich.console import Console
 
 from capevo.cli import CapevoGroup, emit, fmt_opt, json_option, make_table
-from capevo.errors import Conflict, Invalid
+from capevo.errors import Conflict, Invalid, NotFound
+from capevo.learner.experience import EpisodeEnd, failed_activations, failure_weights, read_episode_ends
+from capevo.runtime.tasks import task_spec
+from capevo.runtime.traces import TraceReader
 from capevo.runtime.traces.export import EXPORT_FORMATS, Transitions, export_transitions, parse_episodes
 from capevo.runtime.traces.recover import RecoverReport, default_output, recover
 from capevo.runtime.traces.summary import TraceSummary, summarize
@@ -196,6 +205,100 @@ def _render_recover(console: Console, r: RecoverReport) -> None:
         console.print(f"the source stopped at byte {r.good_bytes} of {r.source_bytes}: {r.reason}")
     if r.dropped_messages:
         console.print(f"dropped {r.dropped_messages} messages whose channel record was lost")
+
+
+# ---------------------------------------------------------------------------------------
+# blame
+# ---------------------------------------------------------------------------------------
+
+
+@trace.command("blame")
+@click.argument("paths", nargs=-1, required=True, type=_FILE)
+@json_option
+def blame_cmd(paths: tuple[Path, ...], as_json: bool) -> None:
+    """Where the failed episodes of trace PATH(s) stopped, and which ECM they blame.
+
+    A PATH that is a directory stands for its *.mcap files (recursively). Each failed episode
+    carries a blame of 1, shared by the steps that did not hand over to a later one (the
+    one running at the end; a step that hogged a timed-out episode instead), which is how
+    `capevo evolve` picks the ECM to learn next. The traces must all be of one task, whose
+    decomposition judges the steps. For `capevo runtime evaluate --trace-dir`.
+    """
+    files = _mcap_files(paths)
+    spec = task_spec(_traces_task(files))
+    decomposition = spec.ecm_names
+    ends = [end for f in files for end in read_episode_ends(f)]
+    failed = [e for e in ends if not e.success]
+    weights = failure_weights(ends, decomposition)
+    ranked = dict(sorted(weights.items(), key=lambda kv: (-kv[1], decomposition.index(kv[0]))))
+    result = {
+        "task": spec.name,
+        "files": [str(f) for f in files],
+        "episodes": len(ends),
+        "successes": len(ends) - len(failed),
+        "blame": ranked,
+        "failed": [_failed_row(e, decomposition) for e in failed],
+    }
+    emit(as_json, result, lambda console: _render_blame(console, result))
+
+
+def _mcap_files(paths: tuple[Path, ...]) -> list[Path]:
+    files: list[Path] = []
+    for path in paths:
+        if path.is_dir():
+            found = sorted(path.rglob("*.mcap"))
+            if not found:
+                raise NotFound(f"no *.mcap file under {path}", details={"path": str(path)})
+            files.extend(found)
+        elif path.exists():
+            files.append(path)
+        else:
+            raise NotFound(f"no such trace: {path}", details={"path": str(path)})
+    return list(dict.fromkeys(files))
+
+
+def _traces_task(files: list[Path]) -> str:
+    tasks = {TraceReader(f, allow_incomplete=True).metadata().task for f in files}
+    if len(tasks) != 1:
+        raise Invalid(
+            f"the traces hold several tasks ({', '.join(sorted(tasks))}): pass --task", details={"field": "task"}
+        )
+    return tasks.pop()
+
+
+def _failed_row(end: EpisodeEnd, decomposition: tuple[str, ...]) -> dict[str, Any]:
+    return {
+        "trace": end.trace_path,
+        "seed": end.seed,
+        "steps": end.steps,
+        "ended": end.end_reason,
+        "last_ecm": end.last_ecm,
+        "blamed": failed_activations(end, decomposition),
+        "ecm_steps": dict(sorted(end.ecm_steps.items(), key=lambda kv: -kv[1])),
+        "budget_exhausted": list(end.budget_exhausted),
+        "unsafe_steps": {k: v for k, v in end.ecm_unsafe.items() if v},
+    }
+
+
+def _render_blame(console: Console, r: dict[str, Any]) -> None:
+    prefix = f"{r['task']}."
+
+    def short(ecm: str | None) -> str:
+        return "-" if ecm is None else ecm.removeprefix(prefix)
+
+    console.print(
+        f"task {r['task']}: {r['episodes']} episodes in {len(r['files'])} file(s), {r['successes']} succeeded, "
+        f"{len(r['failed'])} failed"
+    )
+    if not r["failed"]:
+        return
+    table = make_table("SEED", "STEPS", "ENDED", "LAST ECM", "BLAMED (ACTIVATIONS)", "MOST STEPS")
+    for row in r["failed"]:
+        blamed = ", ".join(f"{short(k)} x{n}" if n > 1 else short(k) for k, n in Counter(row["blamed"]).items())
+        spent = ", ".join(f"{short(k)} {v}" for k, v in list(row["ecm_steps"].items())[:2])
+        table.add_row(fmt_opt(row["seed"]), str(row["steps"]), row["ended"], short(row["last_ecm"]), blamed, spent)
+    console.print(table)
+    console.print("blame (1 per failed episode): " + ", ".join(f"{short(k)} {v:.3g}" for k, v in r["blame"].items()))
 
 
 if __name__ == "__main__":

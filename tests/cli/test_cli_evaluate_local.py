@@ -34,3 +34,52 @@ def test_a_missing_registry_is_refused(cli: Callable[..., Result], tmp_path: Pat
     res = cli("runtime", "evaluate", "--root", tmp_path / "nothing", "--task", "T1")
     assert res.exit_code == 3
     assert "no registry at" in res.stderr and not (tmp_path / "nothing").exists()
+
+
+def test_traces_of_an_evaluation_say_which_ecm_the_failures_blame(cli: Callable[..., Result], root: Path) -> None:
+    """``--trace-dir`` keeps the episodes' MCAP traces; ``capevo trace blame`` reads them as
+    ``capevo evolve`` does: 20 steps are too few for v0 to get past ``pick.reach``, so both failed
+    episodes end in it at the horizon and it takes their whole blame."""
+    with LocalRegistry(root, actor="tests") as reg:
+        seed_registry(reg, "pick")
+    traces = root.parent / "traces"
+    res = cli(
+        "runtime", "evaluate", "--root", root, "--task", "T1", "--seeds", "7,3", "--horizon", "20",
+        "--trace-dir", traces, "--json",
+    )  # fmt: skip
+    assert res.exit_code == 0, res.stderr
+    rows = json.loads(res.stdout)
+    assert all(r["trace_path"] and Path(r["trace_path"]).parent == traces for r in rows)
+
+    blamed = cli("trace", "blame", traces, "--json")
+    assert blamed.exit_code == 0, blamed.stderr
+    doc = json.loads(blamed.stdout)
+    assert (doc["task"], doc["episodes"], doc["successes"]) == ("pick", 2, 0)
+    assert doc["blame"] == {"pick.reach": 2.0}
+    assert [(f["seed"], f["steps"], f["ended"], f["last_ecm"]) for f in doc["failed"]] == [
+        (7, 20, "horizon", "pick.reach"),
+        (3, 20, "horizon", "pick.reach"),
+    ]
+    assert all(f["blamed"] == ["pick.reach"] and f["ecm_steps"] == {"pick.reach": 20} for f in doc["failed"])
+    human = cli("trace", "blame", *doc["files"])
+    assert human.exit_code == 0, human.stderr
+    assert "task pick: 2 episodes in 1 file(s), 0 succeeded, 2 failed" in human.stdout
+    assert "blame (1 per failed episode): reach 2" in human.stdout
+
+
+def test_blame_refuses_what_it_cannot_judge(cli: Callable[..., Result], root: Path, tmp_path: Path) -> None:
+    (tmp_path / "empty").mkdir()
+    res = cli("trace", "blame", tmp_path / "empty")
+    assert res.exit_code == 4 and "no *.mcap file under" in res.stderr
+    res = cli("trace", "blame", tmp_path / "missing.mcap")
+    assert res.exit_code == 4 and "no such trace" in res.stderr
+    for task, name in (("T1", "pick"), ("T2", "place")):
+        with LocalRegistry(root / task, actor="tests") as reg:
+            seed_registry(reg, name)
+        res = cli(
+            "runtime", "evaluate", "--root", root / task, "--task", task, "--seeds", "1", "--horizon", "5",
+            "--trace-dir", tmp_path / "mixed" / task,
+        )  # fmt: skip
+        assert res.exit_code == 0, res.stderr
+    res = cli("trace", "blame", tmp_path / "mixed")
+    assert res.exit_code == 3 and "the traces hold several tasks (pick, place)" in res.stderr

@@ -168,7 +168,7 @@ def cli(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
     )
 
 
-def test_cli_lists_workers_and_evaluates_through_them(running: Running) -> None:
+def test_cli_lists_workers_and_evaluates_through_them(running: Running, tmp_path: Path) -> None:
     listed = cli("list", "--connect", running.endpoint, "--json")
     assert listed.returncode == 0, listed.stderr
     (mine,) = [w for w in json.loads(listed.stdout) if w["worker_id"] == WORKER_ID]
@@ -183,11 +183,18 @@ def test_cli_lists_workers_and_evaluates_through_them(running: Running) -> None:
         "7",
         "--version",
         "pick.lift=0",
+        "--trace-dir",
+        str(tmp_path / "traces"),
         "--json",
     )
     assert evaluated.returncode == 0, evaluated.stderr
     (outcome,) = json.loads(evaluated.stdout)
     assert outcome["seed"] == 7 and outcome["capability_set"]["pick.lift"] == 0
+    # the worker's part came back over Zenoh into --trace-dir, and it holds this episode
+    trace = Path(outcome["trace_path"])
+    assert trace.parent == tmp_path / "traces" and trace.name.startswith(WORKER_ID)
+    with TraceReader(trace) as reader:
+        assert [(s.seed, s.success) for s in reader.episode_summaries()] == [(7, outcome["success"])]
     refused = cli("evaluate", "--connect", running.endpoint, "--task", "pick", "--version", "pick.lift=99")
     assert refused.returncode == 4, refused.stderr  # not_found, raised by the worker's registry lookup
     assert refused.stderr.startswith("error [not_found]: ")

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 19, T5 with code ECMs for twice the iterations, on two runtime workers.
 #
-# Fixed before the run (2026-12-07, 16:55 UTC): seed plan 0, cpu-small, 10 live episodes per
+# Fixed before the run (2026-12-07, 16:35 UTC): seed plan 0, cpu-small, 10 live episodes per
 # iteration, the gate's second look (+20 seeds), 6 iterations (T1-T3's count; T5's earlier runs
 # stopped at 3 and 4, about 40 min an iteration on one core), the default Φ (`task`) and the
 # paper's perturbations. Nothing about the task, its skills or its v0 changes. What changes is
