@@ -292,11 +292,11 @@ def _render_blame(console: Console, r: dict[str, Any]) -> None:
     )
     if not r["failed"]:
         return
-    table = make_table("SEED", "STEPS", "ENDED", "LAST ECM", "BLAMED (ACTIVATIONS)", "MOST STEPS")
+    table = make_table("SEED", "STEPS", "LAST ECM", "BLAMED (ACTIVATIONS)", "MOST STEPS", "ENDED")
     for row in r["failed"]:
         blamed = ", ".join(f"{short(k)} x{n}" if n > 1 else short(k) for k, n in Counter(row["blamed"]).items())
         spent = ", ".join(f"{short(k)} {v}" for k, v in list(row["ecm_steps"].items())[:2])
-        table.add_row(fmt_opt(row["seed"]), str(row["steps"]), row["ended"], short(row["last_ecm"]), blamed, spent)
+        table.add_row(fmt_opt(row["seed"]), str(row["steps"]), short(row["last_ecm"]), blamed, spent, row["ended"])
     console.print(table)
     console.print("blame (1 per failed episode): " + ", ".join(f"{short(k)} {v:.3g}" for k, v in r["blame"].items()))
 
