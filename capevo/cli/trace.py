@@ -258,11 +258,13 @@ def _mcap_files(paths: tuple[Path, ...]) -> list[Path]:
 
 
 def _traces_task(files: list[Path]) -> str:
-    tasks = {TraceReader(f, allow_incomplete=True).metadata().task for f in files}
+    tasks: set[str] = set()
+    for f in files:
+        with TraceReader(f, allow_incomplete=True) as reader:
+            tasks.add(reader.metadata().task)
     if len(tasks) != 1:
-        raise Invalid(
-            f"the traces hold several tasks ({', '.join(sorted(tasks))}): pass --task", details={"field": "task"}
-        )
+        listed = ", ".join(sorted(tasks))
+        raise Invalid(f"the traces hold several tasks ({listed}): blame one at a time", details={"field": "paths"})
     return tasks.pop()
 
 

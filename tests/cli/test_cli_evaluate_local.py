@@ -82,4 +82,4 @@ def test_blame_refuses_what_it_cannot_judge(cli: Callable[..., Result], root: Pa
         )  # fmt: skip
         assert res.exit_code == 0, res.stderr
     res = cli("trace", "blame", tmp_path / "mixed")
-    assert res.exit_code == 3 and "the traces hold several tasks (pick, place)" in res.stderr
+    assert res.exit_code == 3 and "the traces hold several tasks (pick, place): blame one at a time" in res.stderr
