@@ -72,7 +72,7 @@ SECONDS_PER_BYTE = 1.0 / (4 * 2**20)
 _ZENOH_TIMEOUT_REPLY = b"Timeout"
 # Version replies this client keeps decoded. Resolves repeat: most replies are bytes it has
 # decoded before, and decoding is most of a resolve's client-side CPU (issue 21).
-DECODED_VERSIONS_KEPT = 256
+DECODED_VERSIONS_KEPT = 256  # also the most active-version keys kept
 
 
 class EventSubscription:
@@ -157,6 +157,7 @@ class Client:
         self._subscriptions: list[EventSubscription] = []
         self._info: dict[str, Any] | None = None
         self._decoded: dict[bytes, EcmVersion] = {}
+        self._active_keys: dict[str, str] = {}
         self._closed = False
 
     # --- plumbing ---------------------------------------------------------------------
@@ -272,10 +273,20 @@ class Client:
 
     def get_version(self, name: str, version: int | None = None) -> EcmVersion:
         """Version ``version`` (the active one when None). Raises Invalid, NotFound."""
-        validate_name(name)
-        if version is not None:
-            validate_version(version)
-        return self._decode_version(self._query(self._keys.version(name, version)).payload.to_bytes())
+        # Resolving the active version is the registry's most frequent call: its key is built
+        # and checked once per name (issue 21). Only exact str names are kept, so anything
+        # else still meets validate_name.
+        key = self._active_keys.get(name) if version is None and type(name) is str else None
+        if key is None:
+            validate_name(name)
+            if version is not None:
+                validate_version(version)
+            key = self._keys.version(name, version)
+            if version is None:
+                if len(self._active_keys) >= DECODED_VERSIONS_KEPT:
+                    self._active_keys.clear()
+                self._active_keys[name] = key
+        return self._decode_version(self._query(key).payload.to_bytes())
 
     def _decode_version(self, data: bytes) -> EcmVersion:
         # Records are frozen, so equal reply bytes may share one record; a full memo is

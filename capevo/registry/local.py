@@ -4,6 +4,7 @@ Layout of ``root``::
 
     root/registry.sqlite3       metadata, pointers, pointer-move log, audit chain (WAL mode)
     root/registry.sqlite3-wal   SQLite's write-ahead log (present while open)
+    root/registry.sqlite3-commit  8 bytes every writer changes after each commit (capevo.storage.commit_word)
     root/blobs/ab/cdef…         artifact bytes, named by their sha256
 
 Invariants:

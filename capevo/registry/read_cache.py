@@ -7,16 +7,21 @@ current capability set. They are read from SQLite at start and brought up to dat
 cache is the registry's first :class:`~capevo.registry.local.EventListener`) and every
 read calls before it answers.
 
-Other processes may write the same root (``LocalRegistry`` directly, another server):
-each read first asks SQLite for ``PRAGMA data_version`` on the cache's own connection, a
-few microseconds that change whenever any other connection has committed, and on a
-change reads what the audit events since the cached chain tip touched. The cache owns
-that connection, so neither the check nor the catch-up waits for the registry's writes:
-in WAL mode a reader never waits for a writer.
+Other processes may write the same root (``LocalRegistry`` directly, another server).
+Each read first loads the store's commit word (:mod:`capevo.storage.commit_word`), which
+every capevo writer moves after each commit and before acknowledging it. Only when the word
+has moved since the last full check, or that check is ``recheck_s`` old, does it ask SQLite
+for ``PRAGMA data_version`` on the cache's own connection (which changes whenever any other
+connection has committed), and on a change read what the audit events since the cached
+chain tip touched. The cache owns that connection, so neither the check nor the catch-up
+waits for the registry's writes: in WAL mode a reader never waits for a writer. The word
+saves the check's read transaction on nearly every resolve (issue 21; BENCHMARKS.md); the
+timer bounds how long a write that bypasses capevo (the ``sqlite3`` shell) goes unseen.
 
 Invariants:
-1. :meth:`ReadCache.current` returns a snapshot that contains every commit, of any
-   process, that SQLite had acknowledged when the call began.
+1. :meth:`ReadCache.current` returns a snapshot that contains every commit that a capevo
+   writer, of any process, had acknowledged when the call began; a commit made without
+   capevo's store is in it at most ``recheck_s`` after it.
 2. Each reply a snapshot holds is byte for byte what the SQLite read handlers in
    :mod:`capevo.registry.service` reply for the same state.
 3. A snapshot answers only what it holds: a key it has no bytes for (unknown ECM or
@@ -27,17 +32,22 @@ Invariants:
 
 from __future__ import annotations
 
+import math
 import os
 import threading
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 
+from capevo.errors import Invalid
 from capevo.records import AuditEvent, CapabilitySet, EcmSummary, EcmVersion
 from capevo.registry.keys import Route
 from capevo.registry.wire import dumps
 from capevo.storage.sqlite import SqliteStore, StoreChanges
 
+# How stale a write that bypasses capevo's store (which moves no commit word) may be served.
+RECHECK_S = 1.0
 # The read endpoints a snapshot answers; the rest (artifacts, history, verify, ...) read disk.
 MEMORY_ENDPOINTS = frozenset({"version", "list", "set"})
 
@@ -120,15 +130,23 @@ class ReadCache:
 
     Args:
         path: The registry's ``registry.sqlite3``.
+        recheck_s: The longest time between two full checks while the commit word stays put.
 
     Raises:
         Unavailable, Corrupt, Timeout: the database cannot be opened or read.
+        Invalid: ``recheck_s`` is negative or not finite.
     """
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, recheck_s: float = RECHECK_S) -> None:
+        if not math.isfinite(recheck_s) or recheck_s < 0:
+            raise Invalid(f"recheck_s must be a finite number >= 0, got {recheck_s!r}", details={"field": "recheck_s"})
+        self._recheck_s = float(recheck_s)
         self._store = SqliteStore(path)
         self._lock = threading.Lock()
         try:
+            # Loaded before the read, as before every full check (commit_word's protocol).
+            self._checked_word = self._store.commit_word()
+            self._recheck_at = time.monotonic() + self._recheck_s
             self._snapshot = _apply(None, self._store.changes_since(0))
         except BaseException:
             self._store.close()
@@ -137,14 +155,20 @@ class ReadCache:
     def current(self) -> ReadSnapshot:
         """A snapshot holding every commit acknowledged before this call (invariant 1).
 
-        Costs one ``PRAGMA data_version`` when nothing changed; otherwise it also reads the
-        versions the new audit events touched.
+        Costs one load of the commit word while it stays put and the last full check is
+        younger than ``recheck_s``; otherwise one ``PRAGMA data_version``, and after a change
+        also a read of the versions the new audit events touched.
 
         Raises:
             CapevoError: the database cannot be read (the caller falls back to SQLite reads).
         """
         with self._lock:
             snapshot = self._snapshot
+            word = self._store.commit_word()
+            now = time.monotonic()
+            if word == self._checked_word and now < self._recheck_at:
+                return snapshot
+            self._checked_word, self._recheck_at = word, now + self._recheck_s
             if self._store.data_version() != snapshot.data_version:
                 changes = self._store.changes_since(snapshot.seq)
                 # A chain shorter than the cached one is another database put in place: start over.

@@ -448,10 +448,11 @@ class _Dispatcher:
         self._routes: dict[str, Route] = {}
 
     def on_read(self, query: zenoh.Query) -> None:
-        key = str(query.key_expr)
+        key_expr = query.key_expr
+        key = str(key_expr)
         payload = self._from_memory(key, query)
         if payload is not None:
-            _reply_once(query, Answer(payload=payload))
+            _reply_from_memory(query, key_expr, payload)
             return
         heavy = is_heavy_read(self._ctx.keys, key)
         self._submit(self._heavy if heavy else self._ordinary, query, answer_read)
@@ -460,8 +461,9 @@ class _Dispatcher:
         """The reply of a well-formed hot read, from the read cache; None sends it the SQLite way.
 
         Runs on a Zenoh callback thread, so it must never block: it parses the key (once: the
-        route is kept), asks SQLite's ``data_version`` on the cache's own connection (a reader,
-        which in WAL mode never waits for a writer) and looks the bytes up. A malformed query, a
+        route is kept), loads the store's commit word and, only when it moved, asks SQLite's
+        ``data_version`` on the cache's own connection (a reader, which in WAL mode never waits
+        for a writer), and looks the bytes up. A malformed query, a
         miss or a failing cache returns None, and the lane's handler answers it, errors included.
         """
         try:
@@ -524,6 +526,20 @@ def _describe(query: zenoh.Query) -> str:
         return str(query.selector)
     except zenoh.ZError:
         return "<query>"
+
+
+# Parsed once: hot reads reply with it thousands of times a second.
+_JSON = zenoh.Encoding(JSON_ENCODING)
+
+
+def _reply_from_memory(query: zenoh.Query, key_expr: zenoh.KeyExpr, payload: bytes) -> None:
+    """:func:`_reply_once` for a hot read's bytes, without its other cases: this runs on every
+    resolve, and each step on the answering thread keeps Zenoh's threads waiting (issue 21)."""
+    try:
+        with query:
+            query.reply(key_expr, payload, encoding=_JSON)
+    except zenoh.ZError as exc:
+        log.warning("could not reply to %s: %s", _describe(query), exc)
 
 
 def _reply_once(query: zenoh.Query, result: Answer | CapevoError) -> None:

@@ -366,6 +366,7 @@ def test_bad_names_are_invalid(registry: Registry, name: str) -> None:
         (registry.publish, (name, b"x", SPEC)),
         (registry.get_ecm, (name,)),
         (registry.get_version, (name, 0)),
+        (registry.get_version, (name,)),
         (registry.get_artifact, (name,)),
         (registry.history, (name,)),
         (registry.promote, (name, 0)),
@@ -378,6 +379,17 @@ def test_bad_names_are_invalid(registry: Registry, name: str) -> None:
         msg = _raises(Invalid, ErrorCode.INVALID, fn, *args)
         assert "ECM name" in msg, msg
     assert registry.list_ecms() == []
+
+
+@pytest.mark.parametrize("name", [*BAD_NAMES[:4], 7, None, b"reach"])
+def test_resolving_a_good_name_lets_no_bad_name_through(registry: Registry, name: Any) -> None:
+    """The client keeps the active-version key of each name it resolved (issue 21); a bad name,
+    or one that is not a str, must still be refused, before and after a good one is resolved."""
+    registry.publish("reach", b"x", SPEC)
+    registry.promote("reach", 0)
+    for _ in range(2):
+        assert registry.get_version("reach").version == 0
+        _raises(Invalid, ErrorCode.INVALID, registry.get_version, name)
 
 
 @pytest.mark.parametrize("version", [-1, True, 1.5, "0"])

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing as mp
 import sqlite3
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -24,6 +26,7 @@ from capevo.registry.local import DB_FILENAME, LocalRegistry
 from capevo.registry.read_cache import ReadCache, ReadSnapshot
 from capevo.registry.server_config import ServerConfig
 from capevo.registry.service import READ_HANDLERS, READY_PREFIX, Context
+from capevo.storage.commit_word import CommitWord
 
 SPEC = parse_publish_spec("kind: neural\ndescription: read cache test policy\n")
 MIB = 1 << 20
@@ -253,3 +256,62 @@ def test_sigkill_between_commit_and_cache_update_serves_the_commit_after_restart
             assert client.verify().ok
     finally:
         assert restarted.stop() == 0, restarted.log_text()
+
+
+def _promote_in_another_process(root: Path, version: int, *, move_word: bool) -> None:
+    child = mp.get_context("spawn").Process(target=_promote_child, args=(str(root), version, move_word))
+    child.start()
+    child.join(120)
+    assert child.exitcode == 0
+
+
+def _promote_child(root: str, version: int, move_word: bool) -> None:
+    if not move_word:
+        # As a writer killed between COMMIT and its word store, or one that bypasses capevo's store.
+        CommitWord.move = lambda self: None  # type: ignore[method-assign]
+    with LocalRegistry(root, actor="elsewhere") as reg:
+        reg.promote("alpha", version)
+
+
+def _three_versions(root: Path) -> None:
+    with LocalRegistry(root) as reg:
+        for i in range(3):
+            reg.publish("alpha", f"a{i}".encode(), SPEC)
+        reg.promote("alpha", 0)
+
+
+def test_the_commit_word_alone_tells_the_cache_of_another_process_commit(tmp_path: Path) -> None:
+    """With the timer out of reach, the word is what makes the cache check SQLite again."""
+    root = tmp_path / "registry"
+    _three_versions(root)
+    waits = ReadCache(root / DB_FILENAME, recheck_s=1e9)
+    eager = ReadCache(root / DB_FILENAME, recheck_s=0.0)
+    try:
+        assert waits.current().active == {"alpha": 0}
+        _promote_in_another_process(root, 1, move_word=True)
+        assert waits.current().active == {"alpha": 1}
+        _promote_in_another_process(root, 2, move_word=False)
+        assert waits.current().active == {"alpha": 1}, "nothing moved the word, so only the timer may tell"
+        assert eager.current().active == {"alpha": 2}
+    finally:
+        waits.close()
+        eager.close()
+
+
+def test_the_timer_finds_a_commit_that_never_moved_the_word(tmp_path: Path) -> None:
+    root = tmp_path / "registry"
+    _three_versions(root)
+    cache = ReadCache(root / DB_FILENAME, recheck_s=0.2)
+    try:
+        assert cache.current().active == {"alpha": 0}
+        _promote_in_another_process(root, 1, move_word=False)
+        time.sleep(0.3)  # past recheck_s: the next call must check SQLite in full
+        assert cache.current().active == {"alpha": 1}
+    finally:
+        cache.close()
+
+
+@pytest.mark.parametrize("recheck_s", [-1.0, float("nan"), float("inf")])
+def test_a_bad_recheck_interval_is_invalid(tmp_path: Path, recheck_s: float) -> None:
+    with pytest.raises(Invalid, match="recheck_s"):
+        ReadCache(tmp_path / DB_FILENAME, recheck_s=recheck_s)
