@@ -29,11 +29,12 @@ import click
 from rich.console import Console
 
 from capevo.cli import CapevoGroup, emit, fmt_opt, json_option, make_table
-from capevo.errors import Conflict, Invalid, NotFound
+from capevo.errors import Conflict, Invalid
 from capevo.learner.experience import EpisodeEnd, failed_activations, failure_weights, read_episode_ends
 from capevo.runtime.tasks import task_spec
 from capevo.runtime.traces import TraceReader
 from capevo.runtime.traces.export import EXPORT_FORMATS, Transitions, export_transitions, parse_episodes
+from capevo.runtime.traces.files import trace_files
 from capevo.runtime.traces.recover import RecoverReport, default_output, recover
 from capevo.runtime.traces.summary import TraceSummary, summarize
 
@@ -224,7 +225,7 @@ def blame_cmd(paths: tuple[Path, ...], as_json: bool) -> None:
     `capevo evolve` picks the ECM to learn next. The traces must all be of one task, whose
     decomposition judges the steps. For `capevo runtime evaluate --trace-dir`.
     """
-    files = _mcap_files(paths)
+    files = trace_files(paths, recursive=True)
     spec = task_spec(_traces_task(files))
     decomposition = spec.ecm_names
     ends = [end for f in files for end in read_episode_ends(f)]
@@ -240,21 +241,6 @@ def blame_cmd(paths: tuple[Path, ...], as_json: bool) -> None:
         "failed": [_failed_row(e, decomposition) for e in failed],
     }
     emit(as_json, result, lambda console: _render_blame(console, result))
-
-
-def _mcap_files(paths: tuple[Path, ...]) -> list[Path]:
-    files: list[Path] = []
-    for path in paths:
-        if path.is_dir():
-            found = sorted(path.rglob("*.mcap"))
-            if not found:
-                raise NotFound(f"no *.mcap file under {path}", details={"path": str(path)})
-            files.extend(found)
-        elif path.exists():
-            files.append(path)
-        else:
-            raise NotFound(f"no such trace: {path}", details={"path": str(path)})
-    return list(dict.fromkeys(files))
 
 
 def _traces_task(files: list[Path]) -> str:

@@ -266,19 +266,18 @@ def task_trace_files(paths: Sequence[str | os.PathLike[str]], task: str) -> list
     """The trace files among ``paths`` (files or directories of ``*.mcap``) written for ``task``.
 
     Unreadable files are skipped (logged): a half-written or damaged trace must not stop learning.
+    A path that does not exist yet, or a directory without traces, gives none.
     """
     from capevo.runtime.traces import TraceReader
+    from capevo.runtime.traces.files import trace_files
 
     name = task_spec(task).name
-    files: list[Path] = []
-    for p in paths:
-        path = Path(p)
-        files.extend(sorted(path.glob("*.mcap")) if path.is_dir() else [path])
     out = []
-    for f in dict.fromkeys(f.resolve() for f in files):
+    for f in trace_files(paths, missing_ok=True):
         try:
-            if TraceReader(f, allow_incomplete=True).metadata().task == name:
-                out.append(f)
+            with TraceReader(f, allow_incomplete=True) as reader:
+                if reader.metadata().task == name:
+                    out.append(f)
         except Exception as exc:  # a trace another process is still writing, or a damaged one
             log.warning("skipping trace %s: %s", f, exc)
     return out

@@ -403,13 +403,9 @@ class EpisodeFeed:
         self._other_task: set[Path] = set()
 
     def files(self) -> list[Path]:
-        out: list[Path] = []
-        for p in self.paths:
-            if p.is_dir():
-                out.extend(sorted(p.glob("*.mcap")))
-            elif p.exists():
-                out.append(p)
-        return list(dict.fromkeys(f.resolve() for f in out))
+        from capevo.runtime.traces.files import trace_files
+
+        return trace_files(self.paths, missing_ok=True)
 
     def poll(self) -> list[SeenEpisode]:
         """Episodes finished since the last poll, in file order (files in name order)."""
@@ -420,11 +416,11 @@ class EpisodeFeed:
             if f in self._other_task:
                 continue
             try:
-                reader = TraceReader(f, allow_incomplete=True)
-                if reader.metadata().task != self.task:
-                    self._other_task.add(f)
-                    continue
-                summaries = [r for r in reader.records([EpisodeSummary.TOPIC]) if isinstance(r, EpisodeSummary)]
+                with TraceReader(f, allow_incomplete=True) as reader:
+                    if reader.metadata().task != self.task:
+                        self._other_task.add(f)
+                        continue
+                    summaries = [r for r in reader.records([EpisodeSummary.TOPIC]) if isinstance(r, EpisodeSummary)]
             except Exception as exc:  # a trace another process is writing right now, or a damaged one
                 log.debug("cannot read %s yet: %s", f, exc)
                 continue

@@ -7,6 +7,8 @@ from __future__ import annotations
 import hashlib
 import json
 import multiprocessing as mp
+import os
+import signal
 import sqlite3
 import subprocess
 import sys
@@ -267,10 +269,16 @@ def _promote_in_another_process(root: Path, version: int, *, move_word: bool) ->
 
 def _promote_child(root: str, version: int, move_word: bool) -> None:
     if not move_word:
-        # As a writer killed between COMMIT and its word store, or one that bypasses capevo's store.
+        # As a writer that bypasses capevo's store.
         CommitWord.move = lambda self: None  # type: ignore[method-assign]
     with LocalRegistry(root, actor="elsewhere") as reg:
         reg.promote("alpha", version)
+
+
+def _promote_then_die_before_the_word(root: str) -> None:
+    with LocalRegistry(root, actor="elsewhere") as reg:  # opening writes too: die on the promote only
+        CommitWord.move = lambda self: os.kill(os.getpid(), signal.SIGKILL)  # type: ignore[method-assign]
+        reg.promote("alpha", 1)
 
 
 def _three_versions(root: Path) -> None:
@@ -315,3 +323,24 @@ def test_the_timer_finds_a_commit_that_never_moved_the_word(tmp_path: Path) -> N
 def test_a_bad_recheck_interval_is_invalid(tmp_path: Path, recheck_s: float) -> None:
     with pytest.raises(Invalid, match="recheck_s"):
         ReadCache(tmp_path / DB_FILENAME, recheck_s=recheck_s)
+
+
+def test_sigkill_between_commit_and_word_is_found_by_the_timer(tmp_path: Path) -> None:
+    """A writer SIGKILLed after COMMIT and before it moves the word never acknowledged its commit,
+    so the cache may miss it for a while; the commit is durable, and the timer finds it."""
+    root = tmp_path / "registry"
+    _three_versions(root)
+    cache = ReadCache(root / DB_FILENAME, recheck_s=0.2)
+    try:
+        assert cache.current().active == {"alpha": 0}
+        child = mp.get_context("spawn").Process(target=_promote_then_die_before_the_word, args=(str(root),))
+        child.start()
+        child.join(120)
+        assert child.exitcode == -signal.SIGKILL
+        with LocalRegistry(root) as direct:
+            assert direct.get_version("alpha").version == 1  # durable before the kill
+            assert direct.verify().ok
+        time.sleep(0.3)  # past recheck_s: the next call must check SQLite in full
+        assert cache.current().active == {"alpha": 1}
+    finally:
+        cache.close()
