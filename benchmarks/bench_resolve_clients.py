@@ -12,8 +12,10 @@ alternating:
 each client a spawned process of its own that calls in a closed loop for ``--seconds``
 (throughput = calls completed by all of them / seconds; p50 and p99 over every call). Then:
 
-* **resolves during 64 MiB publishes**: one process resolves while another publishes fresh
-  64 MiB artifacts back to back, against resolves with no publish in the same run;
+* **reads during 64 MiB sends**: one process resolves while another publishes fresh 64 MiB
+  artifacts back to back, against resolves with no publish; and, as the floor, one process
+  does raw gets while another sends 64 MiB queries to a raw queryable that replies without
+  reading them (what moving the bytes alone costs the reads on this machine);
 * **MLflow's alias resolve** (``bench_mlflow.py``), when an interpreter with mlflow is given
   (``--mlflow-python``; mlflow is the ``bench`` extra, best kept in a venv of its own).
 
@@ -47,6 +49,7 @@ from _common import free_tcp_port, load_results, markdown_table, percentile, sav
 from bench_registry import NAME, SPEC, artifact, start_server, stop_server  # noqa: E402
 
 RAW_KEY = "floor/echo"
+RAW_SINK_KEY = "floor/sink"
 MIB = 1 << 20
 SPAWN = mp.get_context("spawn")  # never fork a process that may hold a Zenoh session
 GOALS = {"single_client_p50_vs_raw_max": 1.3, "clients16_throughput_vs_raw_min": 0.8, "vs_mlflow_min": 30.0}
@@ -57,8 +60,11 @@ from capevo.registry.zconfig import router_config
 payload = open(sys.argv[2], "rb").read()
 session = zenoh.open(router_config(listen=[sys.argv[1]]))
 q = session.declare_queryable(sys.argv[3], lambda query: query.reply(query.key_expr, payload))
+# takes 64 MiB queries without reading them: the transport's own cost, nothing of Python's
+sink = session.declare_queryable(sys.argv[4], lambda query: query.reply(query.key_expr, b""))
 print("READY", flush=True)
 sys.stdin.read()
+sink.undeclare()
 q.undeclare()
 session.close()
 """
@@ -70,7 +76,7 @@ def start_raw_server(endpoint: str, reply: bytes, tmp: Path) -> subprocess.Popen
     body.write_bytes(reply)
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     proc = subprocess.Popen(
-        [sys.executable, "-c", _RAW_SERVER, endpoint, str(body), RAW_KEY],
+        [sys.executable, "-c", _RAW_SERVER, endpoint, str(body), RAW_KEY, RAW_SINK_KEY],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
@@ -164,61 +170,109 @@ def run_clients(kind: str, endpoint: str, n: int, seconds: float, warmup: int) -
     }
 
 
-def resolves_during_publishes(endpoint: str, seconds: float) -> dict[str, Any]:
-    """Resolve latency in a closed loop, with no publish and then while 64 MiB publishes run."""
-    from capevo.registry.client import Client
+def during_big_sends(kind: str, endpoint: str, seconds: float) -> dict[str, Any]:
+    """Closed-loop latency of one client with nothing else going on, then while another process
+    sends 64 MiB back to back to the same server.
 
-    def loop(client: Client, until: float) -> list[float]:
+    ``capevo``: resolves while fresh 64 MiB artifacts are published (``Client.publish``, in parts).
+    ``raw``: raw gets of the record-sized reply while 64 MiB queries go to a raw queryable that
+    replies without reading them: what the transport alone costs the reads on this machine.
+    """
+    if kind == "raw":
+        import zenoh
+
+        from capevo.registry.zconfig import client_config
+
+        session = zenoh.open(client_config(connect=[endpoint]))
+
+        def call() -> None:
+            for reply in session.get(RAW_KEY, timeout=30.0):
+                if reply.ok is None:
+                    raise RuntimeError("raw query failed")
+                reply.ok.payload.to_bytes()
+
+        close = session.close
+    else:
+        from capevo.registry.client import Client
+
+        client = Client([endpoint], timeout=30.0)
+
+        def call() -> None:
+            client.get_version(NAME)
+
+        close = client.close
+
+    def loop(until: float) -> list[float]:
         out: list[float] = []
         while time.perf_counter() < until:
             t0 = time.perf_counter()
-            client.get_version(NAME)
+            call()
             out.append((time.perf_counter() - t0) * 1000.0)
         return out
 
-    with Client([endpoint], timeout=30.0) as client:
-        loop(client, time.perf_counter() + 0.5)  # warm-up
-        quiet = loop(client, time.perf_counter() + seconds)
+    try:
+        loop(time.perf_counter() + 0.5)  # warm-up
+        quiet = loop(time.perf_counter() + seconds)
         channel = SPAWN.Queue()
-        publisher = SPAWN.Process(target=publish_loop, args=(endpoint, seconds, channel))
-        publisher.start()
+        sender = SPAWN.Process(target=send_loop, args=(kind, endpoint, seconds, channel))
+        sender.start()
         started = channel.get(timeout=120)
         if started != "started":
-            raise RuntimeError(f"publisher failed: {started}")
-        busy = loop(client, time.perf_counter() + seconds)
+            raise RuntimeError(f"sender failed: {started}")
+        busy = loop(time.perf_counter() + seconds)
         outcome = channel.get(timeout=seconds + 300)
-        publisher.join(timeout=30)
+        sender.join(timeout=30)
+    finally:
+        close()
     if isinstance(outcome, str):
-        raise RuntimeError(f"publisher failed: {outcome}")
+        raise RuntimeError(f"sender failed: {outcome}")
 
     def summary(ms: list[float]) -> dict[str, float]:
         return {"n": len(ms), "p50_ms": percentile(ms, 50), "p99_ms": percentile(ms, 99), "max_ms": max(ms)}
 
-    return {
-        "quiet": summary(quiet),
-        "during_64mib_publishes": summary(busy),
-        "publishes": len(outcome),
-        "publish_s": outcome,
-    }
+    return {"quiet": summary(quiet), "during_64mib_sends": summary(busy), "sends": len(outcome), "send_s": outcome}
 
 
-def publish_loop(endpoint: str, seconds: float, out: Any) -> None:
-    """Publish fresh 64 MiB artifacts back to back for ``seconds``; put their durations (s)."""
-    from capevo.registry.client import Client
-
+def send_loop(kind: str, endpoint: str, seconds: float, out: Any) -> None:
+    """Send fresh 64 MiB back to back for ``seconds`` (capevo: publish; raw: a query to the sink);
+    put their durations (s). Importable by name for ``spawn``."""
     try:
         data = bytearray(os.urandom(64 * MIB))
         durations: list[float] = []
-        with Client([endpoint], timeout=120.0) as client:
+        if kind == "raw":
+            import zenoh
+
+            from capevo.registry.zconfig import client_config
+
+            session = zenoh.open(client_config(connect=[endpoint]))
+
+            def send(body: bytes) -> None:
+                for reply in session.get(RAW_SINK_KEY, payload=body, timeout=120.0):
+                    if reply.ok is None:
+                        raise RuntimeError("raw send failed")
+
+            close = session.close
+        else:
+            from capevo.registry.client import Client
+
+            client = Client([endpoint], timeout=120.0)
+
+            def send(body: bytes) -> None:
+                client.publish("big", body, SPEC)
+
+            close = client.close
+        try:
             out.put("started")
             end = time.perf_counter() + seconds
             i = 0
             while time.perf_counter() < end:
                 data[:8] = i.to_bytes(8, "little")  # fresh bytes: content addressing cannot skip the write
                 t0 = time.perf_counter()
-                client.publish("big", bytes(data), SPEC)
+                send(bytes(data))
                 durations.append(time.perf_counter() - t0)
                 i += 1
+        finally:
+            close()
         out.put(durations)
     except Exception as exc:
         out.put(f"{type(exc).__name__}: {exc}")
@@ -278,8 +332,13 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append({"clients": n, **{k: _pooled(v) for k, v in per.items()}, "rounds": per})
             results["by_clients"] = rows
             if args.publish_seconds > 0:
-                print("[publish] resolves during 64 MiB publishes", file=sys.stderr)
-                results["during_publish"] = resolves_during_publishes(endpoint, args.publish_seconds)
+                during: dict[str, Any] = {}
+                for kind in ("raw", "capevo"):
+                    print(f"[64 MiB sends] {kind}", file=sys.stderr)
+                    during[kind] = during_big_sends(
+                        kind, raw_endpoint if kind == "raw" else endpoint, args.publish_seconds
+                    )
+                results["during_64mib_sends"] = during
         finally:
             assert raw.stdin is not None
             raw.stdin.close()
@@ -327,19 +386,19 @@ def _report(results: dict[str, Any]) -> None:
         met["single_client_p50_vs_raw"] = one["capevo"]["p50_ms"] / one["raw"]["p50_ms"]
     if many:
         met["clients16_throughput_vs_raw"] = many["capevo"]["throughput_per_s"] / many["raw"]["throughput_per_s"]
-    pub = results.get("during_publish")
-    if pub:
-        q, b = pub["quiet"], pub["during_64mib_publishes"]
-        print("\nresolves, no publish vs during back-to-back 64 MiB publishes (ms)\n")
-        print(
-            markdown_table(
-                ["phase", "N", "p50", "p99", "max"],
-                [
-                    ["no publish", q["n"], q["p50_ms"], q["p99_ms"], q["max_ms"]],
-                    [f"during {pub['publishes']} publishes", b["n"], b["p50_ms"], b["p99_ms"], b["max_ms"]],
-                ],
-            )
-        )
+    during = results.get("during_64mib_sends")
+    if during:
+        rows = []
+        for kind, what in (
+            ("raw", "raw Zenoh get, 64 MiB raw queries to a sink"),
+            ("capevo", "capevo resolve, 64 MiB publishes"),
+        ):
+            d = during[kind]
+            q, b = d["quiet"], d["during_64mib_sends"]
+            rows.append([what, "none", q["n"], q["p50_ms"], q["p99_ms"], q["max_ms"]])
+            rows.append([what, f"{d['sends']} back to back", b["n"], b["p50_ms"], b["p99_ms"], b["max_ms"]])
+        print("\none client's reads, alone and while another process sends 64 MiB (ms)\n")
+        print(markdown_table(["reads", "64 MiB sends", "N", "p50", "p99", "max"], rows))
     ml = results.get("mlflow_alias_resolve")
     if ml and one:
         met["vs_mlflow"] = ml["p50_ms"] / one["capevo"]["p50_ms"]

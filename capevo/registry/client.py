@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
+import secrets
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -53,8 +54,10 @@ from capevo.records import (
 from capevo.records.names import validate_name, validate_version
 from capevo.registry.keys import DEFAULT_NAMESPACE, Keys
 from capevo.registry.local import default_actor, validate_spec
+from capevo.registry.uploads import PART_BYTES
 from capevo.registry.wire import (
     ArtifactMeta,
+    UploadPart,
     decode_event,
     decode_reply,
     encode_command,
@@ -73,6 +76,14 @@ _ZENOH_TIMEOUT_REPLY = b"Timeout"
 # Version replies this client keeps decoded. Resolves repeat: most replies are bytes it has
 # decoded before, and decoding is most of a resolve's client-side CPU (issue 21).
 DECODED_VERSIONS_KEPT = 256  # also the most active-version keys kept
+
+
+def _received(value: Any) -> int:
+    """The byte count in a part's acknowledgement ``{"upload", "received"}``."""
+    received = value["received"]
+    if isinstance(received, bool) or not isinstance(received, int):
+        raise TypeError(f"received must be an integer, got {received!r:.40}")
+    return received
 
 
 class EventSubscription:
@@ -358,13 +369,42 @@ class Client:
             raise TooLarge(
                 f"artifact is {len(data)} bytes; the limit is {limit}", details={"size": len(data), "limit": limit}
             )
-        header = encode_command("publish", name=name, spec=spec, actor=self._who(actor))
+        who = self._who(actor)
+        if len(data) > PART_BYTES:
+            return self._publish_in_parts(name, data, spec, who)
+        header = encode_command("publish", name=name, spec=spec, actor=who)
         sample = self._query(
             self._cmd_key("publish"),
             payload=data,
             attachment=header,
             timeout=self._timeout + len(data) * SECONDS_PER_BYTE,
         )
+        return decode_reply(sample.payload.to_bytes(), EcmVersion.from_dict, what="publish")
+
+    def _publish_in_parts(self, name: str, data: bytes, spec: PublishSpec, who: str | None) -> EcmVersion:
+        """Send ``data`` as ``publish`` parts of at most :data:`PART_BYTES`, in order, each
+        acknowledged before the next; the last part's reply is the version. In one payload, a
+        64 MiB artifact would hold the server's GIL for tens of milliseconds, and every
+        resolve with it (:mod:`capevo.registry.uploads`)."""
+        upload, total = secrets.token_hex(16), len(data)
+        view = memoryview(data)
+
+        def send(offset: int) -> tuple[zenoh.Sample, int]:
+            chunk = bytes(view[offset : offset + PART_BYTES])
+            end = offset + len(chunk)
+            part = UploadPart(upload, offset, total)
+            header = encode_command("publish", name=name, spec=spec if part.first else None, actor=who, part=part)
+            # the last part's reply waits for the whole artifact to be hashed and made durable
+            timeout = self._timeout + (total if end == total else len(chunk)) * SECONDS_PER_BYTE
+            return self._query(self._cmd_key("publish"), payload=chunk, attachment=header, timeout=timeout), end
+
+        *parts, last = range(0, total, PART_BYTES)
+        for offset in parts:
+            sample, end = send(offset)
+            received = decode_reply(sample.payload.to_bytes(), _received, what="publish part")
+            if received != end:
+                raise CapevoError(f"the registry acknowledged {received} bytes of upload {upload}, not {end}")
+        sample, _ = send(last)
         return decode_reply(sample.payload.to_bytes(), EcmVersion.from_dict, what="publish")
 
     def promote(

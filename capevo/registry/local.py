@@ -312,6 +312,34 @@ class LocalRegistry:
             )
         # Bytes first: a version row must never name a blob that is not on disk.
         sha, size = self._blobs.put(artifact)
+        return self._add_version(name, spec, sha, size, who)
+
+    def artifact_writer(self) -> _blobs.BlobWriter:
+        """A writer for an artifact that arrives in pieces (an upload in parts): write them,
+        then :meth:`publish_written`; nothing is visible before. Raises Unavailable."""
+        self._check_open()
+        return self._blobs.writer(max_bytes=self._max_artifact_bytes)
+
+    def publish_written(
+        self, name: str, writer: _blobs.BlobWriter, spec: PublishSpec, *, actor: str | Attribution | None = None
+    ) -> EcmVersion:
+        """:meth:`publish` of the bytes written to ``writer`` (from :meth:`artifact_writer`),
+        which it finishes, or discards when anything is refused.
+
+        Raises:
+            As :meth:`publish`.
+        """
+        try:
+            self._check_open()
+            validate_name(name)
+            validate_spec(spec)
+            who = self._who(actor)
+            sha, size = writer.finish()
+        finally:
+            writer.discard()
+        return self._add_version(name, spec, sha, size, who)
+
+    def _add_version(self, name: str, spec: PublishSpec, sha: str, size: int, who: Attribution) -> EcmVersion:
         ref = ArtifactRef(sha256=sha, size=size, media_type=spec.resolved_media_type)
         return self._mutate(lambda: self._store.create_version(name, spec, ref, actor=who))
 

@@ -8,10 +8,12 @@ The hot reads (a version or ``active``, the ECM list, the current capability set
 answered on the Zenoh callback thread that received them, from the in-memory
 :class:`~capevo.registry.read_cache.ReadCache`: no thread hop, no transaction, no encoding,
 and nothing that waits for a write. Every other query is handed to a bounded worker pool,
-so a slow 64 MB publish does not hold up reads. Heavy reads (``verify``, which re-hashes every blob,
-and the whole audit chain) get their own small lane: a flood of them is refused ``busy``
-there and cannot take the slots that resolves and commands need. Each query gets exactly
-one reply: the answer, or an error reply carrying :meth:`CapevoError.to_payload`.
+so a slow 64 MB publish does not hold up reads, and the client sends a large artifact in
+parts (:mod:`capevo.registry.uploads`), so taking its bytes never holds the GIL for long.
+Heavy reads (``verify``, which re-hashes every blob, and the whole audit chain) get their own
+small lane: a flood of them is refused ``busy`` there and cannot take the slots that resolves
+and commands need. Each query gets exactly one reply: the answer, or an error reply carrying
+:meth:`CapevoError.to_payload`.
 
 Who made a change is Zenoh's word, not the request's: a secured registry serves commands
 only on ``<ns>/cmd/<op>/@<user>``, which access control grants to ``<user>`` alone, and
@@ -68,6 +70,7 @@ from capevo.registry.keys import COMMANDS, CommandRoute, Keys, Route
 from capevo.registry.local import DB_FILENAME, DEFAULT_MAX_ARTIFACT_BYTES, LocalRegistry
 from capevo.registry.read_cache import MEMORY_ENDPOINTS, ReadCache
 from capevo.registry.server_config import ServerConfig, access_control_for, load_server_config, write_dictionary
+from capevo.registry.uploads import Uploads
 from capevo.registry.wire import (
     JSON_ENCODING,
     MAX_JSON_BYTES,
@@ -133,12 +136,14 @@ class Answer:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Context:
-    """What a handler may use: the registry, the server's limits and its users' roles."""
+    """What a handler may use: the registry, the server's limits, its users' roles and the
+    uploads in progress."""
 
     registry: LocalRegistry
     keys: Keys
     max_artifact_bytes: int
     config: ServerConfig
+    uploads: Uploads
 
     @property
     def secured(self) -> bool:
@@ -362,10 +367,11 @@ def answer_command(ctx: Context, query: zenoh.Query) -> Answer:
                 details={"field": "<attachment>"},
             )
         fields = decode_command(op, attachment)
-        if size > ctx.max_artifact_bytes:
+        total = size if fields["part"] is None else fields["part"].total
+        if max(size, total) > ctx.max_artifact_bytes:
             raise TooLarge(
-                f"artifact is {size} bytes; the limit is {ctx.max_artifact_bytes}",
-                details={"size": size, "limit": ctx.max_artifact_bytes},
+                f"artifact is {max(size, total)} bytes; the limit is {ctx.max_artifact_bytes}",
+                details={"size": max(size, total), "limit": ctx.max_artifact_bytes},
             )
         artifact = _payload_bytes(query)
     else:
@@ -378,8 +384,16 @@ def answer_command(ctx: Context, query: zenoh.Query) -> Answer:
         fields = decode_command(op, _payload_bytes(query))
         artifact = b""
     who = attribute(ctx.config, route, fields["actor"])
-    if op == "publish":
-        check_origin(ctx.config, who, fields["spec"].origin)
+    if op == "publish" and fields["spec"] is not None:
+        check_origin(ctx.config, who, fields["spec"].origin)  # before the first part is staged
+    if op == "publish" and fields["part"] is not None:
+        # A part in the server's hands costs the GIL a fraction of a millisecond; the whole
+        # artifact in one payload would stall every resolve for tens (uploads.py).
+        part = fields["part"]
+        done = ctx.uploads.add(who.actor, fields["name"], part, artifact, fields["spec"])
+        if done is None:
+            return _json({"upload": part.upload, "received": part.offset + len(artifact)})
+        return _json(ctx.registry.publish_written(done.name, done.writer, done.spec, actor=who).to_dict())
     record = COMMAND_HANDLERS[op](ctx.registry, fields, artifact, who)
     return _json(record.to_dict())
 
@@ -670,7 +684,9 @@ def serve(
         # an event finds the change; both run before the command's reply (invariant 8).
         registry.add_listener(cache)
         registry.add_listener(EventPublisher(session, keys))
-        ctx = Context(registry=registry, keys=keys, max_artifact_bytes=limit, config=cfg)
+        uploads = Uploads(registry.artifact_writer, max_artifact_bytes=limit)
+        stack.callback(uploads.close)
+        ctx = Context(registry=registry, keys=keys, max_artifact_bytes=limit, config=cfg, uploads=uploads)
         dispatcher = _Dispatcher(
             ctx,
             cache,

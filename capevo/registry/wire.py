@@ -9,8 +9,12 @@ Wire format (all JSON is UTF-8, compact, no NaN/Infinity):
 * Commands: a query on ``<ns>/cmd/<op>/@<user>`` (secured registry; ``<ns>/cmd/<op>`` when
   open, see :mod:`capevo.registry.keys`). For ``publish`` the query *attachment* is the JSON
   header ``{"name", "spec": PublishSpec.to_dict(), "actor"}`` and the query *payload* is the
-  artifact bytes. For every other op the payload is one JSON object (fields in
-  :data:`COMMAND_FIELDS`). Unknown fields are refused.
+  artifact bytes. An artifact may instead come in parts, one ``publish`` query each, whose
+  headers add ``"part": {"upload", "offset", "total"}`` (:class:`UploadPart`); only the first
+  part's header carries the ``spec`` (checking it is most of a part's cost), the last part's
+  reply is the version, the others' ``{"upload", "received"}`` (:mod:`capevo.registry.uploads`).
+  For every other op the payload is one JSON object (fields in :data:`COMMAND_FIELDS`).
+  Unknown fields are refused.
 * Success reply: the record after the change (EcmVersion JSON). Failure: ``reply_err``
   whose payload is :meth:`capevo.errors.CapevoError.to_payload`, rebuilt on the client by
   :func:`capevo.errors.error_from_payload`.
@@ -120,6 +124,60 @@ def _reason(value: object) -> str:
     return validate_text(value, "reason", MAX_REASON_CHARS)
 
 
+@dataclass(frozen=True, slots=True)
+class UploadPart:
+    """Where one part of an artifact sent in parts goes: bytes ``offset`` onwards of the
+    ``total`` the upload ``upload`` (32 lowercase hex digits, the client's random id) carries."""
+
+    upload: str
+    offset: int
+    total: int
+
+    @property
+    def first(self) -> bool:
+        return self.offset == 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"upload": self.upload, "offset": self.offset, "total": self.total}
+
+
+UPLOAD_ID_CHARS = 32
+_HEX = frozenset("0123456789abcdef")
+
+
+def _count(value: object, field: str, *, least: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not least <= value <= MAX_VERSION:
+        raise Invalid(
+            f"{field} must be an integer from {least} to {MAX_VERSION}, got {value!r:.40}", details={"field": field}
+        )
+    return value
+
+
+def _part(value: object) -> UploadPart | None:
+    if value is None:
+        return None
+    if isinstance(value, UploadPart):
+        value = value.to_dict()
+    if not isinstance(value, dict):
+        raise Invalid("part: must be a JSON object {upload, offset, total}", details={"field": "part"})
+    unknown = sorted(set(value) - {"upload", "offset", "total"})
+    missing = sorted({"upload", "offset", "total"} - set(value))
+    if unknown or missing:
+        field = f"part.{(unknown or missing)[0]}"
+        raise Invalid(f"{field}: {'unknown' if unknown else 'missing'} field", details={"field": field})
+    upload = value["upload"]
+    if not isinstance(upload, str) or len(upload) != UPLOAD_ID_CHARS or not set(upload) <= _HEX:
+        raise Invalid(
+            f"part.upload must be {UPLOAD_ID_CHARS} lowercase hex digits, got {upload!r:.40}",
+            details={"field": "part.upload"},
+        )
+    total = _count(value["total"], "part.total", least=1)
+    offset = _count(value["offset"], "part.offset", least=0)
+    if offset >= total:
+        raise Invalid(f"part.offset {offset} is not below part.total {total}", details={"field": "part.offset"})
+    return UploadPart(upload, offset, total)
+
+
 def validate_actor(value: object) -> str | None:
     """None, or 1-256 characters naming who asked (recorded in the audit log)."""
     return None if value is None else validate_text(value, "actor", MAX_ACTOR_CHARS, allow_empty=False)
@@ -164,6 +222,10 @@ def spec_from_wire(value: object) -> PublishSpec:
         raise Invalid(f"spec: {exc.message}", details={"field": f"spec.{field}"}) from None
 
 
+def _optional_spec(value: object) -> PublishSpec | None:
+    return None if value is None else spec_from_wire(value)
+
+
 @dataclass(frozen=True, slots=True)
 class _Field:
     check: Callable[[Any], Any]
@@ -175,7 +237,12 @@ _ACTOR = _Field(validate_actor, required=False)
 _REASON = _Field(_reason, required=False, default="")
 
 COMMAND_FIELDS: Mapping[str, Mapping[str, _Field]] = {
-    "publish": {"name": _Field(_name), "spec": _Field(spec_from_wire), "actor": _ACTOR},
+    "publish": {
+        "name": _Field(_name),
+        "spec": _Field(_optional_spec, required=False),  # see _check_publish
+        "actor": _ACTOR,
+        "part": _Field(_part, required=False),
+    },
     "promote": {
         "name": _Field(_name),
         "version": _Field(_version),
@@ -229,7 +296,21 @@ def check_command(op: str, body: object) -> dict[str, Any]:
             raise Invalid(f"{op} request: missing field {key!r}", details={"field": key})
         else:
             out[key] = field.default
+    if op == "publish":
+        _check_publish(out)
     return out
+
+
+def _check_publish(fields: Mapping[str, Any]) -> None:
+    """A publish carries its spec in its one payload's header or its first part's, and only there."""
+    part = fields["part"]
+    first = part is None or part.first
+    if first and fields["spec"] is None:
+        raise Invalid("publish request: missing field 'spec'", details={"field": "spec"})
+    if not first and fields["spec"] is not None:
+        raise Invalid(
+            "publish request: 'spec' goes in the first part's header only (part.offset 0)", details={"field": "spec"}
+        )
 
 
 def encode_command(op: str, **fields: Any) -> bytes:
@@ -238,7 +319,7 @@ def encode_command(op: str, **fields: Any) -> bytes:
     Raises:
         Invalid: the same checks the server runs, so a bad request fails before it is sent.
     """
-    wire = {k: (v.to_dict() if isinstance(v, PublishSpec) else v) for k, v in fields.items()}
+    wire = {k: (v.to_dict() if isinstance(v, (PublishSpec, UploadPart)) else v) for k, v in fields.items()}
     check_command(op, wire)
     try:
         return dumps(wire)

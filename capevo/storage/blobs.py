@@ -81,6 +81,82 @@ def append_synced(fd: int, data: bytes) -> None:
         raise
 
 
+class BlobWriter:
+    """One blob written piece by piece into a temporary file, hashed as it goes.
+
+    :meth:`finish` makes it a blob (fsync, then the rename and directory fsync of invariant
+    1) and returns its address; :meth:`discard` drops it. Until then nothing is visible, and
+    a writer killed meanwhile leaves only a temporary file that :meth:`BlobStore.sweep_temp`
+    removes. Not thread-safe: one writer, one thread at a time.
+    """
+
+    def __init__(self, store: BlobStore, tmp: Path, fh: BinaryIO, max_bytes: int | None) -> None:
+        self._store = store
+        self._tmp = tmp
+        self._fh: BinaryIO | None = fh
+        self._max_bytes = max_bytes
+        self._digest = hashlib.sha256()
+        self.size = 0
+
+    def write(self, data: bytes | bytearray | memoryview) -> None:
+        """Append ``data``.
+
+        Raises:
+            TooLarge: past ``max_bytes`` (the writer is discarded).
+            Unavailable: the write failed (the writer is discarded).
+        """
+        if self._fh is None:
+            raise Unavailable("this blob writer is finished or discarded")
+        size = self.size + memoryview(data).nbytes
+        if self._max_bytes is not None and size > self._max_bytes:
+            self.discard()
+            raise TooLarge(f"artifact exceeds the limit of {self._max_bytes} bytes", details={"limit": self._max_bytes})
+        try:
+            self._fh.write(data)
+        except OSError as exc:
+            self.discard()
+            raise Unavailable(f"cannot write blob under {self._store.root}: {exc}") from exc
+        self._digest.update(data)
+        self.size = size
+
+    def finish(self) -> tuple[str, int]:
+        """Make the bytes written a durable blob.
+
+        Returns:
+            ``(sha256, size)``.
+
+        Raises:
+            Unavailable: the filesystem refused (the writer is discarded).
+        """
+        if self._fh is None:
+            raise Unavailable("this blob writer is finished or discarded")
+        fh, self._fh = self._fh, None
+        sha = self._digest.hexdigest()
+        try:
+            with fh:
+                fh.flush()
+                os.fsync(fh.fileno())
+            if not self._store._intact(sha, self.size):
+                final = self._store.path_for(sha)
+                self._store._ensure_shard(final.parent)
+                os.replace(self._tmp, final)
+                fsync_dir(final.parent)
+            return sha, self.size
+        except OSError as exc:
+            raise Unavailable(f"cannot write blob under {self._store.root}: {exc}") from exc
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                self._tmp.unlink()
+
+    def discard(self) -> None:
+        """Drop what was written (nothing, after :meth:`finish`)."""
+        fh, self._fh = self._fh, None
+        if fh is not None:
+            fh.close()
+            with contextlib.suppress(FileNotFoundError):
+                self._tmp.unlink()
+
+
 def _writer_alive(tmp_name: str) -> bool:
     """Whether the process named in a ``.tmp-<pid>-<token>`` file name may still be writing it."""
     pid_text = tmp_name[len(_TMP_PREFIX) :].split("-", 1)[0]
@@ -194,33 +270,26 @@ class BlobStore:
             chunks = iter(lambda: reader.read(CHUNK_BYTES), b"")  # type: ignore[union-attr]
         else:
             chunks = stream  # type: ignore[assignment]
-        shard_tmp = self._root / "incoming"
-        tmp = self._new_tmp(shard_tmp)
-        digest = hashlib.sha256()
-        size = 0
+        writer = self.writer(max_bytes=max_bytes)
         try:
-            with open(tmp, "wb") as fh:
-                for chunk in chunks:
-                    size += len(chunk)
-                    if max_bytes is not None and size > max_bytes:
-                        raise TooLarge(f"artifact exceeds the limit of {max_bytes} bytes", details={"limit": max_bytes})
-                    digest.update(chunk)
-                    fh.write(chunk)
-                fh.flush()
-                os.fsync(fh.fileno())
-            sha = digest.hexdigest()
-            if self._intact(sha, size):
-                return sha, size
-            final = self.path_for(sha)
-            self._ensure_shard(final.parent)
-            os.replace(tmp, final)
-            fsync_dir(final.parent)
-            return sha, size
+            for chunk in chunks:
+                writer.write(chunk)
+            return writer.finish()
+        finally:
+            writer.discard()
+
+    def writer(self, *, max_bytes: int | None = None) -> BlobWriter:
+        """A blob written piece by piece (an upload in parts): see :class:`BlobWriter`.
+
+        Raises:
+            Unavailable: the temporary file cannot be made.
+        """
+        tmp = self._new_tmp(self._root / "incoming")
+        try:
+            fh = open(tmp, "wb")  # noqa: SIM115 -- the writer owns it until finish or discard
         except OSError as exc:
             raise Unavailable(f"cannot write blob under {self._root}: {exc}") from exc
-        finally:
-            with contextlib.suppress(FileNotFoundError):
-                tmp.unlink()
+        return BlobWriter(self, tmp, fh, max_bytes)
 
     def _write(self, sha: str, chunks: Iterable[memoryview | bytes]) -> None:
         final = self.path_for(sha)

@@ -8,6 +8,7 @@ them) to a server in another process.
 from __future__ import annotations
 
 import json
+import uuid
 from collections.abc import Iterator
 from typing import Any
 
@@ -312,9 +313,67 @@ def test_malformed_promote_requests(session: zenoh.Session, known: str, payload:
     _still_serving(session, known)
 
 
+# A publish in parts: (upload 0 or 1, offset, total, bytes carried). Offsets and totals are
+# drawn near where an upload of a few small parts stands, so that the model meets every case.
+PART_STEPS = st.lists(
+    st.tuples(st.integers(0, 1), st.integers(0, 12), st.integers(1, 12), st.integers(0, 6)), min_size=1, max_size=10
+)
+
+
+@FUZZ
+@given(steps=PART_STEPS)
+def test_parts_in_any_order_publish_exactly_what_was_staged_in_order(
+    session: zenoh.Session, known: str, steps: list[tuple[int, int, int, int]]
+) -> None:
+    """Model-based: every part gets the reply the staging rules predict (uploads.py invariants
+    1-2), and a completed upload publishes exactly the bytes its accepted parts carried."""
+    name = unique_name("parts")
+    upload_ids = (uuid.uuid4().hex, uuid.uuid4().hex)  # fresh per example: the server outlives it
+    staged: dict[int, tuple[int, bytes]] = {}  # upload -> (total, bytes accepted so far)
+    for i, (u, offset, total, size) in enumerate(steps):
+        payload = bytes([i]) * size
+        header = {"name": name, "part": {"upload": upload_ids[u], "offset": offset, "total": total}}
+        if offset == 0:
+            header["spec"] = SPEC.to_dict()
+        ok, body = _one_reply(session, f"{NS}/cmd/publish", attachment=json.dumps(header).encode(), payload=payload)
+        have = staged.get(u)
+        if offset >= total or size == 0 or offset + size > total:
+            assert not ok and body["code"] == "invalid", (steps, i, body)
+        elif offset == 0 or (have is not None and have[0] == total and len(have[1]) == offset):
+            data = payload if offset == 0 else have[1] + payload  # type: ignore[index]
+            assert ok, (steps, i, body)
+            if len(data) < total:
+                assert json.loads(body.payload.to_bytes()) == {"upload": upload_ids[u], "received": len(data)}
+                staged[u] = (total, data)
+                continue
+            record = json.loads(body.payload.to_bytes())
+            ok_art, art = _one_reply(session, f"{NS}/ecm/{name}/{record['version']}/artifact")
+            assert ok_art and art.payload.to_bytes() == data, (steps, i)
+            staged.pop(u, None)
+        else:
+            assert not ok and body["code"] == ("not_found" if have is None else "conflict"), (steps, i, body)
+    _still_serving(session, known)
+
+
+@FUZZ
+@given(part=JUNK)
+def test_a_junk_part_is_invalid(session: zenoh.Session, known: str, part: Any) -> None:
+    header = {"name": unique_name("junk"), "spec": SPEC.to_dict(), "part": part}
+    ok, body = _one_reply(session, f"{NS}/cmd/publish", attachment=json.dumps(header).encode(), payload=b"x")
+    if part is None:  # no part: an ordinary publish
+        assert ok
+    else:
+        assert not ok and body["code"] == "invalid" and body["details"]["field"].startswith("part"), body
+    _still_serving(session, known)
+
+
 def test_oversize_requests_are_too_large(session: zenoh.Session, known: str) -> None:
     header = json.dumps({"name": unique_name("big"), "spec": SPEC.to_dict()}).encode()
     body = _error(session, f"{NS}/cmd/publish", {"too_large"}, attachment=header, payload=b"\0" * (MAX_ARTIFACT + 1))
+    assert body["message"] == f"artifact is {MAX_ARTIFACT + 1} bytes; the limit is {MAX_ARTIFACT}"
+    part = {"upload": "c" * 32, "offset": 0, "total": MAX_ARTIFACT + 1}
+    header = json.dumps({"name": unique_name("big"), "spec": SPEC.to_dict(), "part": part}).encode()
+    body = _error(session, f"{NS}/cmd/publish", {"too_large"}, attachment=header, payload=b"\0")
     assert body["message"] == f"artifact is {MAX_ARTIFACT + 1} bytes; the limit is {MAX_ARTIFACT}"
     body = _error(session, f"{NS}/cmd/promote", {"too_large"}, payload=b" " * (4 * 2**20 + 1))
     assert body["message"].startswith("promote request: 4194305 bytes; the limit is 4194304")

@@ -28,6 +28,7 @@ from capevo.registry.local import DB_FILENAME, LocalRegistry
 from capevo.registry.read_cache import ReadCache, ReadSnapshot
 from capevo.registry.server_config import ServerConfig
 from capevo.registry.service import READ_HANDLERS, READY_PREFIX, Context
+from capevo.registry.uploads import Uploads
 from capevo.storage.commit_word import CommitWord
 
 SPEC = parse_publish_spec("kind: neural\ndescription: read cache test policy\n")
@@ -36,7 +37,8 @@ MIB = 1 << 20
 
 def _sqlite_reply(reg: LocalRegistry, route: Route, params: dict[str, int]) -> bytes | None:
     """What the server's SQLite read handler replies, or None where it raises (NotFound, ...)."""
-    ctx = Context(registry=reg, keys=Keys(), max_artifact_bytes=MIB, config=ServerConfig())
+    uploads = Uploads(reg.artifact_writer, max_artifact_bytes=MIB)
+    ctx = Context(registry=reg, keys=Keys(), max_artifact_bytes=MIB, config=ServerConfig(), uploads=uploads)
     try:
         return READ_HANDLERS[route.endpoint](ctx, route, params).payload
     except CapevoError:

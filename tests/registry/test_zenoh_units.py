@@ -31,6 +31,7 @@ from capevo.registry.server_config import (
 from capevo.registry.service import COMMAND_HANDLERS, READ_HANDLERS
 from capevo.registry.wire import (
     MAX_JSON_BYTES,
+    UploadPart,
     decode_command,
     decode_event,
     decode_reply,
@@ -131,7 +132,7 @@ def test_every_endpoint_and_command_has_a_handler() -> None:
 
 # --- wire --------------------------------------------------------------------------------------
 VALID_FIELDS: dict[str, dict[str, Any]] = {
-    "publish": {"name": "reach", "spec": SPEC, "actor": "me"},
+    "publish": {"name": "reach", "spec": SPEC, "actor": "me", "part": UploadPart("0a" * 16, 0, 3 * 2**20)},
     "promote": {"name": "reach", "version": 3, "expected_active": 2, "reason": "better", "actor": None},
     "rollback": {"name": "reach", "to": None, "expected_active": 4, "reason": "", "actor": "op"},
     "deprecate": {"name": "reach", "version": 1, "reason": "old", "actor": None},
@@ -143,6 +144,22 @@ VALID_FIELDS: dict[str, dict[str, Any]] = {
 @pytest.mark.parametrize("op", COMMANDS)
 def test_commands_round_trip(op: str) -> None:  # wire invariant 1
     assert decode_command(op, encode_command(op, **VALID_FIELDS[op])) == VALID_FIELDS[op]
+
+
+def test_a_publish_without_part_is_one_payload() -> None:
+    fields = {"name": "reach", "spec": SPEC, "actor": None}
+    assert decode_command("publish", encode_command("publish", **fields)) == {**fields, "part": None}
+
+
+def test_only_the_first_part_carries_the_spec() -> None:
+    later = {"name": "reach", "spec": None, "actor": None, "part": UploadPart("0a" * 16, 2**20, 3 * 2**20)}
+    assert decode_command("publish", encode_command("publish", **later)) == later
+    with pytest.raises(Invalid, match="'spec' goes in the first part's header only"):
+        encode_command("publish", **{**later, "spec": SPEC})
+    with pytest.raises(Invalid, match="missing field 'spec'"):
+        encode_command("publish", **{**later, "part": UploadPart("0a" * 16, 0, 3)})
+    with pytest.raises(Invalid, match="missing field 'spec'"):
+        decode_command("publish", b'{"name": "reach"}')
 
 
 def test_optional_fields_default() -> None:
@@ -165,6 +182,20 @@ def test_optional_fields_default() -> None:
         ("deprecate", {"name": "reach", "version": 0, "actor": 3}, "actor must be a string"),
         ("promote", {"name": "reach", "version": 0, "extra": 1}, "promote request: unknown field 'extra'"),
         ("publish", {"name": "reach", "spec": {"kind": "code"}}, "spec.descriptor: must be a JSON object"),
+        ("publish", {"name": "reach", "spec": SPEC, "part": []}, "part: must be a JSON object"),
+        ("publish", {"name": "reach", "spec": SPEC, "part": {"upload": "0" * 32, "offset": 0}}, "part.total: missing"),
+        ("publish", {"name": "reach", "spec": SPEC, "part": {"upload": "A" * 32, "offset": 0, "total": 1}}, "hex"),
+        (
+            "publish",
+            {"name": "reach", "spec": SPEC, "part": {"upload": "0" * 32, "offset": 5, "total": 5}},
+            "not below",
+        ),
+        ("publish", {"name": "reach", "spec": SPEC, "part": {"upload": "0" * 32, "offset": 0, "total": 0}}, "from 1"),
+        (
+            "publish",
+            {"name": "reach", "spec": SPEC, "part": {"upload": "0" * 32, "offset": True, "total": 2}},
+            "offset",
+        ),
     ],
 )
 def test_encode_runs_the_server_checks(op: str, fields: dict[str, Any], message: str) -> None:  # wire invariant 1

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from procs import run_in_threads
 
-from capevo.errors import Corrupt, ErrorCode, Invalid, NotFound, TooLarge
+from capevo.errors import Corrupt, ErrorCode, Invalid, NotFound, TooLarge, Unavailable
 from capevo.storage.blobs import BlobStore, validate_sha256
 
 
@@ -42,6 +42,28 @@ def test_inv1_put_stream_matches_put_and_leaves_no_temp_files(store: BlobStore) 
     assert store.put_stream([data[:7], data[7:]]) == (_sha(data), len(data))
     assert [p.name for p in _files(store.root)] == [_sha(data)[2:]]
     assert store.get(_sha(data)) == data
+
+
+def test_inv1_a_writer_shows_nothing_until_finished_and_discards_cleanly(store: BlobStore) -> None:
+    writer = store.writer()
+    writer.write(b"hel")
+    writer.write(memoryview(b"lo"))
+    assert list(store) == [] and writer.size == 5
+    assert writer.finish() == (_sha(b"hello"), 5)
+    assert list(store) == [_sha(b"hello")] and [p.name for p in _files(store.root)] == [_sha(b"hello")[2:]]
+    writer.discard()  # after finish: nothing to drop
+    with pytest.raises(Unavailable, match="finished or discarded"):
+        writer.write(b"more")
+    again = store.writer()
+    again.write(b"hello")
+    assert again.finish() == (_sha(b"hello"), 5)  # already stored: one file still
+    dropped = store.writer(max_bytes=4)
+    dropped.write(b"abc")
+    with pytest.raises(TooLarge):
+        dropped.write(b"de")
+    with pytest.raises(Unavailable):
+        dropped.finish()
+    assert [p.name for p in _files(store.root)] == [_sha(b"hello")[2:]]
 
 
 def test_inv1_64mb_stream(store: BlobStore) -> None:
