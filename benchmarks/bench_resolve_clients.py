@@ -38,6 +38,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +89,33 @@ def start_raw_server(endpoint: str, reply: bytes, tmp: Path) -> subprocess.Popen
     return proc
 
 
+def reader(kind: str, endpoint: str, *, timeout: float) -> tuple[Callable[[], None], Callable[[], None]]:
+    """``(call, close)``: one read of the record-sized reply, ``raw`` (a bare Zenoh get, the
+    payload taken) or ``capevo`` (``Client.get_version``, decoded into an EcmVersion)."""
+    if kind == "raw":
+        import zenoh
+
+        from capevo.registry.zconfig import client_config
+
+        session = zenoh.open(client_config(connect=[endpoint]))
+
+        def raw_call() -> None:
+            for reply in session.get(RAW_KEY, timeout=timeout):
+                if reply.ok is None:
+                    raise RuntimeError("raw query failed")
+                reply.ok.payload.to_bytes()
+
+        return raw_call, session.close
+    from capevo.registry.client import Client
+
+    client = Client([endpoint], timeout=timeout)
+
+    def capevo_call() -> None:
+        client.get_version(NAME)
+
+    return capevo_call, client.close
+
+
 def client_loop(kind: str, endpoint: str, seconds: float, warmup: int, ready: Any, go: Any, results: Any) -> None:
     """One client process: warm up, wait for ``go``, call in a closed loop for ``seconds``.
 
@@ -95,29 +123,7 @@ def client_loop(kind: str, endpoint: str, seconds: float, warmup: int, ready: An
     """
     latencies: list[float] = []
     try:
-        if kind == "raw":
-            import zenoh
-
-            from capevo.registry.zconfig import client_config
-
-            session = zenoh.open(client_config(connect=[endpoint]))
-
-            def call() -> None:
-                for reply in session.get(RAW_KEY, timeout=10.0):
-                    if reply.ok is None:
-                        raise RuntimeError("raw query failed")
-                    reply.ok.payload.to_bytes()
-
-            close = session.close
-        else:
-            from capevo.registry.client import Client
-
-            client = Client([endpoint], timeout=10.0)
-
-            def call() -> None:
-                client.get_version(NAME)
-
-            close = client.close
+        call, close = reader(kind, endpoint, timeout=10.0)
         try:
             for _ in range(warmup):
                 call()
@@ -178,29 +184,7 @@ def during_big_sends(kind: str, endpoint: str, seconds: float) -> dict[str, Any]
     ``raw``: raw gets of the record-sized reply while 64 MiB queries go to a raw queryable that
     replies without reading them: what the transport alone costs the reads on this machine.
     """
-    if kind == "raw":
-        import zenoh
-
-        from capevo.registry.zconfig import client_config
-
-        session = zenoh.open(client_config(connect=[endpoint]))
-
-        def call() -> None:
-            for reply in session.get(RAW_KEY, timeout=30.0):
-                if reply.ok is None:
-                    raise RuntimeError("raw query failed")
-                reply.ok.payload.to_bytes()
-
-        close = session.close
-    else:
-        from capevo.registry.client import Client
-
-        client = Client([endpoint], timeout=30.0)
-
-        def call() -> None:
-            client.get_version(NAME)
-
-        close = client.close
+    call, close = reader(kind, endpoint, timeout=30.0)
 
     def loop(until: float) -> list[float]:
         out: list[float] = []

@@ -88,13 +88,17 @@ def test_governance_rates_benchmark_runs_adversaries_off_and_on_and_resumes(
 
 @pytest.mark.zenoh
 def test_resolve_clients_benchmark_runs_raw_and_capevo_over_real_zenoh(results_in: Path) -> None:
-    argv = ["--clients", "2", "--seconds", "0.3", "--warmup", "5", "--rounds", "1", "--publish-seconds", "0"]
+    argv = ["--clients", "2", "--seconds", "0.3", "--warmup", "5", "--rounds", "1", "--publish-seconds", "0.3"]
     assert bench_resolve_clients.main([*argv, "--out", "smoke"]) == 0
     saved = json.loads((results_in / "smoke.json").read_text())
     (row,) = saved["by_clients"]
     assert row["clients"] == 2 and set(row["rounds"]) == {"raw", "capevo"}
     assert all(row[kind]["throughput_per_s"] > 0 and row[kind]["p50_ms"] > 0 for kind in ("raw", "capevo"))
     assert saved["server_exit_code"] == 0 and saved["reply_bytes"] > 100
+    # reads alone and during 64 MiB sends (at least one each: raw to the sink, capevo publishes in parts)
+    for during in saved["during_64mib_sends"].values():
+        assert during["sends"] >= 1 and len(during["send_s"]) == during["sends"]
+        assert during["quiet"]["n"] > 0 and during["during_64mib_sends"]["n"] > 0
 
 
 def test_sac_throughput_benchmark_measures_each_part_and_estimates_the_paper_budget(results_in: Path) -> None:

@@ -5,7 +5,10 @@ A secured server (users rita=reader, lena=learner, olga=operator) runs in its ow
 
 from __future__ import annotations
 
+import json
+import os
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -18,6 +21,7 @@ from capevo.errors import CapevoError, ErrorCode, Forbidden, Unavailable
 from capevo.records import Action, State
 from capevo.registry.client import Client
 from capevo.registry.descriptor import parse_publish_spec
+from capevo.registry.uploads import PART_BYTES
 
 pytestmark = pytest.mark.zenoh
 
@@ -257,3 +261,38 @@ def test_reader_cannot_serve_worker_keys(secured: ServerProcess) -> None:
     finally:
         impostor.close()
         operator.close()
+
+
+def _part(session: Any, user: str, name: str, upload: str, offset: int, total: int, spec: Any = None) -> Any:
+    fields = {"name": name, "part": {"upload": upload, "offset": offset, "total": total}}
+    if spec is not None:
+        fields["spec"] = spec.to_dict()
+    (reply,) = raw_query(session, f"capevo/cmd/publish/@{user}", attachment=json.dumps(fields).encode(), payload=b"x")
+    return reply
+
+
+def test_an_upload_in_parts_is_its_senders_alone(secured: ServerProcess, clients: dict[str, Client]) -> None:
+    """Parts are publishes: the same ACL, the same actor, and one user cannot add to another's upload."""
+    name = unique_name("parts")
+    data = os.urandom(2 * PART_BYTES + 7)
+    record = clients["learner"].publish(name, data, SPEC)  # in three parts
+    assert record.created_by == "lena" and clients["reader"].get_artifact(name, record.version) == data
+    lena = raw_session(secured.endpoint, user="lena", password=PASSWORDS["lena"])
+    olga = raw_session(secured.endpoint, user="olga", password=PASSWORDS["olga"])
+    rita = raw_session(secured.endpoint, user="rita", password=PASSWORDS["rita"])
+    try:
+        upload = uuid.uuid4().hex
+        assert _part(lena, "lena", name, upload, 0, 3, SPEC).ok is not None
+        taken = _part(olga, "olga", name, upload, 1, 3)  # an operator, but not the upload's sender
+        assert json.loads(taken.err.payload.to_bytes())["error"]["code"] == "not_found"
+        assert _part(lena, "lena", name, upload, 1, 3).ok is not None
+        assert raw_query(rita, "capevo/cmd/publish/@rita", attachment=b"{}", payload=b"x", timeout=5) == []
+        manual = parse_publish_spec("kind: code\ndescription: hand-written\norigin: manual\n")
+        refused = _part(lena, "lena", name, uuid.uuid4().hex, 0, 3, manual)  # refused before a byte is kept
+        assert json.loads(refused.err.payload.to_bytes())["error"]["code"] == "forbidden"
+        last = _part(lena, "lena", name, upload, 2, 3)
+        assert json.loads(last.ok.payload.to_bytes())["created_by"] == "lena"
+        assert clients["reader"].get_artifact(name, record.version + 1) == b"xxx"
+    finally:
+        for session in (lena, olga, rita):
+            session.close()
