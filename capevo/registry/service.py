@@ -367,11 +367,12 @@ def answer_command(ctx: Context, query: zenoh.Query) -> Answer:
                 details={"field": "<attachment>"},
             )
         fields = decode_command(op, attachment)
-        total = size if fields["part"] is None else fields["part"].total
-        if max(size, total) > ctx.max_artifact_bytes:
+        # a part names the whole artifact's size: refuse a too large one at its first part
+        claimed = size if fields["part"] is None else max(size, fields["part"].total)
+        if claimed > ctx.max_artifact_bytes:
             raise TooLarge(
-                f"artifact is {max(size, total)} bytes; the limit is {ctx.max_artifact_bytes}",
-                details={"size": max(size, total), "limit": ctx.max_artifact_bytes},
+                f"artifact is {claimed} bytes; the limit is {ctx.max_artifact_bytes}",
+                details={"size": claimed, "limit": ctx.max_artifact_bytes},
             )
         artifact = _payload_bytes(query)
     else:

@@ -1,8 +1,9 @@
 """Content-addressed, durable blob storage for ECM artifacts.
 
-A blob whose sha256 is ``abcdef…`` lives at ``root/ab/cdef…``. Writers stream into a
-temporary file in the same shard directory, fsync it, ``os.replace`` it into place and
-fsync the directory, so a reader (or a process restarted after SIGKILL or power loss) sees
+A blob whose sha256 is ``abcdef…`` lives at ``root/ab/cdef…``. Every write goes through a
+:class:`BlobWriter`: it streams into a temporary file in ``root/incoming`` (the same file
+system), hashing as it goes, fsyncs it, ``os.replace``-s it into place and fsyncs the
+directory, so a reader (or a process restarted after SIGKILL or power loss) sees
 either no file or the complete file, never a torn one.
 
 Invariants:
@@ -136,11 +137,7 @@ class BlobWriter:
             with fh:
                 fh.flush()
                 os.fsync(fh.fileno())
-            if not self._store._intact(sha, self.size):
-                final = self._store.path_for(sha)
-                self._store._ensure_shard(final.parent)
-                os.replace(self._tmp, final)
-                fsync_dir(final.parent)
+            self._store._install(self._tmp, sha, self.size)
             return sha, self.size
         except OSError as exc:
             raise Unavailable(f"cannot write blob under {self._store.root}: {exc}") from exc
@@ -244,13 +241,11 @@ class BlobStore:
         if not isinstance(data, (bytes, bytearray, memoryview)):
             raise Invalid(f"blob data must be bytes, got {type(data).__name__}", details={"field": "artifact"})
         view = memoryview(data)
-        sha = hashlib.sha256(view).hexdigest()
-        if self._intact(sha, view.nbytes):
-            return sha, view.nbytes
-        self._write(sha, (view[i : i + CHUNK_BYTES] for i in range(0, view.nbytes, CHUNK_BYTES)))
-        return sha, view.nbytes
+        return self.put_stream(view[i : i + CHUNK_BYTES] for i in range(0, view.nbytes, CHUNK_BYTES))
 
-    def put_stream(self, stream: BinaryIO | Iterable[bytes], *, max_bytes: int | None = None) -> tuple[str, int]:
+    def put_stream(
+        self, stream: BinaryIO | Iterable[bytes | memoryview], *, max_bytes: int | None = None
+    ) -> tuple[str, int]:
         """Store a large artifact without holding it in memory.
 
         Args:
@@ -264,7 +259,7 @@ class BlobStore:
             TooLarge: the stream exceeded ``max_bytes`` (nothing is stored).
             Unavailable: the filesystem refused the write.
         """
-        chunks: Iterable[bytes]
+        chunks: Iterable[bytes | memoryview]
         if hasattr(stream, "read"):
             reader = stream  # type: ignore[assignment]
             chunks = iter(lambda: reader.read(CHUNK_BYTES), b"")  # type: ignore[union-attr]
@@ -291,24 +286,15 @@ class BlobStore:
             raise Unavailable(f"cannot write blob under {self._root}: {exc}") from exc
         return BlobWriter(self, tmp, fh, max_bytes)
 
-    def _write(self, sha: str, chunks: Iterable[memoryview | bytes]) -> None:
+    def _install(self, tmp: Path, sha: str, size: int) -> None:
+        """Move the complete, fsynced ``tmp`` to ``sha``'s address and make the rename durable
+        (invariant 1), unless an intact copy is there already (invariant 4)."""
+        if self._intact(sha, size):
+            return
         final = self.path_for(sha)
-        try:
-            self._ensure_shard(final.parent)
-            tmp = self._new_tmp(final.parent)
-            try:
-                with open(tmp, "wb") as fh:
-                    for chunk in chunks:
-                        fh.write(chunk)
-                    fh.flush()
-                    os.fsync(fh.fileno())
-                os.replace(tmp, final)
-            finally:
-                with contextlib.suppress(FileNotFoundError):
-                    tmp.unlink()
-            fsync_dir(final.parent)
-        except OSError as exc:
-            raise Unavailable(f"cannot write blob {sha} under {self._root}: {exc}") from exc
+        self._ensure_shard(final.parent)
+        os.replace(tmp, final)
+        fsync_dir(final.parent)
 
     def _ensure_shard(self, shard: Path) -> None:
         if shard.is_dir():
