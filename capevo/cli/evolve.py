@@ -153,6 +153,12 @@ def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
 )
 @phi_option
 @identity_option
+@click.option(
+    "--tie-siblings",
+    is_flag=True,
+    help="Search one parameter set for an ECM and its siblings, the same skill for another object "
+    "(T5: milk, bread and can share each step's parameters); --modality code only.",
+)
 @click.option("--report-only", is_flag=True, help="Only rewrite the report of the run in --report-dir.")
 @click.option("--json", "as_json", is_flag=True, help="Print the run's summary as JSON on stdout.")
 @log_level_option()
@@ -178,6 +184,7 @@ def evolve(
     perturbations: bool,
     phi: str,
     identity_path: Path | None,
+    tie_siblings: bool,
     report_only: bool,
     as_json: bool,
     log_level: str,
@@ -231,6 +238,7 @@ def evolve(
             perturbations=perturbations,
             phi=phi,
             identity_path=identity_path,
+            tie_siblings=tie_siblings,
             report_only=report_only,
             as_json=as_json,
         )
@@ -265,6 +273,7 @@ def _run(ctx: click.Context, **kw: Any) -> int:
             live_episodes=kw["live_episodes"],
             gate_extension=kw["gate_extension"],
             updates_per_iteration=kw["updates_per_iteration"],
+            tie_siblings=kw["tie_siblings"],
             root=root_path if root_path is not None else Path(DEFAULT_ROOT),
             connect=endpoints,
             namespace=kw["namespace"],

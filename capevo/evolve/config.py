@@ -93,6 +93,10 @@ class CemSettings:
             candidate is the best on all its episodes, not the luckiest of one small batch.
         min_iterations: CEM iterations run before a search may stop early (its best candidate
             got every episode past the ECM): one lucky batch of 2 episodes is not evidence.
+        tie_siblings: Search one parameter set for an ECM and its siblings
+            (:func:`capevo.learner.skills.siblings`: T5's same step for its other objects),
+            evaluated and published together; ``code`` modality only. Off by default, as in
+            every run before it.
 
     Raises:
         Invalid: a value out of range.
@@ -106,8 +110,14 @@ class CemSettings:
     validate_top: int = 2
     validation_episodes: int = 0
     min_iterations: int = 1
+    tie_siblings: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.tie_siblings, bool):
+            raise Invalid(
+                f"cem.tie_siblings must be true or false, got {self.tie_siblings!r}",
+                details={"field": "cem.tie_siblings"},
+            )
         # the search's own checks, reported under this config's field names
         try:
             self.search_config()
@@ -162,6 +172,7 @@ class CemSettings:
             "validate_top": self.validate_top,
             "validation_episodes": self.validation_episodes,
             "min_iterations": self.min_iterations,
+            "tie_siblings": self.tie_siblings,
         }
 
     @classmethod

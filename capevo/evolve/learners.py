@@ -193,6 +193,11 @@ class CemUpdater:
         self.hybrid = hybrid
         self.name = "hybrid" if hybrid else "cem"
         cfg = context.config
+        if hybrid and cfg.cem.tie_siblings:
+            raise Invalid(
+                "tie_siblings needs the code modality: an LLM edit changes one ECM's code",
+                details={"field": "cem.tie_siblings"},
+            )
         context.trace_dir.mkdir(parents=True, exist_ok=True)
         self.scratch: Any = None
         self.evaluator: Any = context.candidate_evaluator
@@ -221,14 +226,24 @@ class CemUpdater:
         cem = self.context.config.cem
         slot = request.seed_slot
         train = request.plan.train(cem.train_seeds_per_update, offset=slot * cem.train_seeds_per_update)
+        tied: dict[str, str | None] = {}
+        if cem.tie_siblings:
+            from capevo.learner.skills import siblings
+
+            # a sibling already in the chain takes the searched θ into its chain candidate
+            tied = {
+                e: (request.companions[e].decode("utf-8") if e in request.companions else None)
+                for e in siblings(request.task, request.ecm)
+            }
         learn_request = request_for(
             self.context.registry,
             request.task,
             request.ecm,
             train_seeds=train,
             outcomes=request.outcomes,
-            companions={k: v for k, v in request.companions.items() if k != request.ecm},
+            companions={k: v for k, v in request.companions.items() if k != request.ecm and k not in tied},
             source=request.source,
+            tied=tied,
         )
         progress.learner_started(total=cem.episodes_per_update, unit="CEM episodes")
         episodes = 0

@@ -25,6 +25,8 @@ persistent agent A = (π_A, M_id, M_ep) stays fixed. Iteration i:
    current set against the set with every member, one decision for all (the members were
    learned behind each other; judged one at a time, those that only work together were taken
    apart, see :mod:`capevo.runtime.gate`, "Chains").
+   With ``--tie-siblings`` (``CemSettings.tie_siblings``), a search's candidate brings its
+   siblings' (the same skill for T5's other objects, the same θ) into the chain with it.
    A candidate already waiting in the registry (published by a learner worker, or left by an
    interrupted run) is gated instead of learning another.
 4. **Gate**: :class:`~capevo.runtime.gate.Gate` runs the active and the candidate version on
@@ -632,7 +634,9 @@ class EvolutionLoop:
         (a lift that drops an object the grasp barely holds), so its predecessor in the
         decomposition is learned next (once per ECM and chain); so is the predecessor of an ECM
         for which the learner found nothing better (once). The chain stops when those episodes
-        all succeeded, the limit is reached, or a learner brings nothing better twice.
+        all succeeded, the limit is reached, or a learner brings nothing better twice. A
+        candidate's tied candidates (``--tie-siblings``) join the chain with it, replacing any
+        earlier member of theirs.
 
         Returns:
             ``(ecm, proposal)`` per ECM in decomposition order (one per ECM, its latest
@@ -644,7 +648,7 @@ class EvolutionLoop:
 
         names = list(self.spec.ecm_names)
         limit = self._chain_limit()
-        members: dict[str, Proposal] = {ecm: first}
+        members: dict[str, Proposal] = {ecm: first, **_tied_proposals(first)}
         latest, latest_ecm = first, ecm
         went_upstream: set[str] = set()
         made_safe: set[str] = set()
@@ -719,6 +723,7 @@ class EvolutionLoop:
                 why = f"chain stopped: {proposal.learner} found nothing better for {nxt}"
                 break
             members[nxt] = proposal
+            members.update(_tied_proposals(proposal))
             latest, latest_ecm = proposal, nxt
         chain = sorted(members.items(), key=lambda kv: names.index(kv[0]))
         # every update learned counts, also those dropped or replaced by a later one of the same ECM
@@ -1024,6 +1029,15 @@ class _Update:
 
 def _fields(result: EvolveResult) -> dict[str, Any]:
     return {name: getattr(result, name) for name in EvolveResult.__dataclass_fields__}
+
+
+def _tied_proposals(proposal: Proposal) -> dict[str, Proposal]:
+    """Chain members for the candidates tied to ``proposal``'s: the same θ from the same search,
+    so they carry no episodes or steps of their own (the search's are counted once, on it)."""
+    cand = proposal.candidate
+    if cand is None:
+        return {}
+    return {t.ecm: Proposal(learner=f"{proposal.learner} (tied to {cand.ecm})", candidate=t) for t in cand.tied}
 
 
 def _summary_line(row: IterationMetrics) -> str:

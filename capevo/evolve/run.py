@@ -61,6 +61,8 @@ class EvolveOptions:
         gate_extension: Overrides the gate's second look (``GateConfig.extend_n``, paired seeds).
         updates_per_iteration: Overrides how many ECMs one iteration may learn in sequence
             (0: one per decomposition step).
+        tie_siblings: Search one parameter set for an ECM and its siblings
+            (``CemSettings.tie_siblings``; T5's same step for its three objects). ``code`` only.
         root: Local registry directory (embedded mode).
         connect: Zenoh endpoints of a registry server (connect mode); overrides ``root``.
         namespace, user, password, timeout: Zenoh registry client settings.
@@ -83,6 +85,7 @@ class EvolveOptions:
     live_episodes: int | None = None
     gate_extension: int | None = None
     updates_per_iteration: int | None = None
+    tie_siblings: bool = False
     root: Path = DEFAULT_ROOT
     connect: tuple[str, ...] = ()
     namespace: str = "capevo"
@@ -117,6 +120,12 @@ class EvolveOptions:
                 "remote learners publish to a registry server: give --connect ENDPOINT with --learner remote",
                 details={"field": "learner"},
             )
+        if self.tie_siblings and self.modality != "code":
+            raise Invalid(
+                f"--tie-siblings ties the parameters of code skills searched by CEM: it needs --modality code, "
+                f"not {self.modality!r}",
+                details={"field": "tie_siblings"},
+            )
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise Invalid(f"seed must be a non-negative integer, got {self.seed!r}", details={"field": "seed"})
 
@@ -138,6 +147,8 @@ class EvolveOptions:
         config = self.config if self.config is not None else make_config(self.preset)
         if self.gate_extension is not None:
             changes["gate"] = dataclasses.replace(config.gate, extend_n=self.gate_extension)
+        if self.tie_siblings:
+            changes["cem"] = dataclasses.replace(config.cem, tie_siblings=True)
         return config.replace(**changes) if changes else config
 
     def registry_where(self) -> str:

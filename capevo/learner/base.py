@@ -94,6 +94,21 @@ def score_outcomes(
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class TiedEcm:
+    """Another ECM whose parameters a search sets to the searched ones in every evaluation.
+
+    Tied ECMs share a skill (T5: the same step for another object, :func:`capevo.learner.skills.siblings`),
+    so they have the same parameter names; the search proposes one parameter set for all of them.
+    """
+
+    ecm: str
+    parent: EcmVersion
+    """Its current version (the tied candidate's parent)."""
+    source: str
+    """The source its parameters are written into (the parent's, or an earlier candidate's in the chain)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class LearnRequest:
     """One ECM to improve.
 
@@ -108,6 +123,8 @@ class LearnRequest:
         companions: Unpublished artifacts of *other* ECMs of the task (by name) that every
             evaluation runs in place of their versions: the candidates learned earlier in the
             same update, so a later step is tuned behind the earlier steps' new versions.
+        tied: ECMs whose parameters every evaluation sets to the searched ones (see
+            :class:`TiedEcm`); the learner returns a candidate for each beside its own.
     """
 
     task: str
@@ -118,11 +135,19 @@ class LearnRequest:
     train_seeds: tuple[int, ...] = ()
     outcomes: tuple[EpisodeOutcome, ...] = ()
     companions: Mapping[str, bytes] = field(default_factory=dict)
+    tied: tuple[TiedEcm, ...] = ()
 
     def __post_init__(self) -> None:
         if self.ecm in self.companions:
             raise Invalid(
                 f"{self.ecm} is the ECM being learned; it cannot also be a companion", details={"field": "companions"}
+            )
+        names = [t.ecm for t in self.tied]
+        clash = sorted({self.ecm, *self.companions} & set(names))
+        if clash or len(set(names)) != len(names):
+            raise Invalid(
+                f"a tied ECM must appear once and be neither the ECM learned nor a companion: {clash or names}",
+                details={"field": "tied"},
             )
 
     @property
@@ -140,12 +165,15 @@ def request_for(
     version: int | None = None,
     companions: Mapping[str, bytes] | None = None,
     source: str | None = None,
+    tied: Mapping[str, str | None] | None = None,
 ) -> LearnRequest:
     """A :class:`LearnRequest` for ``ecm`` at ``version`` (default: active) from ``registry``.
 
     ``companions`` are other ECMs' unpublished artifacts to evaluate with (see
     :class:`LearnRequest`); ``source`` replaces the parent's source as the starting point (an
     earlier, unpublished candidate of the same ECM), the parent record staying ``version``.
+    ``tied`` names ECMs whose parameters are searched with ``ecm``'s (see :class:`TiedEcm`), each
+    with the source to write them into (None: its active version's).
 
     Raises:
         Invalid: ``ecm`` is not in the task's decomposition or is not a code ECM.
@@ -161,6 +189,19 @@ def request_for(
         raise Invalid(f"{ecm}@{record.version} is a {record.kind.value} ECM; code learners need code")
     if source is None:
         source = registry.get_artifact(ecm, record.version).decode("utf-8")
+    tied_ecms = []
+    for name, tied_source in (tied or {}).items():
+        if name not in spec.ecm_names:
+            raise Invalid(
+                f"task {spec.name!r} has no ECM {name!r} to tie; valid: {', '.join(spec.ecm_names)}",
+                details={"field": "tied"},
+            )
+        parent = registry.get_version(name)
+        if parent.kind is not Kind.CODE:
+            raise Invalid(f"{name}@{parent.version} is a {parent.kind.value} ECM; only code ECMs can be tied")
+        if tied_source is None:
+            tied_source = registry.get_artifact(name, parent.version).decode("utf-8")
+        tied_ecms.append(TiedEcm(ecm=name, parent=parent, source=tied_source))
     return LearnRequest(
         task=spec.name,
         ecm=ecm,
@@ -169,6 +210,7 @@ def request_for(
         train_seeds=tuple(train_seeds),
         outcomes=tuple(outcomes),
         companions=dict(companions or {}),
+        tied=tuple(tied_ecms),
     )
 
 
@@ -185,6 +227,8 @@ class Candidate:
         notes: Learner-specific details (parameters found, LLM attempts, fallbacks).
         experience: The training episodes (traced) the candidate itself ran, when the learner
             kept them: where they still fail says which ECM to learn next.
+        tied: Candidates of the request's tied ECMs, learned with this one (same parameters,
+            same evidence); published and gated with it.
     """
 
     ecm: str
@@ -194,6 +238,7 @@ class Candidate:
     baseline: Score | None = None
     notes: Mapping[str, Any] = field(default_factory=dict)
     experience: tuple[EpisodeOutcome, ...] = ()
+    tied: tuple[Candidate, ...] = ()
 
     @property
     def source(self) -> str:

@@ -25,6 +25,12 @@ in units of its *scale*, ``max(|v0|, floor)`` (v0 its value in the parent), with
 one ≤ 0 (gains, heights and widths keep their sign). Explicit ``bounds`` override both (the
 scale then stays the automatic one).
 
+Tied ECMs (``LearnRequest.tied``; ``capevo evolve --tie-siblings``): other ECMs of the same
+skill, T5's same step for the other two objects. Every evaluation writes the sampled θ into
+them too, so one search finds one parameter set for the step wherever it runs, with the episodes
+of all its objects as evidence; the hand-set row shares one set the same way. What is shared is
+the hand-written template; each object keeps its own placeholders (grasp height, ridge).
+
 Which ECM: :func:`~capevo.learner.experience.pick_ecm_to_update` reads recent traces and
 names the step that failed episodes blame most: the steps that did not hand over to a later
 one (exported here too).
@@ -45,6 +51,8 @@ Invariants:
 6. With ``max_env_steps`` set, the search's episodes take at most that many env steps in all
    (``CemResult.env_steps_run``); the first iteration runs as many candidates as fit (at least
    the parent's θ, or :class:`Invalid`), a later one runs whole or not at all.
+7. Every evaluation runs each tied ECM with exactly the evaluated θ, and each tied candidate's
+   ``PARAMS`` equal the returned θ.
 """
 
 from __future__ import annotations
@@ -61,7 +69,7 @@ import numpy as np
 from capevo.errors import Invalid
 from capevo.learner.base import Candidate, CandidateEvaluator, LearnRequest, Score, config_hash, score_outcomes
 from capevo.learner.experience import EpisodeEnd, episode_ends, handover_rate, pick_ecm_to_update, trace_paths
-from capevo.records import Origin, Provenance, PublishSpec
+from capevo.records import EcmVersion, Origin, Provenance, PublishSpec
 from capevo.runtime.ecm.code import read_params, with_params
 
 log = logging.getLogger(__name__)
@@ -444,6 +452,8 @@ class CemResult:
     history: tuple[CemEvent, ...] = field(default_factory=tuple)
     experience: tuple[Any, ...] = ()
     """The best candidate's own episodes (iteration and validation), with their traces."""
+    tied_sources: Mapping[str, str] = field(default_factory=dict)
+    """The request's tied ECMs' sources with the best θ written in, by ECM name."""
 
 
 @dataclass(slots=True)
@@ -617,6 +627,7 @@ class CemSearch:
             bounds=cfg.bounds,
             ranges={k: r for k, r in read_ranges(src, filename=f"<{request.ecm}>").items() if k in start},
         )
+        tied_start = _tied_params(request, start)
         zlo, zhi = space.z_bounds()
         rng = np.random.default_rng(cfg.seed)
         mean = np.clip(np.zeros(space.dim), zlo, zhi)
@@ -645,14 +656,21 @@ class CemSearch:
                 details={"field": "max_env_steps"},
             )
 
+        def tied_sources(theta: Mapping[str, float]) -> dict[str, str]:
+            return {
+                t.ecm: with_params(t.source, {**tied_start[t.ecm], **theta}, filename=f"<{t.ecm}>")
+                for t in request.tied
+            }
+
         def run(theta: dict[str, float], seeds: Sequence[int]) -> tuple[list[Any], list[EpisodeEnd], str]:
             nonlocal episodes, env_steps
             cand = with_params(src, theta, filename=f"<{request.ecm}>")
+            tied = {name: text.encode() for name, text in tied_sources(theta).items()}
             outcomes = self.evaluator.evaluate(
                 request.task,
                 request.versions,
                 list(seeds),
-                overrides={**request.companions, request.ecm: cand.encode()},
+                overrides={**request.companions, **tied, request.ecm: cand.encode()},
                 override_origin=evaluation_origin or self.origin,
             )
             episodes += len(outcomes)
@@ -765,6 +783,7 @@ class CemSearch:
             stopped_by_budget=stopped_by_budget,
             history=tuple(history),
             experience=tuple(best.outcomes),
+            tied_sources=tied_sources(best.theta),
         )
 
     # --- the learner -----------------------------------------------------------------
@@ -790,7 +809,19 @@ class CemSearch:
             Invalid, CapevoError: as :meth:`search`.
         """
         result = self.search(request)
-        spec = candidate_spec(request, origin=self.origin, provenance=self.provenance(request))
+        provenance = self.provenance(request)
+        spec = candidate_spec(request, origin=self.origin, provenance=provenance)
+        tied = tuple(
+            Candidate(
+                ecm=t.ecm,
+                artifact=result.tied_sources[t.ecm].encode(),
+                spec=_spec_from(t.parent, origin=self.origin, provenance=provenance),
+                score=result.score,
+                baseline=result.baseline,
+                notes={"learner": self.learner_id, "params": dict(result.params), "tied_to": request.ecm},
+            )
+            for t in request.tied
+        )
         return Candidate(
             ecm=request.ecm,
             artifact=result.source.encode(),
@@ -806,12 +837,16 @@ class CemSearch:
                 "stopped_by_budget": result.stopped_by_budget,
             },
             experience=result.experience,
+            tied=tied,
         )
 
 
 def candidate_spec(request: LearnRequest, *, origin: Origin, provenance: Provenance) -> PublishSpec:
     """The parent's descriptor and interface with a new origin, parent and provenance."""
-    p = request.parent
+    return _spec_from(request.parent, origin=origin, provenance=provenance)
+
+
+def _spec_from(p: EcmVersion, *, origin: Origin, provenance: Provenance) -> PublishSpec:
     return PublishSpec(
         kind=p.kind,
         descriptor=p.descriptor,
@@ -821,6 +856,24 @@ def candidate_spec(request: LearnRequest, *, origin: Origin, provenance: Provena
         origin=origin,
         provenance=provenance,
     )
+
+
+def _tied_params(request: LearnRequest, start: Mapping[str, float]) -> dict[str, dict[str, float]]:
+    """Each tied ECM's current ``PARAMS``, checked to have exactly the searched ECM's names.
+
+    Raises:
+        Invalid: a tied ECM whose parameter names differ (it does not share the skill).
+    """
+    out: dict[str, dict[str, float]] = {}
+    for t in request.tied:
+        params = read_params(t.source, filename=f"<{t.ecm}>")
+        if set(params) != set(start):
+            raise Invalid(
+                f"{t.ecm} cannot be tied to {request.ecm}: its parameters {sorted(params)} are not {sorted(start)}",
+                details={"field": "tied"},
+            )
+        out[t.ecm] = params
+    return out
 
 
 def _passed(outcomes: Sequence[Any], ends: Sequence[Any], decomposition: Sequence[str], ecm_index: int) -> float:

@@ -244,6 +244,8 @@ class ChainUpdater(ParamUpdater):
             answer for all, or one per call in order).
         unsafe: Per learned ECM, the ECM governance stops in its candidate's episodes.
         steps: The env steps each proposal reports it spent.
+        tied: Per learned ECM, the ECMs whose candidates come with its own (``--tie-siblings``):
+            each its active source with its first parameter doubled.
     """
 
     supports_companions = True
@@ -257,8 +259,10 @@ class ChainUpdater(ParamUpdater):
         improved: bool | Sequence[bool] = True,
         unsafe: Mapping[str, str] | None = None,
         steps: int = 0,
+        tied: Mapping[str, Sequence[str]] | None = None,
     ) -> None:
         super().__init__(registry)
+        self.tied = dict(tied or {})
         self.unsafe = dict(unsafe or {})
         self.trace_dir = trace_dir
         self.stalls = dict(stalls)
@@ -283,8 +287,25 @@ class ChainUpdater(ParamUpdater):
             spec=proposal.candidate.spec,
             score=good,
             baseline=base,
+            tied=tuple(self._tied_candidate(name, good, base) for name in self.tied.get(request.ecm, ())),
         )
         return Proposal(learner=self.name, candidate=cand, episodes=4, steps=self.steps, experience=tuple(experience))
+
+    def _tied_candidate(self, ecm: str, score: Any, baseline: Any) -> Candidate:
+        parent = self.registry.get_version(ecm)
+        source = self.registry.get_artifact(ecm, parent.version).decode()
+        params = read_params(source)
+        key = next(iter(params))
+        spec = PublishSpec(
+            kind=parent.kind,
+            descriptor=parent.descriptor,
+            interface=parent.interface,
+            parent=parent.version,
+            origin=Origin.CLONE,
+            provenance=Provenance(learner_id=self.name, config_hash="0" * 64, traces=()),
+        )
+        artifact = with_params(source, {key: params[key] * 2.0 + len(self.requests)}).encode()
+        return Candidate(ecm=ecm, artifact=artifact, spec=spec, score=score, baseline=baseline)
 
 
 def fake_config(**changes: Any) -> EvolveConfig:

@@ -94,6 +94,48 @@ def test_a_chain_learns_the_next_stalled_step_behind_the_first_and_gates_both(tm
     assert Journal(tmp_path / "report").last(0, "chain")["members"][1]["ecm"] == GRASP
 
 
+def test_tied_candidates_join_the_chain_are_gated_with_it_and_cost_nothing_twice(tmp_path: Path) -> None:
+    # (--tie-siblings: a search's θ written into the ECMs of the same skill; pick's steps stand in)
+    registry = seeded_registry(tmp_path)
+    evaluator = ScriptedEvaluator(registry, _needs(REACH, LIFT))
+    updater = ChainUpdater(registry, tmp_path, {REACH: None}, tied={REACH: [LIFT]}, steps=500)
+    row = one_iteration(tmp_path, registry, evaluator, updater, updates=0)
+    assert [r.ecm for r in updater.requests] == [REACH]
+    assert row.ecm_updated == REACH and [u.ecm for u in row.further] == [LIFT]
+    assert row.further[0].learner == "param-fake (tied to pick.reach)"
+    members = Journal(tmp_path / "report").last(0, "chain")["members"]
+    assert [(m["ecm"], m["episodes"], m["steps"]) for m in members] == [(REACH, 4, 500), (LIFT, 0, 0)]
+    assert (row.learner_episodes, row.learner_steps) == (4, 500)
+    # gated as one change, and only together do they succeed
+    assert [(g.ecm, g.decision, g.candidate_successes) for g in row.gates] == [
+        (REACH, "promote", 8),
+        (LIFT, "promote", 8),
+    ]
+    assert registry.get_version(REACH, 1).gate_evidence["chain"] == {REACH: 1, LIFT: 1}
+    assert row.active_after == {REACH: 1, GRASP: 0, LIFT: 1}
+
+
+def test_a_tied_member_learned_later_starts_from_its_tied_candidate_and_replaces_its_ties(tmp_path: Path) -> None:
+    registry = seeded_registry(tmp_path)
+    evaluator = ScriptedEvaluator(registry, _needs(REACH, LIFT))
+    # reach's episodes end in lift; lift (already a tied member) is learned next, tied back to reach
+    updater = ChainUpdater(
+        registry, tmp_path, {REACH: [REACH, GRASP, LIFT], LIFT: None}, tied={REACH: [LIFT], LIFT: [REACH]}
+    )
+    row = one_iteration(tmp_path, registry, evaluator, updater, updates=0)
+    assert [r.ecm for r in updater.requests] == [REACH, LIFT]
+    lift_request = updater.requests[1]
+    assert lift_request.source is not None and lift_request.source != registry.get_artifact(LIFT, 0).decode()
+    assert set(lift_request.companions) == {REACH}
+    # the chain gates lift's own candidate and reach's copy tied to it (reach's first candidate is replaced)
+    chain = Journal(tmp_path / "report").last(0, "chain")["members"]
+    assert [(m["ecm"], m["learner"]) for m in chain] == [
+        (REACH, "param-fake (tied to pick.lift)"),
+        (LIFT, "param-fake"),
+    ]
+    assert row.active_after == {REACH: 1, GRASP: 0, LIFT: 1}
+
+
 def test_members_that_only_work_together_are_promoted_together(tmp_path: Path) -> None:
     # grasp's candidate alone succeeds on half the gate seeds, reach's alone on none, both
     # together on all (T6 at 6 pairs, results/h2-t6-4x). Judged one at a time (reach with grasp's

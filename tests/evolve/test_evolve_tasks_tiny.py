@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from capevo.errors import Invalid
 from capevo.evolve.run import EvolveOptions, run_evolution
 from capevo.learner.search import read_ranges
 from capevo.records import State
@@ -67,3 +68,28 @@ def test_two_tiny_iterations(task: str, tmp_path: Path) -> None:
 
     assert (report / "report.md").is_file()
     assert result.final is not None and [o.seed for o in result.final.final] == list(rows[0].live_seeds)
+
+
+def test_t5_with_tied_siblings_publishes_and_gates_each_steps_params_for_all_three_objects(tmp_path: Path) -> None:
+    from capevo.learner.skills import siblings
+
+    root = tmp_path / "data"
+    options = EvolveOptions(task="T5", preset="tiny", root=root, report_dir=tmp_path / "report", tie_siblings=True)
+    assert options.resolved_config().cem.tie_siblings
+    with pytest.raises(Invalid, match="--modality code"):
+        EvolveOptions(task="T5", modality="il", tie_siblings=True)
+    rows = run_evolution(options).rows
+    learned = [r for r in rows if r.candidate_version is not None]
+    assert learned, [r.update_note for r in rows]
+    registry = LocalRegistry(root, actor="test")
+    try:
+        for r in learned:
+            members = {r.ecm_updated: r.candidate_version, **{u.ecm: u.version for u in r.further}}
+            params = {e: read_params(registry.get_artifact(e, v).decode()) for e, v in members.items()}
+            for ecm, theta in params.items():
+                # every member came with its two siblings, all three at one θ, gated as one change
+                assert all(params[s] == theta for s in siblings("T5", ecm)), (ecm, members)
+            ev = registry.get_version(r.ecm_updated, r.candidate_version).gate_evidence
+            assert ev is not None and ev["chain"] == members
+    finally:
+        registry.close()

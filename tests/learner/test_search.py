@@ -539,6 +539,54 @@ def test_companions_run_with_every_candidate_and_start_source_is_used(registry) 
         request_for(registry, "pick", "pick.reach", train_seeds=[1], companions={"pick.reach": grasp})
 
 
+def test_tied_siblings_run_every_candidate_with_its_params_and_come_back_as_candidates(tmp_path) -> None:
+    from capevo.learner.skills import seed_registry, siblings
+    from capevo.registry.local import LocalRegistry
+
+    milk = "pick_place_multi.milk.reach"
+    reg = LocalRegistry(tmp_path / "reg", actor="test")
+    try:
+        seed_registry(reg, "pick_place_multi")
+        tied_names = siblings("T5", milk)
+        assert tied_names == ("pick_place_multi.bread.reach", "pick_place_multi.can.reach")
+        # bread starts from a chain candidate's source, can from its active version
+        bread_source = seed_source("T5", tied_names[0]).replace("'gain': 3.0", "'gain': 5.0")
+        request = request_for(
+            reg, "T5", milk, train_seeds=[1, 2, 3], tied={tied_names[0]: bread_source, tied_names[1]: None}
+        )
+        fake = _Recorder()
+        cand = CemSearch(fake, population=3, iterations=1, episodes_per_candidate=1, seed=2).learn(request)
+        assert len(fake.overrides) == 3
+        for overrides in fake.overrides:
+            theta = read_params(overrides[milk].decode())
+            for name in tied_names:
+                assert read_params(overrides[name].decode()) == theta
+        # the sampled θ varied, and each sibling kept its own code (its object's keys)
+        assert len({read_params(o[milk].decode())["gain"] for o in fake.overrides}) == 3
+        assert "Bread_pos" in fake.overrides[0][tied_names[0]].decode()
+        assert "Bread_pos" not in fake.overrides[0][milk].decode()
+        assert [t.ecm for t in cand.tied] == list(tied_names)
+        for t in cand.tied:
+            assert read_params(t.source) == cand.notes["params"]
+            assert t.spec.parent == 0 and t.spec.descriptor == reg.get_version(t.ecm).descriptor
+            assert t.notes["tied_to"] == milk and t.score == cand.score and t.baseline == cand.baseline
+        assert "Bread_pos" in cand.tied[0].source
+        # a different skill cannot be tied, nor the ECM itself, nor a companion
+        grasp = "pick_place_multi.milk.grasp"
+        with pytest.raises(Invalid, match="cannot be tied"):
+            CemSearch(fake, population=2, iterations=1, seed=1).learn(
+                request_for(reg, "T5", milk, train_seeds=[1], tied={grasp: None})
+            )
+        for tied, companions in (({milk: None}, {}), ({grasp: None}, {grasp: b"x"})):
+            with pytest.raises(Invalid) as info:
+                request_for(reg, "T5", milk, train_seeds=[1], tied=tied, companions=companions)
+            assert info.value.details["field"] == "tied"
+        with pytest.raises(Invalid, match="no ECM"):
+            request_for(reg, "T5", milk, train_seeds=[1], tied={"pick.reach": None})
+    finally:
+        reg.close()
+
+
 def test_handover_rate_and_steps_per_ecm_come_from_traces(tmp_path) -> None:
     path = tmp_path / "h.mcap"
     lower = ["stack.reach", "stack.grasp", "stack.lift", "stack.align", "stack.lower"]

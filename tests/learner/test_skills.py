@@ -107,6 +107,19 @@ def test_sources_validate_and_act_within_bounds(task: str) -> None:
         assert isinstance(skill.done(obs), bool)
 
 
+def test_siblings_are_t5s_same_step_for_its_other_objects() -> None:
+    from capevo.learner.skills import siblings
+
+    assert siblings("T5", "pick_place_multi.bread.lift") == (
+        "pick_place_multi.milk.lift",
+        "pick_place_multi.can.lift",
+    )
+    for task in ("T1", "T2", "T3", "T4", "T6"):
+        assert all(siblings(task, e) == () for e in task_spec(task).ecm_names)
+    with pytest.raises(Invalid, match="valid"):
+        siblings("T5", "pick.reach")
+
+
 def test_with_params_rewrites_only_params() -> None:
     source = seed_source("stack", "stack.reach")
     new = with_params(source, {"grasp_dz": 0.0})

@@ -111,6 +111,23 @@ def seed_source(task: str, ecm: str) -> str:
     return render(template, **keys)
 
 
+def siblings(task: str, ecm: str) -> tuple[str, ...]:
+    """The other ECMs of ``task`` whose v0 comes from the same skill template as ``ecm``'s, in plan
+    order: T5's same step for its other two objects; empty for every other task's ECMs.
+
+    Siblings share the hand-written structure and parameter names; their placeholders (which
+    object, its grasp height) differ. ``capevo evolve --tie-siblings`` searches one parameter set for them.
+
+    Raises:
+        Invalid: as :func:`seed_source`.
+    """
+    spec, table = _templates(task)
+    if ecm not in table:
+        seed_source(task, ecm)  # raises the listing error
+    template = table[ecm][0]
+    return tuple(e for e in spec.ecm_names if e != ecm and table[e][0] is template)
+
+
 def seed_params(task: str, ecm: str) -> dict[str, float]:
     """The v0 ``PARAMS`` of one ECM of ``task`` (a copy).
 
