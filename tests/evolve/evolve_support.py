@@ -18,6 +18,7 @@ the degradation monitor, the persistent agent and its episodic memory, the metri
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import signal
 import subprocess
@@ -137,11 +138,18 @@ class ParamUpdater:
             self.tamper(request)
         if self.fail is not None:
             raise self.fail
-        parent = self.registry.get_version(request.ecm)
-        source = self.registry.get_artifact(request.ecm, parent.version).decode()
+        n = len(self.requests)
+        cand = self._scaled(request.ecm, None if self.same else lambda v: v * self.scale * n, key=self.key)
+        return Proposal(learner=self.name, candidate=cand, episodes=4)
+
+    def _scaled(self, ecm: str, change: Callable[[float], float] | None, *, key: str | None = None) -> Candidate:
+        """A clone of ``ecm``'s active version with ``PARAMS[key]`` (default the first) changed
+        (None: the same source)."""
+        parent = self.registry.get_version(ecm)
+        source = self.registry.get_artifact(ecm, parent.version).decode()
         params = read_params(source)
-        key = self.key or next(iter(params))
-        new = source if self.same else with_params(source, {key: params[key] * self.scale * (len(self.requests))})
+        key = key or next(iter(params))
+        new = source if change is None else with_params(source, {key: change(params[key])})
         spec = PublishSpec(
             kind=parent.kind,
             descriptor=parent.descriptor,
@@ -150,9 +158,7 @@ class ParamUpdater:
             origin=Origin.CLONE,
             provenance=Provenance(learner_id=self.name, config_hash="0" * 64, traces=()),
         )
-        return Proposal(
-            learner=self.name, candidate=Candidate(ecm=request.ecm, artifact=new.encode(), spec=spec), episodes=4
-        )
+        return Candidate(ecm=ecm, artifact=new.encode(), spec=spec)
 
     def close(self) -> None:
         self.closed = True
@@ -287,25 +293,14 @@ class ChainUpdater(ParamUpdater):
             spec=proposal.candidate.spec,
             score=good,
             baseline=base,
-            tied=tuple(self._tied_candidate(name, good, base) for name in self.tied.get(request.ecm, ())),
+            tied=tuple(
+                dataclasses.replace(
+                    self._scaled(name, lambda v: v * 2.0 + len(self.requests)), score=good, baseline=base
+                )
+                for name in self.tied.get(request.ecm, ())
+            ),
         )
         return Proposal(learner=self.name, candidate=cand, episodes=4, steps=self.steps, experience=tuple(experience))
-
-    def _tied_candidate(self, ecm: str, score: Any, baseline: Any) -> Candidate:
-        parent = self.registry.get_version(ecm)
-        source = self.registry.get_artifact(ecm, parent.version).decode()
-        params = read_params(source)
-        key = next(iter(params))
-        spec = PublishSpec(
-            kind=parent.kind,
-            descriptor=parent.descriptor,
-            interface=parent.interface,
-            parent=parent.version,
-            origin=Origin.CLONE,
-            provenance=Provenance(learner_id=self.name, config_hash="0" * 64, traces=()),
-        )
-        artifact = with_params(source, {key: params[key] * 2.0 + len(self.requests)}).encode()
-        return Candidate(ecm=ecm, artifact=artifact, spec=spec, score=score, baseline=baseline)
 
 
 def fake_config(**changes: Any) -> EvolveConfig:

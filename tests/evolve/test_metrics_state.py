@@ -66,6 +66,24 @@ def test_the_gate_extension_option_reaches_the_gate_and_a_resume_notices_it() ->
     assert type(extended).from_dict(extended.to_dict()) == extended
 
 
+def test_tie_siblings_reaches_the_cem_settings_a_resume_notices_it_and_must_be_a_bool() -> None:
+    from capevo.evolve.config import CemSettings
+    from capevo.evolve.run import EvolveOptions
+
+    base = EvolveOptions(task="T5", preset="cpu-small").resolved_config()
+    tied = EvolveOptions(task="T5", preset="cpu-small", tie_siblings=True).resolved_config()
+    assert not base.cem.tie_siblings and tied.cem == dataclasses.replace(base.cem, tie_siblings=True)
+    assert base.resume_mismatches(tied) == ["cem"]
+    assert EvolveConfig.from_dict(json.loads(json.dumps(tied.to_dict()))) == tied
+    # a manifest written before the setting existed reads back untied
+    old = base.to_dict()
+    del old["cem"]["tie_siblings"]
+    assert EvolveConfig.from_dict(old) == base
+    with pytest.raises(Invalid) as info:
+        CemSettings(tie_siblings="yes")  # type: ignore[arg-type]
+    assert info.value.details["field"] == "cem.tie_siblings"
+
+
 def test_resume_mismatches_ignore_iterations_only() -> None:
     a = make_config("tiny")
     assert a.resume_mismatches(a.replace(iterations=9)) == []
