@@ -31,10 +31,12 @@ pids=()
 stop_all() { for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done; wait 2>/dev/null || true; }
 trap stop_all EXIT
 
-capevo registry serve --root "$WORK/data" --listen "$EP" --no-multicast > "$WORK/logs/registry.out" 2> "$WORK/logs/registry.err" &
+# (backgrounded as "$PY" itself, not the capevo function, so that $! is the server and the trap
+# stops it; the function's subshell would leave it running)
+"$PY" -m capevo registry serve --root "$WORK/data" --listen "$EP" --no-multicast > "$WORK/logs/registry.out" 2> "$WORK/logs/registry.err" &
 pids+=($!)
 for w in t5-a t5-b; do
-  capevo runtime serve --connect "$EP" --task T5 --idle --worker-id "$w" > "$WORK/logs/$w.out" 2> "$WORK/logs/$w.err" &
+  "$PY" -m capevo runtime serve --connect "$EP" --task T5 --idle --worker-id "$w" > "$WORK/logs/$w.out" 2> "$WORK/logs/$w.err" &
   pids+=($!)
 done
 
