@@ -312,6 +312,11 @@ def _markdown(
             f"| CEM budget | population {c.population}, {c.iterations} iteration(s), {c.episodes_per_candidate} "
             f"episode(s)/candidate: ≤ {c.episodes_per_update} training episodes per update |"
         )
+        if c.tie_siblings:
+            add(
+                "| tied siblings | on (`--tie-siblings`): each search sets one θ in an ECM and its siblings, the "
+                "same hand-written skill for another object, which run with it and are gated with it |"
+            )
     else:
         add(f"| neural learner budget | learner preset `{cfg.learner_preset}` (`capevo.learner.presets`) |")
     perturbed = "on (object jitter, observation noise, dropped actions)" if manifest.perturbations else "off"

@@ -93,3 +93,4 @@ def test_t5_with_tied_siblings_publishes_and_gates_each_steps_params_for_all_thr
             assert ev is not None and ev["chain"] == members
     finally:
         registry.close()
+    assert "| tied siblings | on" in (tmp_path / "report" / "report.md").read_text()
