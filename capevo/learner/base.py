@@ -35,6 +35,7 @@ from capevo.records import EcmVersion, Kind, Origin, PublishSpec
 from capevo.registry.api import Registry
 from capevo.runtime.evaluation import EpisodeOutcome
 from capevo.runtime.tasks import task_spec
+from capevo.runtime.tasks.spec import TaskSpec
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -180,27 +181,10 @@ def request_for(
         NotFound: no such version.
     """
     spec = task_spec(task)
-    if ecm not in spec.ecm_names:
-        raise Invalid(
-            f"task {spec.name!r} has no ECM {ecm!r}; valid: {', '.join(spec.ecm_names)}", details={"field": "ecm"}
-        )
-    record = registry.get_version(ecm, version)
-    if record.kind is not Kind.CODE:
-        raise Invalid(f"{ecm}@{record.version} is a {record.kind.value} ECM; code learners need code")
-    if source is None:
-        source = registry.get_artifact(ecm, record.version).decode("utf-8")
+    record, source = _code_version(registry, spec, ecm, version, source, field="ecm")
     tied_ecms = []
     for name, tied_source in (tied or {}).items():
-        if name not in spec.ecm_names:
-            raise Invalid(
-                f"task {spec.name!r} has no ECM {name!r} to tie; valid: {', '.join(spec.ecm_names)}",
-                details={"field": "tied"},
-            )
-        parent = registry.get_version(name)
-        if parent.kind is not Kind.CODE:
-            raise Invalid(f"{name}@{parent.version} is a {parent.kind.value} ECM; only code ECMs can be tied")
-        if tied_source is None:
-            tied_source = registry.get_artifact(name, parent.version).decode("utf-8")
+        parent, tied_source = _code_version(registry, spec, name, None, tied_source, field="tied")
         tied_ecms.append(TiedEcm(ecm=name, parent=parent, source=tied_source))
     return LearnRequest(
         task=spec.name,
@@ -212,6 +196,27 @@ def request_for(
         companions=dict(companions or {}),
         tied=tuple(tied_ecms),
     )
+
+
+def _code_version(
+    registry: Registry, spec: TaskSpec, ecm: str, version: int | None, source: str | None, *, field: str
+) -> tuple[EcmVersion, str]:
+    """``ecm``'s record at ``version`` (default: active) and ``source`` (default: its artifact).
+
+    Raises:
+        Invalid: ``ecm`` is not in the task's decomposition (reported under ``field``) or is not code.
+        NotFound: no such version.
+    """
+    if ecm not in spec.ecm_names:
+        raise Invalid(
+            f"task {spec.name!r} has no ECM {ecm!r}; valid: {', '.join(spec.ecm_names)}", details={"field": field}
+        )
+    record = registry.get_version(ecm, version)
+    if record.kind is not Kind.CODE:
+        raise Invalid(f"{ecm}@{record.version} is a {record.kind.value} ECM; code learners need code")
+    if source is None:
+        source = registry.get_artifact(ecm, record.version).decode("utf-8")
+    return record, source
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
